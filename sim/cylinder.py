@@ -1,0 +1,298 @@
+"""A cylinder as typed, frozen, SI parameters, loaded from the FORMATS.md TOML layout.
+
+Units are SI everywhere inside; the only conversion at this edge is the mounting
+angle, which the file gives in degrees and the model uses in radians.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+
+class ConfigError(ValueError):
+    """A cylinder file that cannot be used; the message is one sentence naming file and key."""
+
+
+@dataclass(frozen=True)
+class Geometry:
+    bore: float  # m
+    rod: float  # m (0 for a rodless / through-rod-free design: A2 = A1)
+    stroke: float  # m
+    dead_volume_cap: float  # m^3, V01
+    dead_volume_rod: float  # m^3, V02
+
+    @property
+    def area_cap(self) -> float:
+        return math.pi * self.bore**2 / 4.0
+
+    @property
+    def area_rod(self) -> float:
+        return math.pi * (self.bore**2 - self.rod**2) / 4.0
+
+
+@dataclass(frozen=True)
+class Mechanics:
+    moving_mass: float  # kg
+    angle: float = 0.0  # rad (file: deg), positive when extension lifts the load
+
+
+@dataclass(frozen=True)
+class Supply:
+    pressure: float  # Pa absolute
+    atmosphere: float = 1.013e5  # Pa absolute
+    temperature: float = 293.15  # K
+
+
+@dataclass(frozen=True)
+class Valve:
+    sonic_conductance: float  # m^3/(s Pa) per path at full opening
+    critical_ratio: float = 0.3
+
+
+@dataclass(frozen=True)
+class Friction:
+    Fc: float  # N
+    Fv: float  # N s/m
+    kp: float  # N/Pa
+    v_smooth: float = 1.0e-3  # m/s
+
+
+@dataclass(frozen=True)
+class Sensors:
+    """White sensor noise (standard deviations): identification weights and virtual-rig noise."""
+
+    position_noise: float = 5.0e-6  # m
+    pressure_noise: float = 300.0  # Pa
+
+
+@dataclass(frozen=True)
+class IdentifySettings:
+    estimate: tuple[str, ...] = ("Fc", "Fv", "kp")
+    drive: str = "command"  # "command" or "pressure"
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    name: str
+    geometry: Geometry
+    mechanics: Mechanics
+    supply: Supply
+    valve: Valve
+    friction: Friction
+    sensors: Sensors = field(default_factory=Sensors)
+    identify: IdentifySettings = field(default_factory=IdentifySettings)
+    source: Path | None = field(default=None, compare=False)
+
+    def value(self, name: str) -> float:
+        spec = PARAMETERS[name]
+        return float(getattr(getattr(self, spec.section), spec.attr))
+
+    def with_values(self, values: Mapping[str, float]) -> "Cylinder":
+        """A copy with the named model parameters (PARAMETERS keys) replaced."""
+        sections: dict[str, dict[str, float]] = {}
+        for name, v in values.items():
+            spec = PARAMETERS[name]
+            sections.setdefault(spec.section, {})[spec.attr] = float(v)
+        return replace(self, **{s: replace(getattr(self, s), **kw) for s, kw in sections.items()})
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    section: str
+    attr: str
+    unit: str
+    lower: float  # bounds used by the identifier
+    upper: float
+    description: str
+
+
+# Every physical parameter of the nominal model under its canonical (command-line, JSON) name.
+# Order matters: it is the order of the model's parameter vector.
+PARAMETERS: dict[str, ParameterSpec] = {
+    "bore": ParameterSpec("geometry", "bore", "m", 1e-3, 1.0, "bore diameter D"),
+    "rod": ParameterSpec("geometry", "rod", "m", 0.0, 1.0, "rod diameter d"),
+    "stroke": ParameterSpec("geometry", "stroke", "m", 1e-3, 10.0, "stroke L"),
+    "dead_volume_cap": ParameterSpec("geometry", "dead_volume_cap", "m^3", 1e-8, 1e-2, "cap-side dead volume V01"),
+    "dead_volume_rod": ParameterSpec("geometry", "dead_volume_rod", "m^3", 1e-8, 1e-2, "rod-side dead volume V02"),
+    "mass": ParameterSpec("mechanics", "moving_mass", "kg", 1e-3, 1e4, "moving mass M"),
+    "angle": ParameterSpec("mechanics", "angle", "rad", -math.pi / 2, math.pi / 2, "mounting angle"),
+    "supply_pressure": ParameterSpec("supply", "pressure", "Pa", 1e5, 5e6, "supply pressure ps"),
+    "atmosphere": ParameterSpec("supply", "atmosphere", "Pa", 5e4, 2e5, "atmospheric pressure pa"),
+    "temperature": ParameterSpec("supply", "temperature", "K", 200.0, 400.0, "supply temperature T"),
+    "conductance": ParameterSpec("valve", "sonic_conductance", "m^3/(s Pa)", 1e-12, 1e-5, "valve sonic conductance Cmax"),
+    "critical_ratio": ParameterSpec("valve", "critical_ratio", "1", 0.01, 0.9, "valve critical pressure ratio b"),
+    "Fc": ParameterSpec("friction", "Fc", "N", 0.0, 1e4, "Coulomb friction"),
+    "Fv": ParameterSpec("friction", "Fv", "N s/m", 0.0, 1e5, "viscous friction coefficient"),
+    "kp": ParameterSpec("friction", "kp", "N/Pa", 0.0, 1e-2, "seal-pressure friction coefficient"),
+    "v_smooth": ParameterSpec("friction", "v_smooth", "m/s", 1e-6, 1.0, "friction smoothing velocity"),
+}
+
+# The parameters a user may ask the identifier to estimate (geometry and supply are measured, not fitted).
+ESTIMABLE = ("Fc", "Fv", "kp", "mass", "conductance", "critical_ratio",
+             "dead_volume_cap", "dead_volume_rod", "angle")
+
+
+# --------------------------------------------------------------------------- loading
+
+_REQUIRED = object()
+
+# section -> key -> (default or _REQUIRED, check); checks return an error fragment or None
+_SCHEMA: dict[str, dict[str, Any]] = {
+    "geometry": {"bore": _REQUIRED, "rod": _REQUIRED, "stroke": _REQUIRED,
+                 "dead_volume_cap": _REQUIRED, "dead_volume_rod": _REQUIRED},
+    "mechanics": {"moving_mass": _REQUIRED, "angle": 0.0},
+    "supply": {"pressure": _REQUIRED, "atmosphere": 1.013e5, "temperature": 293.15},
+    "valve": {"sonic_conductance": _REQUIRED, "critical_ratio": 0.3},
+    "friction": {"Fc": _REQUIRED, "Fv": _REQUIRED, "kp": _REQUIRED, "v_smooth": 1.0e-3},
+    "sensors": {"position_noise": 5.0e-6, "pressure_noise": 300.0},
+    "identify": {"estimate": ("Fc", "Fv", "kp"), "drive": "command"},
+}
+_OPTIONAL_SECTIONS = {"sensors", "identify"}
+
+
+def load_cylinder(path: str | Path) -> Cylinder:
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: cylinder file not found.") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read cylinder file ({e.strerror}).") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not valid TOML ({e}).") from None
+    return parse_cylinder(data, path)
+
+
+def parse_cylinder(data: Mapping[str, Any], source: str | Path | None = None) -> Cylinder:
+    where = str(source) if source is not None else "<cylinder>"
+
+    def fail(msg: str) -> ConfigError:
+        return ConfigError(f"{where}: {msg}")
+
+    for key in data:
+        if key != "name" and key not in _SCHEMA:
+            raise fail(f"unknown key '{key}' (expected name, {', '.join(_SCHEMA)}).")
+    name = data.get("name", Path(where).stem)
+    if not isinstance(name, str):
+        raise fail("key 'name' must be a string.")
+
+    values: dict[str, dict[str, Any]] = {}
+    for section, keys in _SCHEMA.items():
+        table = data.get(section)
+        if table is None:
+            if section not in _OPTIONAL_SECTIONS:
+                raise fail(f"missing table [{section}].")
+            table = {}
+        if not isinstance(table, dict):
+            raise fail(f"key '{section}' must be a table [{section}].")
+        for key in table:
+            if key not in keys:
+                raise fail(f"unknown key '{section}.{key}' (expected one of {', '.join(keys)}).")
+        vals: dict[str, Any] = {}
+        for key, default in keys.items():
+            full = f"{section}.{key}"
+            if key not in table:
+                if default is _REQUIRED:
+                    raise fail(f"missing key '{full}'.")
+                vals[key] = default
+                continue
+            v = table[key]
+            if section == "identify":
+                vals[key] = _check_identify(key, v, fail)
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise fail(f"key '{full}' must be a number, not {type(v).__name__} {v!r}.")
+            v = float(v)
+            if not math.isfinite(v):
+                raise fail(f"key '{full}' must be finite, not {v}.")
+            vals[key] = v
+        values[section] = vals
+
+    _check_physics(values, fail)
+    mech = dict(values["mechanics"])
+    mech["angle"] = math.radians(mech["angle"])
+    ident = values["identify"]
+    return Cylinder(
+        name=name,
+        geometry=Geometry(**values["geometry"]),
+        mechanics=Mechanics(**mech),
+        supply=Supply(**values["supply"]),
+        valve=Valve(**values["valve"]),
+        friction=Friction(**values["friction"]),
+        sensors=Sensors(**values["sensors"]),
+        identify=IdentifySettings(estimate=tuple(ident["estimate"]), drive=ident["drive"]),
+        source=Path(source) if source is not None else None,
+    )
+
+
+def _check_identify(key: str, v: Any, fail) -> Any:
+    if key == "drive":
+        if v not in ("command", "pressure"):
+            raise fail(f"key 'identify.drive' must be \"command\" or \"pressure\", not {v!r}.")
+        return v
+    if not isinstance(v, list) or not v or not all(isinstance(s, str) for s in v):
+        raise fail("key 'identify.estimate' must be a non-empty list of parameter names.")
+    for s in v:
+        if s not in ESTIMABLE:
+            raise fail(f"key 'identify.estimate' names unknown parameter '{s}' (estimable: {', '.join(ESTIMABLE)}).")
+    return tuple(v)
+
+
+def _check_physics(v: dict[str, dict[str, Any]], fail) -> None:
+    def positive(section: str, key: str, unit: str) -> None:
+        if v[section][key] <= 0:
+            raise fail(f"key '{section}.{key}' must be positive ({unit}), not {v[section][key]:g}.")
+
+    for key in ("bore", "stroke", "dead_volume_cap", "dead_volume_rod"):
+        positive("geometry", key, "SI units: m, m^3")
+    g = v["geometry"]
+    if not 0 <= g["rod"] < g["bore"]:
+        raise fail(f"key 'geometry.rod' must be at least 0 and smaller than the bore, not {g['rod']:g} m.")
+    if g["bore"] > 1.0 or g["stroke"] > 10.0:
+        raise fail("key 'geometry.bore' or 'geometry.stroke' is implausibly large: lengths are in metres, not mm.")
+    positive("mechanics", "moving_mass", "kg")
+    if not -90.0 <= v["mechanics"]["angle"] <= 90.0:
+        raise fail(f"key 'mechanics.angle' must lie in [-90, 90] degrees, not {v['mechanics']['angle']:g}.")
+    s = v["supply"]
+    if not 5.0e4 <= s["atmosphere"] <= 2.0e5:
+        raise fail(f"key 'supply.atmosphere' must be an absolute pressure in Pa (about 1.013e5), not {s['atmosphere']:g}.")
+    if s["pressure"] <= s["atmosphere"]:
+        raise fail(f"key 'supply.pressure' must be an absolute pressure in Pa above atmosphere, not {s['pressure']:g} "
+                   "(bar or gauge?).")
+    positive("supply", "temperature", "K")
+    positive("valve", "sonic_conductance", "m^3/(s Pa)")
+    if not 0.0 < v["valve"]["critical_ratio"] < 0.99:
+        raise fail(f"key 'valve.critical_ratio' must lie in (0, 0.99), not {v['valve']['critical_ratio']:g}.")
+    for key in ("Fc", "Fv", "kp"):
+        if v["friction"][key] < 0:
+            raise fail(f"key 'friction.{key}' must not be negative, not {v['friction'][key]:g}.")
+    positive("friction", "v_smooth", "m/s")
+    positive("sensors", "position_noise", "m")
+    positive("sensors", "pressure_noise", "Pa")
+
+
+def cylinder_to_toml(cyl: Cylinder) -> str:
+    """The cylinder in the FORMATS.md layout (round-trips through load_cylinder)."""
+    lines = [f"name = {_toml_str(cyl.name)}", ""]
+    for section in ("geometry", "mechanics", "supply", "valve", "friction", "sensors"):
+        obj = getattr(cyl, section)
+        lines.append(f"[{section}]")
+        for f in fields(obj):
+            val = getattr(obj, f.name)
+            if section == "mechanics" and f.name == "angle":
+                val = math.degrees(val)
+            lines.append(f"{f.name} = {val!r}")
+        lines.append("")
+    lines.append("[identify]")
+    lines.append("estimate = [" + ", ".join(_toml_str(s) for s in cyl.identify.estimate) + "]")
+    lines.append(f"drive = {_toml_str(cyl.identify.drive)}")
+    return "\n".join(lines) + "\n"
+
+
+def _toml_str(s: str) -> str:
+    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
