@@ -237,6 +237,8 @@ def _check_identify(key: str, v: Any, fail) -> Any:
         return v
     if not isinstance(v, list) or not v or not all(isinstance(s, str) for s in v):
         raise fail("key 'identify.estimate' must be a non-empty list of parameter names.")
+    if len(set(v)) != len(v):
+        raise fail("key 'identify.estimate' names a parameter more than once.")
     for s in v:
         if s not in ESTIMABLE:
             raise fail(f"key 'identify.estimate' names unknown parameter '{s}' (estimable: {', '.join(ESTIMABLE)}).")
@@ -285,7 +287,7 @@ def cylinder_to_toml(cyl: Cylinder) -> str:
         for f in fields(obj):
             val = getattr(obj, f.name)
             if section == "mechanics" and f.name == "angle":
-                val = math.degrees(val)
+                val = _angle_to_deg(val)
             lines.append(f"{f.name} = {val!r}")
         lines.append("")
     lines.append("[identify]")
@@ -294,5 +296,27 @@ def cylinder_to_toml(cyl: Cylinder) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _angle_to_deg(rad: float) -> float:
+    """Degrees that load_cylinder turns back into exactly ``rad``.
+
+    math.degrees alone does not round-trip (radians(degrees(radians(57.0))) != radians(57.0)),
+    so look for the shortest decimal, then the neighbouring doubles, that convert back exactly.
+    """
+    deg = math.degrees(rad)
+    for candidate in (round(deg, digits) for digits in range(16)):
+        if math.radians(candidate) == rad:
+            return candidate
+    lo = hi = deg
+    for _ in range(4):
+        lo, hi = math.nextafter(lo, -math.inf), math.nextafter(hi, math.inf)
+        for candidate in (lo, hi):
+            if math.radians(candidate) == rad:
+                return candidate
+    return deg  # not every double is radians(some double); nearest is the best there is
+
+
 def _toml_str(s: str) -> str:
-    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    s = s.replace("\\", "\\\\").replace('"', '\\"')
+    # TOML basic strings may not hold raw control characters (a newline in a name would end it).
+    return '"' + "".join(f"\\u{ord(c):04X}" if (ord(c) < 0x20 and c != "\t") or c == "\x7f" else c
+                         for c in s) + '"'

@@ -1,0 +1,460 @@
+"""Recorded runs: the CSV layout of FORMATS.md ("A recorded run: CSV").
+
+A run is the sampled time series ``t, u, x, p1, p2`` (s, 1, m, Pa absolute), an optional
+measured supply pressure ``ps`` and any further columns, which are kept so that a rewrite
+does not lose them. Reading is strict: a file that breaks the rules is refused with a
+one-sentence :class:`RunFormatError` naming the file, the physical line and the column;
+nothing is dropped or guessed.
+"""
+from __future__ import annotations
+
+import csv
+import os
+import secrets
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from types import TracebackType
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+__all__ = ["REQUIRED_COLUMNS", "RunFormatError", "Run", "read_run", "write_run", "RunRecorder"]
+
+REQUIRED_COLUMNS: tuple[str, ...] = ("t", "u", "x", "p1", "p2")
+_PRESSURES = ("p1", "p2", "ps")
+# Below this no absolute pressure on a pneumatic rig is plausible, while bar (7.0), kPa (700),
+# psi (100) and gauge Pa (around 0) all are: catches the usual unit slips.
+_MIN_ABS_PRESSURE = 2.0e4  # Pa
+_MAX_ABS_POSITION = 10.0  # m; a stroke in mm exceeds this almost immediately
+
+# fail(message, line=None, column=None) -> the error to raise, prefixed with file, line and column
+_Fail = Callable[..., "RunFormatError"]
+
+
+class RunFormatError(ValueError):
+    """A run file that cannot be used; the message is one sentence naming file, line and column."""
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: element-wise array equality has no single truth value
+class Run:
+    """One recorded (or simulated) run in SI units; all arrays 1-D and of equal length."""
+
+    t: np.ndarray  # s, strictly increasing when read from a file
+    u: np.ndarray  # 1, valve command as sent (not clipped: the model saturates)
+    x: np.ndarray  # m, 0 = fully retracted
+    p1: np.ndarray  # Pa absolute, cap side
+    p2: np.ndarray  # Pa absolute, rod side
+    ps: np.ndarray | None = None  # Pa absolute, measured supply pressure if recorded
+    # Further columns in file order: float64 if numeric, else numpy str arrays (kept verbatim).
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    source: Path | None = None
+
+    def __post_init__(self) -> None:
+        n = None
+        for name in REQUIRED_COLUMNS + ("ps",):
+            value = getattr(self, name)
+            if value is None:
+                if name != "ps":
+                    raise ValueError(f"Run column '{name}' is missing.")
+                continue
+            arr = _as_column(value, name)
+            n = len(arr) if n is None else n
+            if len(arr) != n:
+                raise ValueError(f"Run column '{name}' has {len(arr)} samples, expected {n}.")
+            object.__setattr__(self, name, arr)
+        extra: dict[str, np.ndarray] = {}
+        for name, value in self.extra.items():
+            if name in REQUIRED_COLUMNS or name == "ps":
+                raise ValueError(f"Run extra column '{name}' clashes with a standard column.")
+            arr = np.asarray(value)
+            if arr.dtype.kind in "biuf":
+                arr = _as_column(arr, name)
+            elif arr.ndim != 1:
+                raise ValueError(f"Run extra column '{name}' must be 1-D, not shape {arr.shape}.")
+            if len(arr) != n:
+                raise ValueError(f"Run extra column '{name}' has {len(arr)} samples, expected {n}.")
+            extra[name] = arr
+        object.__setattr__(self, "extra", extra)
+        if self.source is not None:
+            object.__setattr__(self, "source", Path(self.source))
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return len(self.t)
+
+    @property
+    def duration(self) -> float:
+        """Time from the first to the last sample, s (0 for fewer than two samples)."""
+        return float(self.t[-1] - self.t[0]) if self.n >= 2 else 0.0
+
+    @property
+    def sample_period(self) -> float:
+        """Median time step, s (robust to jitter and the odd dropped sample)."""
+        if self.n < 2:
+            raise ValueError("a run needs at least 2 samples to have a sample period.")
+        return float(np.median(np.diff(self.t)))
+
+    def slice(self, i0: int | None, i1: int | None = None) -> "Run":
+        """Samples i0 (inclusive) to i1 (exclusive), Python slice rules; arrays are views."""
+        s = slice(i0, i1)
+        return replace(
+            self,
+            t=self.t[s], u=self.u[s], x=self.x[s], p1=self.p1[s], p2=self.p2[s],
+            ps=None if self.ps is None else self.ps[s],
+            extra={k: v[s] for k, v in self.extra.items()},
+        )
+
+
+def _as_column(value: object, name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim != 1:
+        raise ValueError(f"Run column '{name}' must be 1-D, not shape {arr.shape}.")
+    return arr
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_run(path: str | os.PathLike[str]) -> Run:
+    """Load a run CSV, refusing anything FORMATS.md does not allow with a RunFormatError."""
+    path = Path(path)
+    lines = _read_lines(path)
+
+    def fail(msg: str, line: int | None = None, column: str | None = None) -> RunFormatError:
+        where = str(path)
+        if line is not None:
+            where += f", line {line}"
+        if column is not None:
+            where += f", column '{column}'"
+        return RunFormatError(f"{where}: {msg}")
+
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if not lines:
+        raise fail(f"the file is empty; expected a header with columns {', '.join(REQUIRED_COLUMNS)}.")
+    h = next((i for i, ln in enumerate(lines) if ln.strip() and not _is_comment(ln)), None)
+    if h is None:
+        raise fail(f"the file holds only comments; expected a header with columns {', '.join(REQUIRED_COLUMNS)}.")
+    header_line = h + 1
+    names = _header(lines[h], header_line, fail)
+
+    rows: list[str] = []
+    linenos: list[int] = []
+    for no, ln in enumerate(lines[h + 1:], start=h + 2):
+        if _is_comment(ln):
+            continue
+        if not ln.strip():
+            raise fail("blank line inside the data (only trailing blank lines are allowed).", no)
+        rows.append(ln)
+        linenos.append(no)
+    if not rows:
+        raise fail("the header is not followed by any data rows; at least 2 samples are required.", header_line)
+    if len(rows) == 1:
+        raise fail("only one sample; at least 2 are required.", linenos[0])
+
+    columns = _parse_cells(rows, linenos, names, header_line, fail)
+
+    # Extra columns are not checked: FORMATS.md says they are ignored (but kept).
+    standard = [c for c in REQUIRED_COLUMNS + ("ps",) if c in columns]
+    for name in standard:
+        bad = np.flatnonzero(~np.isfinite(columns[name]))
+        if bad.size:
+            i = int(bad[0])
+            raise fail(f"{_cell_text(rows[i], names.index(name))!r} is not a finite number.", linenos[i], name)
+
+    t = columns["t"]
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise fail(f"time {_cell_text(rows[i], names.index('t'))} s is not after the "
+                   f"{_cell_text(rows[i - 1], names.index('t'))} s of line {linenos[i - 1]}; "
+                   "times must be strictly increasing.", linenos[i], "t")
+
+    for name in _PRESSURES:
+        if name in columns:
+            bad = np.flatnonzero(columns[name] < _MIN_ABS_PRESSURE)
+            if bad.size:
+                i = int(bad[0])
+                raise fail(f"{_cell_text(rows[i], names.index(name))} looks like bar or gauge pressure; "
+                           "absolute Pa required.", linenos[i], name)
+
+    bad = np.flatnonzero(np.abs(columns["x"]) > _MAX_ABS_POSITION)
+    if bad.size:
+        i = int(bad[0])
+        raise fail(f"{_cell_text(rows[i], names.index('x'))} is beyond {_MAX_ABS_POSITION:g} m, which looks "
+                   "like millimetres; metres required.", linenos[i], "x")
+
+    return Run(
+        t=columns["t"], u=columns["u"], x=columns["x"], p1=columns["p1"], p2=columns["p2"],
+        ps=columns.get("ps"),
+        extra={k: v for k, v in columns.items() if k not in standard},
+        source=path,
+    )
+
+
+def _read_lines(path: Path) -> list[str]:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise RunFormatError(f"{path}: file not found.") from None
+    except IsADirectoryError:
+        raise RunFormatError(f"{path}: is a directory, not a run file.") from None
+    except OSError as e:
+        raise RunFormatError(f"{path}: cannot read the file ({e.strerror}).") from None
+    if data.startswith(b"\xef\xbb\xbf"):  # spreadsheet programs like to add a UTF-8 BOM
+        data = data[3:]
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise RunFormatError(f"{path}, line {line}: not UTF-8 text (is this a CSV file?).") from None
+    # Universal newlines, but only \n, \r\n and \r: str.splitlines would also split on
+    # form feeds and the like and so shift the physical line numbers in messages.
+    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+
+
+def _is_comment(line: str) -> bool:
+    return line.lstrip().startswith("#")
+
+
+def _split(row: str) -> list[str]:
+    # csv only where quoting is present: plain split is much faster, and one reader per row
+    # stops an unbalanced quote from swallowing the following lines.
+    return next(csv.reader((row,))) if '"' in row else row.split(",")
+
+
+def _cell_text(row: str, j: int) -> str:
+    cells = _split(row)
+    return cells[j].strip() if j < len(cells) else ""
+
+
+def _header(line: str, lineno: int, fail: _Fail) -> list[str]:
+    names = [c.strip() for c in _split(line)]
+    if all(_is_number(n) for n in names):
+        raise fail(f"this looks like data, not a header; the first line that is not a comment must name "
+                   f"the columns ({', '.join(REQUIRED_COLUMNS)}).", lineno)
+    seen: dict[str, int] = {}
+    for j, name in enumerate(names):
+        if name in seen:
+            raise fail(f"column '{name}' appears more than once in the header "
+                       f"(columns {seen[name] + 1} and {j + 1}).", lineno)
+        seen[name] = j
+    missing = [c for c in REQUIRED_COLUMNS if c not in seen]
+    if missing:
+        what = "column" if len(missing) == 1 else "columns"
+        found = ", ".join(repr(n) for n in names)
+        raise fail(f"missing required {what} {', '.join(repr(c) for c in missing)} "
+                   f"(the header has {found}).", lineno)
+    return names
+
+
+def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_line: int,
+                 fail: _Fail) -> dict[str, np.ndarray]:
+    """Column name -> array; float64 for numeric columns, str for non-numeric extra columns."""
+    ncol = len(names)
+    # Fast path: numpy's C parser, valid only when every cell is a plain number.
+    try:
+        table = np.loadtxt(rows, delimiter=",", comments=None, quotechar=None, ndmin=2, dtype=np.float64)
+    except ValueError:
+        table = None
+    if table is not None and table.shape == (len(rows), ncol):
+        return {name: np.ascontiguousarray(table[:, j]) for j, name in enumerate(names)}
+
+    # Slow path: also locates the exact line and column of a problem.
+    if any('"' in r for r in rows):
+        cells = list(csv.reader(rows))
+        if len(cells) != len(rows):  # a quote left open swallowed line breaks: go row by row
+            cells = [_split(r) for r in rows]
+    else:
+        cells = [r.split(",") for r in rows]
+    for i, c in enumerate(cells):
+        if len(c) != ncol:
+            raise fail(f"{len(c)} cells, but the header on line {header_line} has {ncol} columns.", linenos[i])
+    columns: dict[str, np.ndarray] = {}
+    for j, name in enumerate(names):
+        col = [c[j] for c in cells]
+        try:  # C parser first; the Python loop below only runs to find what is wrong
+            arr = np.loadtxt(col, delimiter=",", comments=None, quotechar=None, ndmin=1, dtype=np.float64)
+        except ValueError:
+            arr = None
+        if arr is not None and arr.shape == (len(col),):
+            columns[name] = arr
+            continue
+        arr = np.empty(len(col))
+        for i, s in enumerate(col):
+            try:
+                arr[i] = _to_float(s)
+            except ValueError:
+                if name in REQUIRED_COLUMNS or name == "ps":
+                    raise fail(f"{s.strip()!r} is not a number.", linenos[i], name) from None
+                # FORMATS.md: further columns are ignored, so text there is kept, not refused.
+                columns[name] = np.array(col, dtype=str)
+                break
+        else:
+            columns[name] = arr
+    return columns
+
+
+def _is_number(s: str) -> bool:
+    try:
+        _to_float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _to_float(s: str) -> float:
+    # Same acceptance as np.loadtxt, so the fast and slow paths agree: Python's float() also
+    # takes digit separators and non-ASCII digits, which numpy refuses.
+    if "_" in s or not s.isascii():
+        raise ValueError(s)
+    return float(s)
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_run(path: str | os.PathLike[str], run: Run, comments: Sequence[str] | None = None) -> None:
+    """Write ``run`` as CSV atomically (readers never see a partial file); round-trips exactly."""
+    path = Path(path)
+    names, cols = _columns_of(run)
+    parts: list[str] = [_comment_lines(comments or ()), _join(names) + "\n"]
+    formatted = [_format_column(name, col) for name, col in zip(names, cols)]
+    parts.append("".join(",".join(row) + "\n" for row in zip(*formatted)))
+    _atomic_write(path, "".join(parts).encode("utf-8"))
+
+
+def _columns_of(run: Run) -> tuple[list[str], list[np.ndarray]]:
+    names = list(REQUIRED_COLUMNS)
+    cols = [run.t, run.u, run.x, run.p1, run.p2]
+    if run.ps is not None:
+        names.append("ps")
+        cols.append(run.ps)
+    for name, col in run.extra.items():
+        names.append(name)
+        cols.append(col)
+    return names, cols
+
+
+def _format_column(name: str, col: np.ndarray) -> list[str]:
+    if col.dtype.kind in "biuf":
+        # repr of a Python float is the shortest string that parses back to the same double.
+        return [repr(v) for v in col.astype(np.float64).tolist()]
+    return [_quote(str(v), name) for v in col.tolist()]
+
+
+def _quote(cell: str, column: str) -> str:
+    if "\n" in cell or "\r" in cell:
+        raise ValueError(f"column '{column}' holds a line break, which a run CSV cannot store.")
+    if "," in cell or '"' in cell:
+        return '"' + cell.replace('"', '""') + '"'
+    return cell
+
+
+def _join(names: Iterable[str]) -> str:
+    return ",".join(_quote(n, n) for n in names)
+
+
+def _comment_lines(comments: Iterable[str]) -> str:
+    out = []
+    for c in comments:
+        for line in c.splitlines() or [""]:  # a multi-line comment must not break the file
+            out.append(f"# {line}".rstrip() + "\n")
+    return "".join(out)
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    # os.open with 0o666 lets the umask decide the permissions, as for an ordinary new file
+    # (tempfile would leave the result readable by its owner only).
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(directory: Path) -> None:
+    # Makes the rename itself durable; not possible on every platform, hence best effort.
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class RunRecorder:
+    """Streams samples to a run CSV as they arrive, one complete line per ``append``.
+
+    Each line goes to the OS in a single unbuffered write, so a crash or kill of the process
+    leaves a file of whole lines that :func:`read_run` accepts (power loss is only covered up
+    to the last :meth:`sync`). Values are written as given; :func:`read_run` checks them.
+    An existing file at ``path`` is replaced.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, with_ps: bool = False,
+                 comments: Sequence[str] | None = None) -> None:
+        self.path = Path(path)
+        self.with_ps = with_ps
+        self.n = 0
+        names = list(REQUIRED_COLUMNS) + (["ps"] if with_ps else [])
+        self._f = open(self.path, "wb", buffering=0)
+        try:
+            self._write((_comment_lines(comments or ()) + _join(names) + "\n").encode("utf-8"))
+        except BaseException:
+            self._f.close()
+            raise
+
+    def append(self, t: float, u: float, x: float, p1: float, p2: float, ps: float | None = None) -> None:
+        if self._f.closed:
+            raise ValueError(f"RunRecorder for {self.path} is closed.")
+        if (ps is not None) != self.with_ps:
+            raise ValueError(f"RunRecorder for {self.path} was opened with with_ps={self.with_ps}, "
+                             f"but append got ps={ps!r}.")
+        values = (t, u, x, p1, p2) if ps is None else (t, u, x, p1, p2, ps)
+        self._write((",".join(repr(float(v)) for v in values) + "\n").encode("ascii"))
+        self.n += 1
+
+    def sync(self) -> None:
+        """Force the lines written so far onto the disk (survives power loss, costs a disk flush)."""
+        if not self._f.closed:
+            os.fsync(self._f.fileno())
+
+    def close(self) -> None:
+        if not self._f.closed:
+            try:
+                self.sync()
+            finally:
+                self._f.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._f.closed
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            written = self._f.write(view)
+            view = view[written:]
+
+    def __enter__(self) -> "RunRecorder":
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()

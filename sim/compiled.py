@@ -1,0 +1,181 @@
+"""Model functions compiled once and cached on disk, keyed by model structure and options.
+
+A second process, or a second cylinder of the same structure (parameters are inputs,
+never baked in), loads the shared library in milliseconds instead of rebuilding the
+symbolic graph and compiling. Without a C compiler the functions are cached in
+CasADi's own serialised form (slower to run, still no rebuild).
+
+Cache directory: $COMBINED_REALITY_CACHE, else ~/.cache/combined_reality.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import casadi as ca
+
+from .integrator import IntegratorOptions, StepBuilder
+from .plant import Plant
+
+CODE_REVISION = 3  # bump when generated functions change shape or meaning
+
+
+def cache_dir() -> Path:
+    env = os.environ.get("COMBINED_REALITY_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "combined_reality"
+
+
+def _compiler() -> str | None:
+    for cc in (os.environ.get("CC"), "gcc", "cc", "clang"):
+        if cc and shutil.which(cc):
+            return cc
+    return None
+
+
+@dataclass
+class BuildStats:
+    """Where time went when the functions were obtained (cold start vs cache hit)."""
+
+    cache_hit: bool = False
+    build_s: float = 0.0
+    compile_s: float = 0.0
+    load_s: float = 0.0
+    path: str = ""
+
+
+def load_or_build(key_parts: Sequence, build: Callable[[], list[ca.Function]], names: Sequence[str],
+                  progress: Callable[[str], None] | None = None) -> tuple[dict[str, ca.Function], BuildStats]:
+    """Functions `names` from the cache, or build(), compile and store them."""
+    key = hashlib.sha256(repr((tuple(key_parts), CODE_REVISION, ca.__version__, sys.platform)).encode()).hexdigest()[:20]
+    d = cache_dir()
+    so = d / f"cr_{key}.so"
+    ser = d / f"cr_{key}.casadi"
+    stats = BuildStats()
+    t0 = time.perf_counter()
+    if so.exists():
+        try:
+            fns = {n: ca.external(n, str(so)) for n in names}
+            stats.cache_hit, stats.load_s, stats.path = True, time.perf_counter() - t0, str(so)
+            return fns, stats
+        except RuntimeError:
+            pass  # stale or foreign library: rebuild below
+    if ser.exists() and _compiler() is None:
+        try:
+            fs = ca.Function.load(str(ser))  # a single Function holding all, see below
+            fns = {n: fs.find_function(n) for n in names}
+            stats.cache_hit, stats.load_s, stats.path = True, time.perf_counter() - t0, str(ser)
+            return fns, stats
+        except Exception:
+            pass
+
+    if progress:
+        progress("building the model functions (first use of this model structure; cached afterwards)")
+    funcs = build()
+    stats.build_s = time.perf_counter() - t0
+    d.mkdir(parents=True, exist_ok=True)
+    cc = _compiler()
+    if cc is None:
+        bundle = _bundle(funcs)
+        tmp = ser.with_suffix(f".tmp{os.getpid()}")
+        bundle.save(str(tmp))
+        os.replace(tmp, ser)
+        stats.path = str(ser)
+        return {f.name(): f for f in funcs}, stats
+
+    t1 = time.perf_counter()
+    if progress:
+        progress(f"compiling with {cc} (once, about a minute)")
+    with tempfile.TemporaryDirectory(dir=d) as tmpd:
+        cname = f"cr_{key}.c"
+        cg = ca.CodeGenerator(cname, {"with_header": False})
+        for f in funcs:
+            cg.add(f)
+        cg.generate(tmpd + os.sep)
+        tmp_so = Path(tmpd) / f"cr_{key}.so"
+        cmd = [cc, "-O2", "-fPIC", "-shared", "-fno-math-errno", str(Path(tmpd) / cname), "-o", str(tmp_so), "-lm"]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"compiling the model functions failed: {res.stderr.strip()[:500]}")
+        os.replace(tmp_so, so)  # atomic: concurrent processes see the old or the new file, never half
+    stats.compile_s = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    fns = {n: ca.external(n, str(so)) for n in names}
+    stats.load_s = time.perf_counter() - t2
+    stats.path = str(so)
+    return fns, stats
+
+
+def _bundle(funcs: list[ca.Function]) -> ca.Function:
+    """One serialisable Function that references all others (find_function recovers them)."""
+    args, outs = [], []
+    for f in funcs:
+        ins = [ca.MX.sym(f"{f.name()}_{i}", f.sparsity_in(i)) for i in range(f.n_in())]
+        args.extend(ins)
+        outs.extend(f(*ins) if f.n_out() > 1 else [f(*ins)])
+    return ca.Function("bundle", args, outs)
+
+
+@dataclass
+class ShootingFunctions:
+    """The compiled functions one drive/structure needs.
+
+    step      (x, w0, w1, p, h) -> x_next                          one sample
+    interval  (s, W[nw x M+1], p, H[1 x M]) -> X[nx x M]           states at the M next samples
+    sens      (s, W, p, H) -> (X[nx x M], S[nx x M*nz])            with d X / d (s, p[free])
+    """
+
+    plant: Plant
+    opts: IntegratorOptions
+    interval_len: int
+    free: tuple[int, ...]
+    step: ca.Function
+    interval: ca.Function
+    sens: ca.Function | None
+    stats: BuildStats = field(default_factory=BuildStats)
+
+
+def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int] = (),
+                       opts: IntegratorOptions = IntegratorOptions(), progress=None) -> ShootingFunctions:
+    free = tuple(int(i) for i in free)
+    M = int(interval_len)
+    sb = StepBuilder(plant, opts)
+    nx, nw, npar = sb.nx, sb.nw, sb.npar
+    nz = nx + len(free)
+    tag = f"{plant.drive}_{plant.structure_key}"
+
+    def build() -> list[ca.Function]:
+        step = sb.step()
+        step = ca.Function(f"step_{tag}", step.mx_in(), step.call(step.mx_in()), ["x", "w0", "w1", "p", "h"], ["xn"])
+        s = ca.MX.sym("s", nx)
+        W = ca.MX.sym("W", nw, M + 1)
+        p = ca.MX.sym("p", npar)
+        H = ca.MX.sym("H", 1, M)
+        P = ca.repmat(p, 1, M)
+        acc = step.mapaccum("acc", M)
+        X = acc(s, W[:, :M], W[:, 1:], P, H)
+        interval = ca.Function(f"interval_{tag}_{M}", [s, W, p, H], [X], ["s", "W", "p", "H"], ["X"])
+        funcs = [step, interval]
+        if free:
+            sstep = sb.sensitivity_step(free)
+            acc_s = sstep.mapaccum("acc_s", M, [0, 5], [0, 1])
+            S0 = ca.horzcat(ca.MX.eye(nx), ca.MX.zeros(nx, len(free)))
+            Xs, Ss = acc_s(s, W[:, :M], W[:, 1:], P, H, S0)
+            funcs.append(ca.Function(f"sens_{tag}_{M}_{'_'.join(map(str, free))}", [s, W, p, H], [Xs, Ss],
+                                     ["s", "W", "p", "H"], ["X", "S"]))
+        return funcs
+
+    names = [f"step_{tag}", f"interval_{tag}_{M}"]
+    if free:
+        names.append(f"sens_{tag}_{M}_{'_'.join(map(str, free))}")
+    key = ("shooting", plant.structure_key, plant.drive, opts.key(), M, free)
+    fns, stats = load_or_build(key, build, names, progress)
+    return ShootingFunctions(plant, opts, M, free, fns[names[0]], fns[names[1]],
+                             fns[names[2]] if free else None, stats)
