@@ -182,7 +182,8 @@ class StepBuilder:
         sym = [ca.MX.sym(n, *coarse.sparsity_in(i).shape) for i, n in enumerate(coarse.name_in())]
         x, w0, w1, p, h = sym[:5]
         extra = sym[5:]  # carried state (sensitivities) for the sensitivity variant
-        wm = 0.5 * (w0 + w1)
+        # interpolated inputs split at the midpoint; a held input stays held in both halves
+        wm = 0.5 * (w0 + w1) if self.interpolate else w0
         first = half(x, w0, wm, p, h / 2, *extra)
         first = first if isinstance(first, (list, tuple)) else [first]
         second = half(first[0], wm, w1, p, h / 2, *first[1:])

@@ -1,0 +1,107 @@
+"""Safe experiment programs: what the valve is asked to do during a run.
+
+The built-in program is closed-loop position control on the *measured* position along
+a seeded sequence of steps, constant-speed ramps in both directions and sines, with a
+small dither on the command. Commands are bounded and the reference stays within soft
+stroke limits; near a limit the command can only push back into the stroke.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.cylinder import Cylinder
+from sim.plant import R_AIR, RHO0, T0
+
+
+@dataclass(frozen=True)
+class ProgramOptions:
+    u_max: float = 0.8  # command bound
+    margin: float = 0.1  # soft stroke limits as a fraction of the stroke
+    dither: float = 0.03  # standard deviation of the command dither
+    bandwidth_hz: float = 4.0  # position-loop crossover
+
+
+def _reference_segments(L: float, duration: float, rng: np.random.Generator):
+    """(t_end, kind, params) segments filling `duration`; positions within [0.15L, 0.85L]."""
+    lo, hi = 0.15 * L, 0.85 * L
+    kinds = ["step", "ramp", "sine"]
+    segs = []
+    t = 0.0
+    x = 0.5 * L
+    while t < duration:
+        kind = kinds[rng.integers(len(kinds))]
+        if kind == "step":
+            target = rng.uniform(lo, hi)
+            T = rng.uniform(0.5, 1.0)
+            segs.append((t, t + T, "step", (target,)))
+            x = target
+        elif kind == "ramp":
+            target = hi if x < 0.5 * L else lo
+            T = abs(target - x) / (L * rng.choice([0.25, 0.5, 1.0, 2.0, 3.0]))
+            T = max(T, 0.2)
+            segs.append((t, t + T, "ramp", (x, target)))
+            x = target
+            segs.append((t + T, t + T + 0.3, "step", (x,)))
+            T += 0.3
+        else:
+            amp = rng.uniform(0.1, 0.3) * L
+            centre = float(np.clip(x, lo + amp, hi - amp))
+            f = rng.choice([0.5, 1.0, 1.5, 2.5])
+            T = round(rng.uniform(1.0, 2.0) * f) / f or 1.0 / f
+            segs.append((t, t + T, "sine", (centre, amp, f, x)))
+            x = centre
+        t += T
+    return segs
+
+
+class PositionProgram:
+    """Closed-loop position control along a seeded reference; call `command(t, x_measured)`."""
+
+    def __init__(self, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
+        self.cyl = cyl
+        self.opts = options
+        self.rng = np.random.default_rng(seed + 7919)
+        L = cyl.geometry.stroke
+        self.L = L
+        self.segments = _reference_segments(L, duration, np.random.default_rng(seed))
+        # velocity per unit command near mid-pressure: choked flow at full opening into
+        # a chamber at ~70 % of supply; the loop gain follows from the crossover
+        g = cyl.geometry
+        v_per_u = cyl.valve.sonic_conductance * RHO0 * math.sqrt(T0 / cyl.supply.temperature) * R_AIR \
+            * cyl.supply.temperature / (0.7 * g.area_cap)
+        self.kp = 2 * math.pi * options.bandwidth_hz / v_per_u
+        self.kff = 1.0 / v_per_u
+        self._i = 0
+
+    def reference(self, t: float) -> tuple[float, float]:
+        while self._i < len(self.segments) - 1 and t >= self.segments[self._i][1]:
+            self._i += 1
+        t0, t1, kind, par = self.segments[self._i]
+        if kind == "step":
+            return par[0], 0.0
+        if kind == "ramp":
+            a, b = par
+            s = min(max((t - t0) / (t1 - t0), 0.0), 1.0)
+            return a + (b - a) * s, (b - a) / (t1 - t0) if s < 1.0 else 0.0
+        centre, amp, f, x_from = par
+        w = 2 * math.pi * f
+        # blend from the previous position into the sine over its first quarter period
+        blend = min((t - t0) * f * 4, 1.0)
+        r = centre + amp * math.sin(w * (t - t0))
+        return x_from + (r - x_from) * blend, amp * w * math.cos(w * (t - t0)) * blend
+
+    def command(self, t: float, x_meas: float) -> float:
+        r, rdot = self.reference(t)
+        lo, hi = self.opts.margin * self.L, (1 - self.opts.margin) * self.L
+        r = min(max(r, lo), hi)
+        u = self.kp * (r - x_meas) + self.kff * rdot + self.opts.dither * self.rng.standard_normal()
+        u = max(-self.opts.u_max, min(self.opts.u_max, u))
+        # soft stroke limits: past them, only a command back into the stroke is allowed
+        if x_meas < 0.5 * lo:
+            u = max(u, 0.05)
+        elif x_meas > self.L - 0.5 * lo:
+            u = min(u, -0.05)
+        return u

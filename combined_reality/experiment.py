@@ -1,0 +1,31 @@
+"""Run an experiment program on any rig and collect the run."""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from hw.rig import Rig
+
+from .runs import Run
+
+
+def run_program(rig: Rig, program, n_samples: int, progress: Callable[[int], None] | None = None) -> Run:
+    """Read a sample, decide the command, send it; the command is recorded with its sample."""
+    t = np.empty(n_samples)
+    u = np.empty(n_samples)
+    x = np.empty(n_samples)
+    p1 = np.empty(n_samples)
+    p2 = np.empty(n_samples)
+    rig.start()
+    try:
+        for k in range(n_samples):
+            s = rig.read()
+            cmd = program.command(s.t, s.x)
+            rig.send(cmd)
+            t[k], u[k], x[k], p1[k], p2[k] = s.t, cmd, s.x, s.p1, s.p2
+            if progress and k % 1000 == 0:
+                progress(k)
+    finally:
+        rig.stop()
+    return Run(t=t, u=u, x=x, p1=p1, p2=p2)

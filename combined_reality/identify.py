@@ -1,0 +1,498 @@
+"""Multiple-shooting least-squares identification of recorded runs.
+
+The runs are cut into shooting intervals; each interval starts from a free node state
+and is integrated by the compiled plant with the recorded input. Unknowns are all
+node states and the chosen parameters; the continuity defects between intervals are
+equality constraints. Each Gauss-Newton step linearises residuals and defects and
+eliminates the node-state increments by the forward recursion
+
+    ds_{k+1} = A_k ds_k + B_k dtheta + d_k        (condensing, Bock's method)
+
+leaving a small dense problem in (first node state of each run, parameters). Steps are
+globalised with an l1 merit line search and Levenberg-Marquardt damping; parameter
+bounds are kept by an active set. At convergence the defects vanish, so the reduced
+Jacobian is that of the simulated run, and its Gauss-Newton covariance scaled by the
+residual variance gives the standard deviations.
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from sim.compiled import ShootingFunctions, shooting_functions
+from sim.cylinder import ESTIMABLE, PARAMETERS, Cylinder
+from sim.effects import Effect
+from sim.integrator import IntegratorOptions
+from sim.plant import Plant, build_plant
+
+from .runs import Run
+
+UNITS = {name: spec.unit for name, spec in PARAMETERS.items()}
+
+
+class IdentificationError(RuntimeError):
+    """The identification could not be carried out (the message says why)."""
+
+
+@dataclass(frozen=True)
+class IdentifyOptions:
+    drive: str = "command"
+    estimate: tuple[str, ...] = ("Fc", "Fv", "kp")
+    interval_s: float = 0.1  # shooting interval length
+    max_iter: int = 40
+    integrator: IntegratorOptions = IntegratorOptions()
+    threads: int = max(1, os.cpu_count() or 1)
+
+
+@dataclass
+class Estimate:
+    name: str
+    value: float
+    std: float
+    unit: str
+    initial: float
+    at_bound: bool = False
+
+
+@dataclass
+class IdentifyResult:
+    params: dict[str, Estimate]
+    fit: dict[str, float]
+    fit_per_run: list[dict[str, float]]
+    solver: dict
+    cylinder: Cylinder
+    effects: tuple[Effect, ...]
+    drive: str
+    simulated: list[np.ndarray] = field(repr=False, default_factory=list)  # per run: (n_outputs, N)
+    output_names: tuple[str, ...] = ()
+    correlation: np.ndarray | None = field(repr=False, default=None)
+
+    def to_json(self) -> dict:
+        return {
+            "params": {n: {"value": e.value, "std": e.std, "unit": e.unit, "initial": e.initial,
+                           **({"at_bound": True} if e.at_bound else {})} for n, e in self.params.items()},
+            "fit": self.fit,
+            "solver": self.solver,
+            "drive": self.drive,
+            "runs": self.fit_per_run,
+            "correlation": {"names": list(self.params),
+                            "matrix": None if self.correlation is None else np.round(self.correlation, 4).tolist()},
+        }
+
+
+# ------------------------------------------------------------------ problem layout
+
+@dataclass
+class _RunLayout:
+    run: Run
+    K: int  # intervals
+    node0: int  # index of its first node among all nodes
+    W: np.ndarray  # (nw, K*(M+1)) inputs at both ends of every sample step
+    H: np.ndarray  # (1, K*M) step lengths (0 = padding)
+    Y: np.ndarray  # (K, M, ny) measured outputs
+    mask: np.ndarray  # (K, M) 1 where a sample exists
+    S0: np.ndarray  # (nx, K) initial node states
+
+
+def _velocity_estimate(t: np.ndarray, x: np.ndarray, half: int = 10) -> np.ndarray:
+    """Local linear-regression slope over +-half samples (a Savitzky-Golay derivative)."""
+    n = len(x)
+    if n < 2 * half + 1:
+        return np.gradient(x, t)
+    j = np.arange(-half, half + 1, dtype=float)
+    kernel = j[::-1] / np.sum(j * j)
+    dt = np.median(np.diff(t))
+    v = np.convolve(x, kernel, mode="same") / dt
+    v[:half] = v[half]
+    v[-half:] = v[-half - 1]
+    return v
+
+
+def _layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> _RunLayout:
+    N = run.n
+    K = math.ceil(N / M)
+    pad = K * M + 1 - N
+    if plant.drive == "command":
+        w = run.u[None, :]
+    else:
+        w = np.vstack([run.p1, run.p2])
+    w_pad = np.hstack([w, np.repeat(w[:, -1:], pad, axis=1)])  # (nw, K*M+1)
+    idx = (np.arange(K)[:, None] * M + np.arange(M + 1)[None, :]).ravel()
+    W = w_pad[:, idx]
+    dt = np.diff(run.t)
+    H = np.concatenate([dt, np.zeros(K * M - len(dt))])[None, :]
+    meas = {"x": run.x, "p1": run.p1, "p2": run.p2}
+    ys = np.stack([meas[n] for n in plant.output_names], axis=-1)  # (N, ny)
+    ys = np.vstack([ys, np.zeros((K * M - N, ys.shape[1]))])
+    mask = (np.arange(K * M) < N).astype(float).reshape(K, M)
+    v = _velocity_estimate(run.t, run.x)
+    nodes = np.arange(K) * M
+    S0 = np.array([plant.initial_state(cyl, run.x[i], run.p1[i], run.p2[i], v[i]) for i in nodes]).T
+    return _RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask, S0)
+
+
+# ------------------------------------------------------------------ the solver
+
+def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = IdentifyOptions(),
+             effects: Sequence[Effect] = (), initial: Mapping[str, float] | None = None,
+             progress: Callable[[str], None] | None = None) -> IdentifyResult:
+    t_start = time.perf_counter()
+    if not runs:
+        raise IdentificationError("no runs to identify from.")
+    plant = build_plant(options.drive, effects)
+    estimate = tuple(options.estimate)
+    for name in estimate:
+        if name not in plant.param_names or (name in PARAMETERS and name not in ESTIMABLE):
+            raise IdentificationError(f"parameter '{name}' cannot be estimated (estimable: "
+                                      f"{', '.join(ESTIMABLE + tuple(n for n in plant.param_names if '.' in n))}).")
+    free = [plant.param_names.index(n) for n in estimate]
+    p = np.array(plant.parameter_vector(cyl), dtype=float)
+    for name, val in (initial or {}).items():
+        p[plant.param_names.index(name)] = val
+    lower, upper = _bounds(plant, estimate)
+    theta = np.clip(p[free], lower, upper)
+    p[free] = theta
+    theta_init = theta.copy()
+
+    dt0 = runs[0].sample_period
+    M = max(5, int(round(options.interval_s / dt0)))
+    sf = shooting_functions(plant, M, free, options.integrator, progress=progress)
+    nx, ny, nth = plant.nx, len(plant.output_names), len(free)
+    out_idx = [plant.state_names.index(n) for n in plant.output_names]
+
+    layouts: list[_RunLayout] = []
+    node0 = 0
+    for r in runs:
+        if r.n < 3:
+            raise IdentificationError(f"{r.source}: a run needs at least 3 samples.")
+        lay = _layout(r, plant, cyl, M, node0)
+        layouts.append(lay)
+        node0 += lay.K
+    Ktot = node0
+    W = np.hstack([l.W for l in layouts])
+    H = np.hstack([l.H for l in layouts])
+    Y = np.concatenate([l.Y for l in layouts])  # (Ktot, M, ny)
+    mask = np.concatenate([l.mask for l in layouts])  # (Ktot, M)
+    S = np.hstack([l.S0 for l in layouts])  # (nx, Ktot)
+    noise = {"x": cyl.sensors.position_noise, "p1": cyl.sensors.pressure_noise, "p2": cyl.sensors.pressure_noise}
+    wts = np.array([1.0 / noise[n] for n in plant.output_names])
+    # defect scaling: what a state can be trusted to from the sensors
+    sscale = np.array([{"p1": cyl.sensors.pressure_noise, "p2": cyl.sensors.pressure_noise,
+                        "x": cyl.sensors.position_noise, "v": cyl.sensors.position_noise / dt0}.get(n, 1e-3)
+                       for n in plant.state_names])
+    # node k is followed by node k+1 within the same run
+    has_next = np.ones(Ktot, bool)
+    for l in layouts:
+        has_next[l.node0 + l.K - 1] = False
+    nxt = np.flatnonzero(has_next)
+
+    threads = max(1, min(options.threads, Ktot))
+    f_sens = sf.sens.map(Ktot, "thread", threads) if threads > 1 else sf.sens.map(Ktot)
+    f_sim = sf.interval.map(Ktot, "thread", threads) if threads > 1 else sf.interval.map(Ktot)
+
+    def evaluate(S: np.ndarray, p: np.ndarray, with_sens: bool):
+        if with_sens:
+            Xr, Sr = f_sens(S, W, p, H)
+            X = np.asarray(Xr).reshape(nx, Ktot, M)
+            Sens = np.asarray(Sr).reshape(nx, Ktot, M, nx + nth)
+        else:
+            X = np.asarray(f_sim(S, W, p, H)).reshape(nx, Ktot, M)
+            Sens = None
+        if not np.all(np.isfinite(X)):
+            return None
+        # predicted outputs at the interval's own samples: node state, then the first M-1 steps
+        Ypred = np.concatenate([S[out_idx, :, None], X[out_idx][:, :, : M - 1]], axis=2).transpose(1, 2, 0)
+        E = (Ypred - Y) * wts * mask[:, :, None]  # (K, M, ny)
+        D = (X[:, nxt, M - 1] - S[:, nxt + 1]) / sscale[:, None]  # scaled defects (nx, n_links)
+        return E, D, X, Sens
+
+    def merit(E, D, mu):
+        return 0.5 * float(np.sum(E * E)) + mu * float(np.sum(np.abs(D)))
+
+    ev = evaluate(S, p, True)
+    if ev is None:
+        raise IdentificationError("the simulation from the initial guess is not finite; check the cylinder file "
+                                  "(units, dead volumes, supply pressure) against the run.")
+    lam, mu = 0.0, 0.0
+    status = "max_iterations"
+    history = []
+    it = 0
+    for it in range(1, options.max_iter + 1):
+        E, D, X, Sens = ev
+        lin_ = _linearize(ev, out_idx, wts, mask, M, nx, ny, nth)
+        G, Hth = lin_[0], lin_[1]
+        Nmat, g, P, Q, q = _condense(lin_, E, D * sscale[:, None], layouts, has_next, nx, nth)
+        R = len(layouts)
+        cost = 0.5 * float(np.sum(E * E))
+        viol = float(np.sum(np.abs(D)))
+
+        accepted = False
+        for _attempt in range(8):
+            step = _solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam)
+            if step is None:
+                lam = max(1e-6, lam * 10)
+                continue
+            ds0, dth = step[: R * nx].reshape(R, nx), step[R * nx:]
+            dS = np.empty((Ktot, nx))
+            for ri, l in enumerate(layouts):
+                sl = slice(l.node0, l.node0 + l.K)
+                dS[sl] = P[sl] @ ds0[ri] + Q[sl] @ dth + q[sl]
+            lin = np.einsum("kmoi,ki->kmo", G, dS) + np.einsum("kmoi,i->kmo", Hth, dth)
+            gdir = float(np.sum(E * lin))
+            quad = float(np.sum(lin * lin))
+            if viol > 0:
+                mu = max(mu, (gdir + 0.5 * quad) / (0.5 * viol) + 1.0)
+            m0 = cost + mu * viol
+            dmerit = gdir - mu * viol
+            alpha = 1.0
+            while alpha >= 1.0 / 64:
+                S_try = S + alpha * dS.T
+                th_try = np.clip(theta + alpha * dth, lower, upper)
+                p_try = p.copy()
+                p_try[free] = th_try
+                ev_try = evaluate(S_try, p_try, False)
+                if ev_try is not None:
+                    m1 = merit(ev_try[0], ev_try[1], mu)
+                    if m1 <= m0 + 1e-4 * alpha * min(dmerit, 0.0) or (abs(m1 - m0) <= 1e-12 * max(m0, 1.0)):
+                        accepted = True
+                        break
+                alpha *= 0.5
+            if accepted:
+                break
+            lam = max(1e-6, lam * 10)
+        if not accepted:
+            status = "line_search_failed"
+            break
+        lam = lam / 10 if lam > 1e-6 else 0.0
+        S, theta, p = S_try, th_try, p_try
+        std = _std(Nmat, R * nx, cost, mask.sum() * ny)
+        rel_step = np.max(np.abs(alpha * dth) / np.maximum(std, 1e-300)) if nth else 0.0
+        history.append({"iteration": it, "cost": cost, "defect": viol, "alpha": alpha, "lm": lam,
+                        "theta": theta.tolist()})
+        if progress:
+            progress(f"  iteration {it:2d}: cost {cost:.6g}  defects {viol:.3g}  step {alpha:.3g}  "
+                     + "  ".join(f"{n}={v:.5g}" for n, v in zip(estimate, theta)))
+        ev = evaluate(S, p, True)
+        if ev is None:
+            status = "simulation_failed"
+            break
+        new_viol = float(np.sum(np.abs(ev[1])))
+        if rel_step < 1e-3 and new_viol < 1e-3 * max(1, Ktot) and alpha == 1.0:
+            status = "converged"
+            break
+        if abs(cost - 0.5 * float(np.sum(ev[0] ** 2))) < 1e-12 * cost and new_viol < 1e-3 * max(1, Ktot):
+            status = "converged"
+            break
+
+    # final statistics at the solution (evaluated with sensitivities in ev)
+    E, D, X, Sens = ev
+    cost = 0.5 * float(np.sum(E * E))
+    nres = float(mask.sum() * ny)
+    Nfinal = _condense(_linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E, 0 * D, layouts, has_next, nx, nth)[0]
+    cov = _covariance(Nfinal, len(layouts) * nx, cost, nres)
+    at_bound = (theta <= lower + 1e-12 * np.maximum(1, abs(lower))) | (theta >= upper - 1e-12 * np.maximum(1, abs(upper)))
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(nth, np.nan)
+    corr = None
+    if cov is not None and nth:
+        d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+        corr = cov / np.outer(d, d)
+    params = {n: Estimate(n, float(v), float(s), _unit(plant, n), float(v0), bool(b))
+              for n, v, s, v0, b in zip(estimate, theta, std, theta_init, at_bound)}
+    # the fit: simulate every run from its identified initial state in one piece
+    sims = [_simulate_run(sf, S[:, l.node0], p, l, M) for l in layouts]
+    fit_runs = [_fit_metrics(l.run, sim, plant.output_names) for l, sim in zip(layouts, sims)]
+    fit = _pooled_fit([l.run for l in layouts], sims, plant.output_names)
+    values = {n: params[n].value for n in estimate if n in PARAMETERS}
+    eff_values = {}
+    for n in estimate:
+        if "." in n:
+            ename, pname = n.split(".", 1)
+            eff_values.setdefault(ename, {})[pname] = params[n].value
+    new_effects = tuple(_replace_effect(e, eff_values.get(e.name, {})) for e in effects)
+    solver = {"status": status, "iterations": it, "wall_s": round(time.perf_counter() - t_start, 4),
+              "cost": cost, "residual_sigma": math.sqrt(2 * cost / max(1.0, nres - len(layouts) * nx - nth)),
+              "n_samples": int(sum(l.run.n for l in layouts)), "n_intervals": Ktot, "interval_samples": M,
+              "compile": {"cache_hit": sf.stats.cache_hit, "build_s": round(sf.stats.build_s + sf.stats.compile_s, 3)},
+              "history": history}
+    return IdentifyResult(params=params, fit=fit, fit_per_run=fit_runs, solver=solver,
+                          cylinder=cyl.with_values(values), effects=new_effects, drive=plant.drive,
+                          simulated=sims, output_names=plant.output_names, correlation=corr)
+
+
+def _replace_effect(e: Effect, values: Mapping[str, float]) -> Effect:
+    from dataclasses import replace
+    return replace(e, **values) if values else e
+
+
+def _unit(plant: Plant, name: str) -> str:
+    if name in UNITS:
+        return UNITS[name]
+    ename, pname = name.split(".", 1)
+    eff = next(e for e in plant.effects if e.name == ename)
+    return eff.PARAMS[pname].unit
+
+
+def _bounds(plant: Plant, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = [], []
+    for n in names:
+        if n in PARAMETERS:
+            lo.append(PARAMETERS[n].lower)
+            hi.append(PARAMETERS[n].upper)
+        else:
+            ename, pname = n.split(".", 1)
+            info = next(e for e in plant.effects if e.name == ename).PARAMS[pname]
+            lo.append(info.lower)
+            hi.append(info.upper)
+    return np.array(lo, float), np.array(hi, float)
+
+
+def _solve_bounded(N: np.ndarray, g: np.ndarray, theta, lower, upper, n_state: int, lam: float):
+    """min 0.5 d'Nd + g'd with theta + d_theta kept in bounds (active set on the parameters)."""
+    n = len(g)
+    fixed = np.zeros(n, bool)
+    d = np.zeros(n)
+    for _ in range(len(theta) + 1):
+        free = ~fixed
+        scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+        Ns = N / np.outer(scale, scale)
+        Ns = Ns + lam * np.diag(np.diag(Ns))
+        rhs = -(g + N[:, fixed] @ d[fixed]) / scale
+        try:
+            sol = np.linalg.solve(Ns[np.ix_(free, free)], rhs[free])
+        except np.linalg.LinAlgError:
+            sol = np.linalg.lstsq(Ns[np.ix_(free, free)], rhs[free], rcond=1e-12)[0]
+        d[free] = sol / scale[free]
+        th_new = theta + d[n_state:]
+        viol = (th_new < lower) | (th_new > upper)
+        if not viol.any():
+            return d if np.all(np.isfinite(d)) else None
+        idx = np.flatnonzero(viol)
+        for i in idx:
+            d[n_state + i] = (lower[i] if th_new[i] < lower[i] else upper[i]) - theta[i]
+            fixed[n_state + i] = True
+    return d
+
+
+def _linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
+    """Weighted residual Jacobians G = dE/ds_k, Hth = dE/dtheta and the transition
+    Jacobians A = ds_end/ds_k, B = ds_end/dtheta of every interval."""
+    E, D, X, Sens = ev
+    Ktot = E.shape[0]
+    G = np.empty((Ktot, M, ny, nx))
+    Hth = np.empty((Ktot, M, ny, nth))
+    G[:, 0] = np.eye(nx)[out_idx][None]  # the node state is itself the first prediction
+    Hth[:, 0] = 0.0
+    SensO = Sens[out_idx][:, :, : M - 1]  # (ny, K, M-1, nz)
+    G[:, 1:] = SensO[..., :nx].transpose(1, 2, 0, 3)
+    Hth[:, 1:] = SensO[..., nx:].transpose(1, 2, 0, 3)
+    wm = (wts[None, None, :] * mask[:, :, None])[..., None]
+    G *= wm
+    Hth *= wm
+    A = Sens[:, :, M - 1, :nx].transpose(1, 0, 2)  # (K, nx, nx)
+    B = Sens[:, :, M - 1, nx:].transpose(1, 0, 2)  # (K, nx, nth)
+    return G, Hth, A, B
+
+
+def _condense(lin, E, Draw, layouts, has_next, nx, nth):
+    """Eliminate the node increments: ds_k = P_k ds0 + Q_k dtheta + q_k within each run.
+
+    Returns the reduced normal equations (N, g) in (ds0 per run, dtheta) and P, Q, q."""
+    G, Hth, A, B = lin
+    Ktot = G.shape[0]
+    P = np.empty((Ktot, nx, nx))
+    Q = np.empty((Ktot, nx, nth))
+    q = np.empty((Ktot, nx))
+    eye = np.eye(nx)
+    link = 0
+    for k in range(Ktot):
+        if k == 0 or not has_next[k - 1]:
+            P[k], Q[k], q[k] = eye, 0.0, 0.0
+        else:
+            j = k - 1
+            P[k] = A[j] @ P[j]
+            Q[k] = A[j] @ Q[j] + B[j]
+            q[k] = A[j] @ q[j] + Draw[:, link]
+            link += 1
+    Js = np.einsum("kmoi,kij->kmoj", G, P)
+    Jt = np.einsum("kmoi,kij->kmoj", G, Q) + Hth
+    r0 = E + np.einsum("kmoi,ki->kmo", G, q)
+    R = len(layouts)
+    nred = R * nx + nth
+    N = np.zeros((nred, nred))
+    g = np.zeros(nred)
+    for ri, l in enumerate(layouts):
+        sl = slice(l.node0, l.node0 + l.K)
+        js = Js[sl].reshape(-1, nx)
+        jt = Jt[sl].reshape(-1, nth)
+        rr = r0[sl].reshape(-1)
+        a = slice(ri * nx, (ri + 1) * nx)
+        N[a, a] = js.T @ js
+        N[a, R * nx:] = js.T @ jt
+        N[R * nx:, a] = N[a, R * nx:].T
+        N[R * nx:, R * nx:] += jt.T @ jt
+        g[a] = js.T @ rr
+        g[R * nx:] += jt.T @ rr
+    return N, g, P, Q, q
+
+
+def _covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndarray | None:
+    n = N.shape[0]
+    sigma2 = 2 * cost / max(1.0, nres - n)
+    scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    try:
+        inv = np.linalg.inv(N / np.outer(scale, scale)) / np.outer(scale, scale)
+    except np.linalg.LinAlgError:
+        return None
+    return (sigma2 * inv)[n_state:, n_state:]
+
+
+def _std(N, n_state, cost, nres) -> np.ndarray:
+    cov = _covariance(N, n_state, cost, nres)
+    if cov is None:
+        return np.full(N.shape[0] - n_state, np.inf)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def _simulate_run(sf: ShootingFunctions, s0: np.ndarray, p: np.ndarray, l: _RunLayout, M: int) -> np.ndarray:
+    """Single-shooting simulation of a whole run from its first node state: (n_outputs, N)."""
+    plant = sf.plant
+    out_idx = [plant.state_names.index(n) for n in plant.output_names]
+    xs = np.empty((plant.nx, l.K * M))
+    s = np.asarray(s0, float)
+    for k in range(l.K):
+        X = np.asarray(sf.interval(s, l.W[:, k * (M + 1):(k + 1) * (M + 1)], p, l.H[:, k * M:(k + 1) * M]))
+        xs[:, k * M] = s
+        xs[:, k * M + 1:(k + 1) * M] = X[:, : M - 1]
+        s = X[:, M - 1]
+    return xs[out_idx, : l.run.n]
+
+
+def _metrics(meas: np.ndarray, sim: np.ndarray) -> tuple[float, float]:
+    err = sim - meas
+    rmse = float(np.sqrt(np.mean(err * err)))
+    sst = float(np.sum((meas - meas.mean()) ** 2))
+    r2 = 1.0 - float(np.sum(err * err)) / sst if sst > 0 else float("nan")
+    return rmse, r2
+
+
+def _fit_metrics(run: Run, sim: np.ndarray, outputs: Sequence[str]) -> dict[str, float]:
+    meas = {"x": run.x, "p1": run.p1, "p2": run.p2}
+    out: dict[str, float] = {"source": str(run.source) if run.source else None}
+    for i, n in enumerate(outputs):
+        rmse, r2 = _metrics(meas[n], sim[i])
+        out[f"rmse_{n}"], out[f"r2_{n}"] = rmse, r2
+    return out
+
+
+def _pooled_fit(runs: Sequence[Run], sims: Sequence[np.ndarray], outputs: Sequence[str]) -> dict[str, float]:
+    meas_all = {n: np.concatenate([getattr(r, n) for r in runs]) for n in outputs}
+    fit = {}
+    for i, n in enumerate(outputs):
+        sim = np.concatenate([s[i] for s in sims])
+        fit[f"rmse_{n}"], fit[f"r2_{n}"] = _metrics(meas_all[n], sim)
+    return fit

@@ -1,0 +1,76 @@
+"""The virtual rig: the nominal plant (plus switched-on effects as truth) with white sensor noise.
+
+It is built from the same compiled plant as the identifier, integrated with a much
+tighter tolerance (TRUTH_OPTIONS) so that identification tests include the
+identifier's own discretisation error instead of reproducing it.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from sim.compiled import shooting_functions
+from sim.cylinder import Cylinder
+from sim.effects import Effect
+from sim.integrator import TRUTH_OPTIONS, IntegratorOptions
+from sim.plant import build_plant
+
+from .rig import Sample, bounded
+
+
+class VirtualRig:
+    """An in-process rig: `read()` advances the plant by one sample period with the held command."""
+
+    def __init__(self, cyl: Cylinder, effects: Sequence[Effect] = (), *, rate: float = 1000.0, seed: int = 0,
+                 x0: float | None = None, noise: bool = True, integrator: IntegratorOptions = TRUTH_OPTIONS,
+                 progress=None):
+        self.cyl = cyl
+        self.effects = tuple(effects)
+        self.plant = build_plant("command", self.effects)
+        self.params = np.array(self.plant.parameter_vector(cyl))
+        self.funcs = shooting_functions(self.plant, 1, (), integrator, progress=progress)
+        self.dt = 1.0 / rate
+        self.rng = np.random.default_rng(seed)
+        self.noise = noise
+        L = cyl.geometry.stroke
+        x_start = 0.5 * L if x0 is None else x0
+        # at rest, valve centred, chambers balanced so the piston holds still
+        p2 = 0.5 * (cyl.supply.pressure + cyl.supply.atmosphere)
+        g = cyl.geometry
+        p1 = (p2 * g.area_rod + cyl.supply.atmosphere * (g.area_cap - g.area_rod)
+              + cyl.mechanics.moving_mass * 9.81 * np.sin(cyl.mechanics.angle)) / g.area_cap
+        self.state = np.array(self.plant.initial_state(cyl, x_start, p1, p2), float)
+        self.k = 0  # sample counter: t = k * dt without accumulated rounding
+        self.u = 0.0
+        self._started = False
+
+    @property
+    def true_state(self) -> dict[str, float]:
+        return dict(zip(self.plant.state_names, self.state.tolist()))
+
+    def start(self) -> None:
+        self._started = True
+
+    def send(self, u: float) -> None:
+        self.u = bounded(u)
+
+    def read(self, timeout: float | None = None) -> Sample:
+        if self._started:
+            self.state = np.asarray(self.funcs.step(self.state, self.u, self.u, self.params, self.dt)).ravel()
+            self.k += 1
+            if not np.all(np.isfinite(self.state)):
+                raise RuntimeError(f"virtual rig: the plant diverged at t = {self.k * self.dt:.3f} s")
+        else:
+            self._started = True
+        s = dict(zip(self.plant.state_names, self.state))
+        x, p1, p2 = s["x"], s["p1"], s["p2"]
+        if self.noise:
+            sen = self.cyl.sensors
+            x += sen.position_noise * self.rng.standard_normal()
+            p1 += sen.pressure_noise * self.rng.standard_normal()
+            p2 += sen.pressure_noise * self.rng.standard_normal()
+        return Sample(t=self.k * self.dt, x=float(x), p1=float(p1), p2=float(p2), u_applied=self.u)
+
+    def stop(self) -> None:
+        self.u = 0.0
