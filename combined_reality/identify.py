@@ -226,12 +226,12 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         E, D, X, Sens = ev
         lin_ = _linearize(ev, out_idx, wts, mask, M, nx, ny, nth)
         G, Hth = lin_[0], lin_[1]
-        Nmat, g, P, Q, q = _condense(lin_, E, D * sscale[:, None], layouts, has_next, nx, nth)
+        Nmat, g, P, Q, q, _ = _condense(lin_, E, D * sscale[:, None], layouts, has_next, nx, nth)
         R = len(layouts)
         cost = 0.5 * float(np.sum(E * E))
         viol = float(np.sum(np.abs(D)))
 
-        accepted = False
+        accepted = converged_here = False
         for _attempt in range(8):
             step = _solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam)
             if step is None:
@@ -245,6 +245,10 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
             lin = np.einsum("kmoi,ki->kmo", G, dS) + np.einsum("kmoi,i->kmo", Hth, dth)
             gdir = float(np.sum(E * lin))
             quad = float(np.sum(lin * lin))
+            predicted = -(gdir + 0.5 * quad)  # decrease of the cost the Gauss-Newton model expects
+            if predicted < max(1e-2, 1e-10 * cost) and viol < 1e-3 * max(1, Ktot):
+                converged_here = True  # nothing left to gain, statistically or numerically
+                break
             if viol > 0:
                 mu = max(mu, (gdir + 0.5 * quad) / (0.5 * viol) + 1.0)
             m0 = cost + mu * viol
@@ -265,6 +269,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
             if accepted:
                 break
             lam = max(1e-6, lam * 10)
+        if converged_here:
+            status = "converged"
+            break
         if not accepted:
             status = "line_search_failed"
             break
@@ -293,8 +300,18 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     E, D, X, Sens = ev
     cost = 0.5 * float(np.sum(E * E))
     nres = float(mask.sum() * ny)
-    Nfinal = _condense(_linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E, 0 * D, layouts, has_next, nx, nth)[0]
-    cov = _covariance(Nfinal, len(layouts) * nx, cost, nres)
+    Nfinal, _, _, _, _, scores = _condense(_linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E, 0 * D,
+                                           layouts, has_next, nx, nth)
+    cov_gn = _covariance(Nfinal, len(layouts) * nx, cost, nres)
+    cov_robust = _cluster_covariance(Nfinal, scores, layouts, len(layouts) * nx,
+                                     max(1, int(round(1.0 / (M * dt0)))))
+    # residuals of real rigs (and of the pressure drive, whose inputs are noisy) are not
+    # white: report the larger of the Gauss-Newton and the cluster-robust variances
+    cov = cov_gn
+    if cov_gn is not None and cov_robust is not None:
+        scale = np.sqrt(np.maximum(np.diag(cov_robust), 0) / np.maximum(np.diag(cov_gn), 1e-300))
+        scale = np.maximum(scale, 1.0)
+        cov = cov_gn * np.outer(scale, scale)
     at_bound = (theta <= lower + 1e-12 * np.maximum(1, abs(lower))) | (theta >= upper - 1e-12 * np.maximum(1, abs(upper)))
     std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(nth, np.nan)
     corr = None
@@ -425,6 +442,12 @@ def _condense(lin, E, Draw, layouts, has_next, nx, nth):
     nred = R * nx + nth
     N = np.zeros((nred, nred))
     g = np.zeros(nred)
+    # per-interval gradient contributions ("scores") for the cluster-robust covariance
+    scores = np.zeros((Ktot, nred))
+    for ri, l in enumerate(layouts):
+        sl = slice(l.node0, l.node0 + l.K)
+        scores[sl, ri * nx:(ri + 1) * nx] = np.einsum("kmoi,kmo->ki", Js[sl], r0[sl])
+    scores[:, R * nx:] = np.einsum("kmoi,kmo->ki", Jt, r0)
     for ri, l in enumerate(layouts):
         sl = slice(l.node0, l.node0 + l.K)
         js = Js[sl].reshape(-1, nx)
@@ -437,7 +460,7 @@ def _condense(lin, E, Draw, layouts, has_next, nx, nth):
         N[R * nx:, R * nx:] += jt.T @ jt
         g[a] = js.T @ rr
         g[R * nx:] += jt.T @ rr
-    return N, g, P, Q, q
+    return N, g, P, Q, q, scores
 
 
 def _covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndarray | None:
@@ -449,6 +472,26 @@ def _covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.nda
     except np.linalg.LinAlgError:
         return None
     return (sigma2 * inv)[n_state:, n_state:]
+
+
+def _cluster_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int, block: int) -> np.ndarray | None:
+    """Sandwich covariance N^-1 (sum_b s_b s_b') N^-1 with clusters of `block` consecutive
+    intervals (about one second): honest when residuals are correlated in time."""
+    sums = []
+    for l in layouts:
+        for k0 in range(l.node0, l.node0 + l.K, block):
+            sums.append(scores[k0:min(k0 + block, l.node0 + l.K)].sum(axis=0))
+    S = np.array(sums)
+    nb = len(S)
+    if nb < 5:
+        return None
+    meat = S.T @ S * nb / (nb - 1)
+    scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    try:
+        inv = np.linalg.inv(N / np.outer(scale, scale)) / np.outer(scale, scale)
+    except np.linalg.LinAlgError:
+        return None
+    return (inv @ meat @ inv)[n_state:, n_state:]
 
 
 def _std(N, n_state, cost, nres) -> np.ndarray:

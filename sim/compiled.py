@@ -153,7 +153,8 @@ def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int
 
     def build() -> list[ca.Function]:
         step = sb.step()
-        step = ca.Function(f"step_{tag}", step.mx_in(), step.call(step.mx_in()), ["x", "w0", "w1", "p", "h"], ["xn"])
+        ins = step.mx_in()
+        step = ca.Function(f"step_{tag}", ins, step.call(ins), ["x", "w0", "w1", "p", "h"], ["xn"])
         s = ca.MX.sym("s", nx)
         W = ca.MX.sym("W", nw, M + 1)
         p = ca.MX.sym("p", npar)

@@ -1,0 +1,45 @@
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the test oracle module
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _model_cache(tmp_path_factory):
+    """Compiled model functions go to the user cache unless CI asks for a fresh one."""
+    if os.environ.get("COMBINED_REALITY_FRESH_CACHE"):
+        os.environ["COMBINED_REALITY_CACHE"] = str(tmp_path_factory.mktemp("model_cache"))
+    yield
+
+
+@pytest.fixture(scope="session")
+def cyl_a():
+    from sim.cylinder import load_cylinder
+
+    return load_cylinder(CONFIGS / "cyl_a_32x100.toml")
+
+
+@pytest.fixture(scope="session")
+def cyl_50():
+    from sim.cylinder import load_cylinder
+
+    return load_cylinder(CONFIGS / "ind4_norgren_50x400.toml")
+
+
+@pytest.fixture(scope="session")
+def run_a(cyl_a):
+    from combined_reality.cli import simulate_run
+
+    return simulate_run(cyl_a, 20.0, seed=1)
+
+
+@pytest.fixture(scope="session")
+def run_50(cyl_50):
+    from combined_reality.cli import simulate_run
+
+    return simulate_run(cyl_50, 20.0, seed=2)

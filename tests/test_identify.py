@@ -1,0 +1,110 @@
+"""Identification recovers the truth of the virtual rig, with honest uncertainties."""
+import numpy as np
+import pytest
+
+from combined_reality.cli import simulate_run
+from combined_reality.identify import IdentifyOptions, identify
+
+POOR_START = {"Fc": 0.4, "Fv": 3.0, "kp": 0.2}  # factors on the truth
+
+
+def _start(cyl):
+    return cyl.with_values({n: cyl.value(n) * f for n, f in POOR_START.items()})
+
+
+def _rel(res, cyl, name):
+    return abs(res.params[name].value - cyl.value(name)) / cyl.value(name)
+
+
+@pytest.mark.parametrize("which", ["cyl_a", "cyl_50"])
+def test_command_drive_recovers_friction(which, request):
+    cyl = request.getfixturevalue(which)
+    run = request.getfixturevalue("run_a" if which == "cyl_a" else "run_50")
+    res = identify(_start(cyl), [run], IdentifyOptions(drive="command"))
+    assert res.solver["status"] == "converged"
+    assert _rel(res, cyl, "Fc") < 0.02
+    assert _rel(res, cyl, "Fv") < 0.02
+    assert _rel(res, cyl, "kp") < 0.10
+    # the fit is as good as the sensors: residuals at the noise level
+    assert res.fit["rmse_x"] < 1.3 * cyl.sensors.position_noise
+    assert res.fit["rmse_p1"] < 1.3 * cyl.sensors.pressure_noise
+    assert 0.9 < res.solver["residual_sigma"] < 1.2
+    assert res.fit["r2_x"] > 0.9999
+
+
+@pytest.mark.parametrize("which", ["cyl_a", "cyl_50"])
+def test_pressure_drive_recovers_friction(which, request):
+    cyl = request.getfixturevalue(which)
+    run = request.getfixturevalue("run_a" if which == "cyl_a" else "run_50")
+    res = identify(_start(cyl), [run], IdentifyOptions(drive="pressure"))
+    assert res.solver["status"] == "converged"
+    assert _rel(res, cyl, "Fc") < 0.02
+    assert _rel(res, cyl, "Fv") < 0.02
+    assert res.output_names == ("x",)
+
+
+def test_several_runs_are_fitted_jointly(cyl_a, run_a):
+    second = simulate_run(cyl_a, 5.0, seed=11)
+    one = identify(cyl_a, [second], IdentifyOptions())
+    both = identify(_start(cyl_a), [run_a, second], IdentifyOptions())
+    assert both.solver["status"] == "converged"
+    assert len(both.fit_per_run) == 2
+    # more data, smaller uncertainty
+    assert both.params["Fv"].std < one.params["Fv"].std
+    assert _rel(both, cyl_a, "Fc") < 0.02
+
+
+def test_warm_start_converges_faster(cyl_a, run_a):
+    cold = identify(_start(cyl_a), [run_a], IdentifyOptions())
+    warm = identify(cyl_a, [run_a], IdentifyOptions(),
+                    initial={n: e.value for n, e in cold.params.items()})
+    assert warm.solver["iterations"] < cold.solver["iterations"]
+    assert warm.params["Fc"].value == pytest.approx(cold.params["Fc"].value, rel=1e-4)
+
+
+def test_mass_can_be_estimated(cyl_a, run_a):
+    wrong = cyl_a.with_values({"mass": cyl_a.mechanics.moving_mass * 1.5})
+    res = identify(wrong, [run_a], IdentifyOptions(estimate=("Fc", "Fv", "kp", "mass")))
+    assert abs(res.params["mass"].value - cyl_a.mechanics.moving_mass) / cyl_a.mechanics.moving_mass < 0.05
+
+
+def test_bounds_hold(cyl_a, run_a):
+    """A run with no pressure-dependent friction: kp pinned at its lower bound 0, not negative."""
+    truth = cyl_a.with_values({"kp": 0.0})
+    run = simulate_run(truth, 8.0, seed=5)
+    res = identify(truth.with_values({"kp": 1e-5}), [run], IdentifyOptions())
+    assert res.params["kp"].value >= 0.0
+    assert res.params["kp"].value < 2e-7
+    assert _rel(res, truth, "Fc") < 0.02
+
+
+def test_result_json_follows_formats(cyl_a, run_a):
+    res = identify(cyl_a, [run_a], IdentifyOptions())
+    js = res.to_json()
+    assert set(js["params"]) == {"Fc", "Fv", "kp"}
+    for p in js["params"].values():
+        assert {"value", "std", "unit"} <= set(p)
+    assert {"rmse_x", "r2_x", "rmse_p1", "rmse_p2"} <= set(js["fit"])
+    assert {"status", "iterations", "wall_s"} <= set(js["solver"])
+    assert js["params"]["kp"]["unit"] == "N/Pa"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("which", ["cyl_a", "cyl_50"])
+def test_reported_std_is_honest_over_20_seeds(which, request):
+    """The true value lies within 3 reported standard deviations in >= 90 % of 20 seeds."""
+    cyl = request.getfixturevalue(which)
+    inside = {"Fc": 0, "Fv": 0, "kp": 0}
+    zs = []
+    for seed in range(100, 120):
+        run = simulate_run(cyl, 20.0, seed=seed)
+        res = identify(_start(cyl), [run], IdentifyOptions())
+        assert res.solver["status"] == "converged"
+        z = {n: (res.params[n].value - cyl.value(n)) / res.params[n].std for n in inside}
+        zs.append(z)
+        for n in inside:
+            inside[n] += abs(z[n]) <= 3
+    print(which, {n: k / 20 for n, k in inside.items()},
+          {n: float(np.sqrt(np.mean([z[n] ** 2 for z in zs]))) for n in inside})
+    for n, k in inside.items():
+        assert k >= 18, (n, k, zs)
