@@ -43,14 +43,16 @@ _B_EMBEDDED = np.array([3.7810903145819369e-01, -9.6042292212423178e-02, 5.0e-01
 class IntegratorOptions:
     """Local error tolerance per state (absolute, SI) and the deepest refinement.
 
-    Defaults keep a 20 s closed-loop trajectory within a small fraction of the
-    sensor noise of the reference solution (see tests/test_integrator.py).
+    Defaults keep a 20 s closed-loop trajectory within a small fraction of the sensor
+    noise of a reference solution (tests/test_integrator.py). They are 10x tighter than
+    that alone needs: looser tolerances still fit to the noise but bias the viscous
+    coefficient by ~2 reported standard deviations (measured over seeds).
     """
 
-    tol_pressure: float = 10.0  # Pa
-    tol_position: float = 1e-7  # m
-    tol_velocity: float = 1e-4  # m/s
-    tol_other: float = 1e-4  # effect states
+    tol_pressure: float = 1.0  # Pa
+    tol_position: float = 1e-8  # m
+    tol_velocity: float = 1e-5  # m/s
+    tol_other: float = 1e-5  # effect states
     max_depth: int = 5  # up to 2**5 = 32 substeps in one sample
 
     def scaled(self, factor: float) -> "IntegratorOptions":
@@ -62,7 +64,7 @@ class IntegratorOptions:
 
 
 # Accurate enough to serve as truth for the identifier's own discretisation.
-TRUTH_OPTIONS = IntegratorOptions().scaled(0.02)
+TRUTH_OPTIONS = IntegratorOptions().scaled(0.05)
 
 
 def _state_tolerances(plant: Plant, opts: IntegratorOptions) -> np.ndarray:
