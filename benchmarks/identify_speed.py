@@ -198,17 +198,18 @@ import json, resource, subprocess, sys, time
 t0 = time.perf_counter()
 p = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 wall = time.perf_counter() - t0
+ru = resource.getrusage(resource.RUSAGE_CHILDREN)
 print(json.dumps({"wall": wall, "rc": p.returncode, "stderr": p.stderr.decode(errors="replace")[-4000:],
-                  "maxrss_kib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))
+                  "maxrss_kib": ru.ru_maxrss, "cpu": ru.ru_utime + ru.ru_stime}))
 """
 
 
-def run_child(cmd: list[str], env: dict) -> tuple[float, int, int, str]:
-    """(wall s, exit code, peak RSS KiB, stderr tail) of `cmd` run as a separate process."""
+def run_child(cmd: list[str], env: dict) -> tuple[float, int, int, str, float]:
+    """(wall s, exit code, peak RSS KiB, stderr tail, CPU s) of `cmd` run as a separate process."""
     out = subprocess.run([sys.executable, "-c", LAUNCHER, *cmd], capture_output=True, text=True, env=env,
                          cwd=REPO, check=True)
     r = json.loads(out.stdout)
-    return r["wall"], r["rc"], r["maxrss_kib"], r["stderr"]
+    return r["wall"], r["rc"], r["maxrss_kib"], r["stderr"], r["cpu"]
 
 
 # Used only while `python -m combined_reality` does not exist (see (b)).
@@ -314,27 +315,29 @@ def benchmark(tmp: Path, cap_s: float) -> int:
     if importlib.util.find_spec("combined_reality.__main__") is None:
         how, cmd = "FALLBACK python -c (no combined_reality/__main__.py yet)", fb_cmd
     # untimed first run: fills the cache should this path need other functions than (a)
-    _, rc, _, err = run_child(cmd, env)
+    _, rc, _, err, _ = run_child(cmd, env)
     if rc != 0 and cmd is cli_cmd:
         print(f"  CLI FAILED (exit {rc}): {err.strip().splitlines()[-1] if err.strip() else ''}")
         how, cmd = f"FALLBACK python -c (the CLI failed with exit {rc})", fb_cmd
-        _, rc, _, err = run_child(cmd, env)
+        _, rc, _, err, _ = run_child(cmd, env)
     # median of three timed runs: a 2 s figure on a 2-core machine is sensitive to anything else running
-    walls, peaks = [], []
+    walls, peaks, cpus = [], [], []
     for _ in range(3):
         out_json.unlink(missing_ok=True)
-        w, rc, peak, err = run_child(cmd, env)
+        w, rc, peak, err, cpu = run_child(cmd, env)
         if rc != 0:
             print(f"  the identification process failed (exit {rc}):\n{err}")
             raise SystemExit(1)
         walls.append(w)
         peaks.append(peak)
+        cpus.append(cpu)
     proc_s, peak_kib = float(np.median(walls)), max(peaks)
     result = json.loads(out_json.read_text())
     solver = result.get("solver", {})
     params = {n: result.get("params", {}).get(n, {}).get("value", math.nan) for n in NAMES}
     print(f"  via {how}")
-    print("  process wall times " + ", ".join(f"{w:.3f}" for w in walls) + " s; median used")
+    print("  process wall times " + ", ".join(f"{w:.3f}" for w in walls) + " s (CPU "
+          + ", ".join(f"{c:.3f}" for c in cpus) + " s); median used")
     print(f"  process wall {proc_s:.3f} s for {duration:.1f} s of data ({run20.n} samples); "
           f"identify itself {solver.get('wall_s', math.nan)} s, {solver.get('iterations')} iterations, "
           f"status {solver.get('status')}")
@@ -345,7 +348,7 @@ def benchmark(tmp: Path, cap_s: float) -> int:
 
     # ---------------------------------------------------------------- (c) memory
     section("(c) peak memory of the identification process of (b)")
-    _, _, bare_kib, _ = run_child([sys.executable, "-c", "import numpy, casadi"], env)
+    _, _, bare_kib, _, _ = run_child([sys.executable, "-c", "import numpy, casadi"], env)
     mem_ratio = peak_kib / bare_kib
     print(f"  identify process peak RSS {peak_kib / 1024:.1f} MiB; python + numpy + casadi {bare_kib / 1024:.1f} MiB")
     print(f"  -> ratio {mem_ratio:.2f}x")

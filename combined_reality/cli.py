@@ -196,7 +196,8 @@ def cmd_identify(args) -> int:
             raise UsageError(f"--drive pressure uses the measured pressures, so it cannot estimate {', '.join(bad)}.")
     if not args.interval > 0:
         raise UsageError(f"--interval must be positive, not {args.interval}.")
-    opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter)
+    opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
+                           prefit=not args.no_prefit)
     prog = _progress(args.quiet)
     if prog:
         prog(f"identifying {', '.join(estimate)} from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
@@ -242,7 +243,7 @@ def cmd_demo(args) -> int:
                              "kp": cyl.friction.kp * 0.2})
     _eprint(f"2/2 identifying Fc, Fv, kp by multiple shooting from a poor start "
             f"(Fc={start.friction.Fc:.3g}, Fv={start.friction.Fv:.3g}, kp={start.friction.kp:.3g}) ...")
-    result = identify(start, [run], IdentifyOptions(), progress=prog)
+    result = identify(start, [run], IdentifyOptions(prefit=False), progress=prog)
     _write_json_atomic(out / "demo_identify.json", _clean_json(result.to_json()))
     print(f"\nIdentified vs true friction of '{cyl.name}' ({run_path}, {run.duration:.1f} s at "
           f"{1 / run.sample_period:.0f} Hz):")
@@ -290,6 +291,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add an unmodelled effect to the model (its parameters may be estimated as NAME.param)")
     i.add_argument("--interval", type=float, default=0.1, help="shooting interval in seconds (default 0.1)")
     i.add_argument("--max-iter", type=int, default=40, help="Gauss-Newton iterations at most (default 40)")
+    i.add_argument("--no-prefit", action="store_true",
+                   help="start from the config's friction values, not from the equation-error fit")
     i.add_argument("--write-config", metavar="OUT.toml", help="write the cylinder file with identified values")
     i.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     i.set_defaults(func=cmd_identify)

@@ -45,6 +45,9 @@ class IdentifyOptions:
     estimate: tuple[str, ...] = ("Fc", "Fv", "kp")
     interval_s: float = 0.1  # shooting interval length
     max_iter: int = 40
+    # start Fc, Fv, kp from a linear equation-error fit (friction from Newton's law with the
+    # measured pressures, seed 000's method) unless a start is given explicitly
+    prefit: bool = True
     integrator: IntegratorOptions = IntegratorOptions()
     threads: int = max(1, os.cpu_count() or 1)
 
@@ -113,6 +116,46 @@ def _velocity_estimate(t: np.ndarray, x: np.ndarray, half: int = 10) -> np.ndarr
     return v
 
 
+def _derivative_kernels(half: int) -> tuple[np.ndarray, np.ndarray]:
+    """Savitzky-Golay kernels (quadratic, window 2*half+1) for the first and second derivative."""
+    j = np.arange(-half, half + 1, dtype=float)
+    pinv = np.linalg.pinv(np.vander(j, 3, increasing=True))
+    return pinv[1][::-1], 2.0 * pinv[2][::-1]
+
+
+def equation_error_friction(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> dict[str, float]:
+    """Fc, Fv, kp by linear least squares on the piston equation with measured pressures.
+
+    Friction = p1 A1 - p2 A2 - pa (A1 - A2) - M g sin(angle) - M a, with a and v from
+    Savitzky-Golay derivatives of the position; where the piston slides (|v| well above
+    v_smooth) the nominal friction is linear in (Fc, kp, Fv). Biased by filtering, but a
+    start from which Gauss-Newton needs few iterations. Empty if the runs barely move."""
+    g, m, sup = cyl.geometry, cyl.mechanics, cyl.supply
+    rows, rhs = [], []
+    for r in runs:
+        if r.n < 4 * half:
+            continue
+        dt = r.sample_period
+        k1, k2 = _derivative_kernels(half)
+        v = np.convolve(r.x, k1, mode="same")[half:-half] / dt
+        a = np.convolve(r.x, k2, mode="same")[half:-half] / dt**2
+        p1, p2 = r.p1[half:-half], r.p2[half:-half]
+        F = (p1 * g.area_cap - p2 * g.area_rod - sup.atmosphere * (g.area_cap - g.area_rod)
+             - m.moving_mass * 9.81 * np.sin(m.angle) - m.moving_mass * a)
+        sliding = np.abs(v) > max(20 * cyl.friction.v_smooth, 0.005)
+        sgn = np.sign(v[sliding])
+        rows.append(np.column_stack([sgn, sgn * np.abs(p1 - p2)[sliding], v[sliding]]))
+        rhs.append(F[sliding])
+    if not rows or sum(len(x) for x in rhs) < 50:
+        return {}
+    A, b = np.vstack(rows), np.concatenate(rhs)
+    scale = np.maximum(np.abs(A).max(axis=0), 1e-300)
+    sol = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
+    if not np.all(np.isfinite(sol)):
+        return {}
+    return {"Fc": max(float(sol[0]), 0.0), "kp": max(float(sol[1]), 0.0), "Fv": max(float(sol[2]), 0.0)}
+
+
 def _layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> _RunLayout:
     N = run.n
     K = math.ceil(N / M)
@@ -154,6 +197,14 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     p = np.array(plant.parameter_vector(cyl), dtype=float)
     for name, val in (initial or {}).items():
         p[plant.param_names.index(name)] = val
+    if options.prefit and not initial and {"Fc", "Fv", "kp"} & set(estimate):
+        start = equation_error_friction(cyl, runs)
+        if start:
+            for name, val in start.items():
+                if name in estimate:
+                    p[plant.param_names.index(name)] = val
+            if progress:
+                progress("  start from the equation-error fit: " + ", ".join(f"{n}={v:.5g}" for n, v in start.items()))
     lower, upper = _bounds(plant, estimate)
     theta = np.clip(p[free], lower, upper)
     p[free] = theta
@@ -289,8 +340,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
                      + "  ".join(f"{n}={v:.5g}" for n, v in zip(estimate, theta)))
         ev = evaluate(S, p, True)
         if ev is None:
-            status = "simulation_failed"
-            break
+            raise IdentificationError(f"the simulation stopped being finite at iteration {it} "
+                                      f"({', '.join(f'{n}={v:.4g}' for n, v in zip(estimate, theta))}); "
+                                      "check the cylinder file against the run.")
         new_viol = float(np.sum(np.abs(ev[1])))
         if rel_step < 1e-3 and new_viol < 1e-2 * max(1, Ktot) and alpha == 1.0:
             status = "converged"

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from combined_reality.cli import simulate_run
-from combined_reality.identify import IdentifyOptions, identify
+from combined_reality.identify import IdentifyOptions, equation_error_friction, identify
 
 POOR_START = {"Fc": 0.4, "Fv": 3.0, "kp": 0.2}  # factors on the truth
 
@@ -41,6 +41,21 @@ def test_pressure_drive_recovers_friction(which, request):
     assert _rel(res, cyl, "Fc") < 0.02
     assert _rel(res, cyl, "Fv") < 0.02
     assert res.output_names == ("x",)
+
+
+def test_converges_from_a_poor_start_without_the_prefit(cyl_a, run_a):
+    res = identify(_start(cyl_a), [run_a], IdentifyOptions(prefit=False))
+    assert res.solver["status"] == "converged"
+    assert _rel(res, cyl_a, "Fc") < 0.02 and _rel(res, cyl_a, "Fv") < 0.02 and _rel(res, cyl_a, "kp") < 0.1
+
+
+def test_equation_error_prefit_is_a_good_start(cyl_a, run_a):
+    start = equation_error_friction(_start(cyl_a), [run_a])
+    assert abs(start["Fc"] - cyl_a.friction.Fc) / cyl_a.friction.Fc < 0.2
+    assert start["Fv"] >= 0 and start["kp"] >= 0
+    with_prefit = identify(_start(cyl_a), [run_a], IdentifyOptions())
+    without = identify(_start(cyl_a), [run_a], IdentifyOptions(prefit=False))
+    assert with_prefit.solver["iterations"] < without.solver["iterations"]
 
 
 def test_several_runs_are_fitted_jointly(cyl_a, run_a):
