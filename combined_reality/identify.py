@@ -103,14 +103,10 @@ class _RunLayout:
 
 
 def _velocity_estimate(t: np.ndarray, x: np.ndarray, half: int = 10) -> np.ndarray:
-    """Local linear-regression slope over +-half samples (a Savitzky-Golay derivative)."""
-    n = len(x)
-    if n < 2 * half + 1:
+    """Savitzky-Golay slope over +-half samples, held constant at the ends."""
+    if len(x) < 2 * half + 1:
         return np.gradient(x, t)
-    j = np.arange(-half, half + 1, dtype=float)
-    kernel = j[::-1] / np.sum(j * j)
-    dt = np.median(np.diff(t))
-    v = np.convolve(x, kernel, mode="same") / dt
+    v = np.convolve(x, _derivative_kernels(half)[0], mode="same") / np.median(np.diff(t))
     v[:half] = v[half]
     v[-half:] = v[-half - 1]
     return v
@@ -126,22 +122,24 @@ def _derivative_kernels(half: int) -> tuple[np.ndarray, np.ndarray]:
 def equation_error_friction(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> dict[str, float]:
     """Fc, Fv, kp by linear least squares on the piston equation with measured pressures.
 
-    Friction = p1 A1 - p2 A2 - pa (A1 - A2) - M g sin(angle) - M a, with a and v from
-    Savitzky-Golay derivatives of the position; where the piston slides (|v| well above
+    Friction = M (a_without_friction - a): the pressure drive of the plant, evaluated with
+    zero friction at the measured pressures, gives the acceleration without friction; a and v
+    are Savitzky-Golay derivatives of the position. Where the piston slides (|v| well above
     v_smooth) the nominal friction is linear in (Fc, kp, Fv). Biased by filtering, but a
     start from which Gauss-Newton needs few iterations. Empty if the runs barely move."""
-    g, m, sup = cyl.geometry, cyl.mechanics, cyl.supply
+    plant = build_plant("pressure")
+    frictionless = np.array(plant.parameter_vector(cyl.with_values({"Fc": 0.0, "Fv": 0.0, "kp": 0.0})))
+    k1, k2 = _derivative_kernels(half)
     rows, rhs = [], []
     for r in runs:
         if r.n < 4 * half:
             continue
         dt = r.sample_period
-        k1, k2 = _derivative_kernels(half)
         v = np.convolve(r.x, k1, mode="same")[half:-half] / dt
         a = np.convolve(r.x, k2, mode="same")[half:-half] / dt**2
         p1, p2 = r.p1[half:-half], r.p2[half:-half]
-        F = (p1 * g.area_cap - p2 * g.area_rod - sup.atmosphere * (g.area_cap - g.area_rod)
-             - m.moving_mass * 9.81 * np.sin(m.angle) - m.moving_mass * a)
+        xdot = np.asarray(plant.rhs.map(len(v))(np.vstack([r.x[half:-half], v]), np.vstack([p1, p2]), frictionless))
+        F = cyl.mechanics.moving_mass * (xdot[1] - a)
         sliding = np.abs(v) > max(20 * cyl.friction.v_smooth, 0.005)
         sgn = np.sign(v[sliding])
         rows.append(np.column_stack([sgn, sgn * np.abs(p1 - p2)[sliding], v[sliding]]))

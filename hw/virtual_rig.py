@@ -35,11 +35,12 @@ class VirtualRig:
         self.noise = noise
         L = cyl.geometry.stroke
         x_start = 0.5 * L if x0 is None else x0
-        # at rest, valve centred, chambers balanced so the piston holds still
+        # at rest, valve centred, chambers balanced so the piston holds still: the
+        # acceleration is linear in p1 at v = 0, so one evaluation of the plant finds p1
         p2 = 0.5 * (cyl.supply.pressure + cyl.supply.atmosphere)
-        g = cyl.geometry
-        p1 = (p2 * g.area_rod + cyl.supply.atmosphere * (g.area_cap - g.area_rod)
-              + cyl.mechanics.moving_mass * 9.81 * np.sin(cyl.mechanics.angle)) / g.area_cap
+        probe = self.plant.initial_state(cyl, x_start, p2, p2)
+        accel = float(self.plant.rhs(probe, 0.0, self.params)[self.plant.state_names.index("v")])
+        p1 = p2 - accel * cyl.mechanics.moving_mass / cyl.geometry.area_cap
         self.state = np.array(self.plant.initial_state(cyl, x_start, p1, p2), float)
         self.k = 0  # sample counter: t = k * dt without accumulated rounding
         self.u = 0.0

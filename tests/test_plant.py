@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from model_reference import rhs as reference_rhs
+from model_reference import ReferenceModel
 from sim.compiled import shooting_functions
 from sim.effects import Leakage, Stiction, ValveDelay, make_effect, parse_effect_spec
 from sim.plant import build_plant, flow_function, mass_flow
@@ -13,14 +13,16 @@ from sim.plant import build_plant, flow_function, mass_flow
 def test_rhs_matches_independent_transcription(cyl_a):
     plant = build_plant("command")
     p = plant.parameter_vector(cyl_a)
+    ref = ReferenceModel(cyl_a)
+    f = cyl_a.friction
     rng = np.random.default_rng(0)
     L = cyl_a.geometry.stroke
     for _ in range(300):
         state = [rng.uniform(1.0e5, 7.0e5), rng.uniform(1.0e5, 7.0e5), rng.uniform(0, L), rng.normal(0, 0.3)]
         u = rng.uniform(-1.3, 1.3)
         ours = np.asarray(plant.rhs(state, u, p)).ravel()
-        ref = reference_rhs(state, u, cyl_a)
-        np.testing.assert_allclose(ours, ref, rtol=1e-10, atol=1e-9)
+        expected = ref.rhs(0.0, state, u, f.Fc, f.Fv, f.kp)
+        np.testing.assert_allclose(ours, expected, rtol=1e-10, atol=1e-9)
 
 
 def test_flow_function_shape():
