@@ -112,20 +112,20 @@ class StepBuilder:
     input at the start of the sample and w1 at its end (w1 is ignored for held inputs).
     """
 
-    def __init__(self, plant: Plant, opts: IntegratorOptions = IntegratorOptions(), interpolate_inputs: bool | None = None):
+    def __init__(self, plant: Plant, opts: IntegratorOptions = IntegratorOptions()):
         self.plant = plant
         self.opts = opts
         # measured pressures vary continuously; the valve command is held (MODEL.md)
-        self.interpolate = plant.drive == "pressure" if interpolate_inputs is None else interpolate_inputs
+        self.interpolate = plant.drive == "pressure"
         self.nx = plant.nx
         self.nw = len(plant.input_names)
         self.npar = len(plant.param_names)
         self._inv_tol = 1.0 / _state_tolerances(plant, opts)
 
     # ---------------------------------------------------------------- symbolic pieces
-    def _symbols(self, kind=ca.SX):
-        return (kind.sym("x", self.nx), kind.sym("w0", self.nw), kind.sym("w1", self.nw),
-                kind.sym("p", self.npar), kind.sym("h"))
+    def _symbols(self):
+        return (ca.SX.sym("x", self.nx), ca.SX.sym("w0", self.nw), ca.SX.sym("w1", self.nw),
+                ca.SX.sym("p", self.npar), ca.SX.sym("h"))
 
     def rosenbrock(self, x, w0, w1, p, h) -> tuple[ca.SX, ca.SX]:
         """One RA34PW2 step over h (SX): (x_next, scaled error estimate)."""
@@ -171,16 +171,16 @@ class StepBuilder:
 
     def step(self) -> ca.Function:
         """The adaptive one-sample step (x, w0, w1, p, h) -> x_next."""
-        coarse_err = self._coarse(True)
-        coarse = self._coarse(False)
-        return self._refine(coarse_err, lambda: coarse, self.opts.max_depth, "step")
+        return self._refine(self._coarse(True), self._coarse(False), self.opts.max_depth, "step")
 
-    def _refine(self, coarse_err: ca.Function, coarse_factory, depth: int, name: str) -> ca.Function:
-        """if error(coarse) <= 1: coarse, else two refined half steps (recursively)."""
-        coarse = coarse_factory()
+    def _refine(self, coarse_err: ca.Function, coarse: ca.Function, depth: int, name: str) -> ca.Function:
+        """if error(coarse) <= 1: coarse, else two refined half steps (recursively).
+
+        The switch depends only on the plain step's error estimate, so a variant that also
+        carries sensitivities (extra inputs after h) takes exactly the same path."""
         if depth == 0:
             return coarse
-        half = self._refine(coarse_err, coarse_factory, depth - 1, name)
+        half = self._refine(coarse_err, coarse, depth - 1, name)
         sym = [ca.MX.sym(n, *coarse.sparsity_in(i).shape) for i, n in enumerate(coarse.name_in())]
         x, w0, w1, p, h = sym[:5]
         extra = sym[5:]  # carried state (sensitivities) for the sensitivity variant
@@ -202,22 +202,12 @@ class StepBuilder:
         free = list(free)
         nz = self.nx + len(free)
 
-        def factory() -> ca.Function:
-            x, w0, w1, p, h = self._symbols()
-            S = ca.SX.sym("S", self.nx, nz)
-            xn, _ = self.rosenbrock(x, w0, w1, p, h)
-            Fx = ca.jacobian(xn, x)
-            Fp = ca.jacobian(xn, p)[:, free]
-            Sn = ca.mtimes(Fx, S) + ca.horzcat(ca.SX.zeros(self.nx, self.nx), Fp)
-            return ca.Function("rb_sens", [x, w0, w1, p, h, S], [xn, Sn],
-                               ["x", "w0", "w1", "p", "h", "S"], ["xn", "Sn"])
-
-        coarse_err = self._coarse(True)
-        cache: dict[str, ca.Function] = {}
-
-        def cached_factory() -> ca.Function:
-            if "f" not in cache:
-                cache["f"] = factory()
-            return cache["f"]
-
-        return self._refine(coarse_err, cached_factory, self.opts.max_depth, "sens")
+        x, w0, w1, p, h = self._symbols()
+        S = ca.SX.sym("S", self.nx, nz)
+        xn, _ = self.rosenbrock(x, w0, w1, p, h)
+        Fx = ca.jacobian(xn, x)
+        Fp = ca.jacobian(xn, ca.vertcat(*[p[i] for i in free]))
+        Sn = ca.mtimes(Fx, S) + ca.horzcat(ca.SX.zeros(self.nx, self.nx), Fp)
+        coarse = ca.Function("rb_sens", [x, w0, w1, p, h, S], [xn, Sn],
+                             ["x", "w0", "w1", "p", "h", "S"], ["xn", "Sn"])
+        return self._refine(self._coarse(True), coarse, self.opts.max_depth, "sens")

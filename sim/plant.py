@@ -67,7 +67,7 @@ class Plant:
 
     command drive: state (p1, p2, x, v, *effect states), input (u,)
     pressure drive: state (x, v, *mechanical effect states), input (p1, p2)
-    Outputs are what is measured: (x, p1, p2) for the command drive, (x,) for the pressure drive.
+    Outputs are the measured states: (x, p1, p2) for the command drive, (x,) for the pressure drive.
     """
 
     drive: str
@@ -77,7 +77,6 @@ class Plant:
     output_names: tuple[str, ...]
     param_names: tuple[str, ...]
     rhs: ca.Function = field(repr=False)  # (state, input, params) -> dstate/dt
-    output: ca.Function = field(repr=False)  # (state, input) -> measured outputs
     friction: ca.Function = field(repr=False)  # (state, input, params) -> friction force
 
     @property
@@ -191,7 +190,6 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
         base_deriv = [v, sig.dv]
     deriv = base_deriv + [sig.deriv[f"{e.name}.{s}"] for e, s in extra_states]
 
-    outputs = [st["x"], st["p1"], st["p2"]] if drive == "command" else [st["x"]]
     return Plant(
         drive=drive,
         effects=effects,
@@ -200,6 +198,5 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
         output_names=tuple(output_names),
         param_names=tuple(param_names),
         rhs=ca.Function("rhs", [X, U, P], [ca.vertcat(*deriv)], ["x", "u", "p"], ["xdot"]),
-        output=ca.Function("y", [X, U], [ca.vertcat(*outputs)], ["x", "u"], ["y"]),
         friction=ca.Function("friction", [X, U, P], [sig.Ff], ["x", "u", "p"], ["Ff"]),
     )
