@@ -6,6 +6,7 @@ symbolic graph and compiling. Without a C compiler the functions are cached in
 CasADi's own serialised form (slower to run, still no rebuild).
 
 Cache directory: $COMBINED_REALITY_CACHE, else ~/.cache/combined_reality.
+Compiler: $CC, else gcc, cc or clang; CC=none uses the serialised form only.
 """
 from __future__ import annotations
 
@@ -34,10 +35,10 @@ def cache_dir() -> Path:
 
 
 def _compiler() -> str | None:
-    for cc in (os.environ.get("CC"), "gcc", "cc", "clang"):
-        if cc and shutil.which(cc):
-            return cc
-    return None
+    chosen = os.environ.get("CC")
+    if chosen is not None:  # an explicit choice is kept, also "none"
+        return chosen if chosen != "none" and shutil.which(chosen) else None
+    return next((cc for cc in ("gcc", "cc", "clang") if shutil.which(cc)), None)
 
 
 @dataclass
@@ -82,17 +83,28 @@ def load_or_build(key_parts: Sequence, build: Callable[[], list[ca.Function]], n
     stats.build_s = time.perf_counter() - t0
     d.mkdir(parents=True, exist_ok=True)
     cc = _compiler()
-    if cc is None:
-        bundle = _bundle(funcs)
-        tmp = ser.with_suffix(f".tmp{os.getpid()}")
-        bundle.save(str(tmp))
-        os.replace(tmp, ser)
-        stats.path = str(ser)
-        return {f.name(): f for f in funcs}, stats
+    if cc is not None:
+        t1 = time.perf_counter()
+        if progress:
+            progress(f"compiling the model functions with {cc} (once, a few seconds)")
+        error = _compile(funcs, key, d, so, cc)
+        stats.compile_s = time.perf_counter() - t1
+        if error is None:
+            t2 = time.perf_counter()
+            fns = {n: ca.external(n, str(so)) for n in names}
+            stats.load_s, stats.path = time.perf_counter() - t2, str(so)
+            return fns, stats
+        if progress:
+            progress(f"compiling failed ({error}); using CasADi's virtual machine instead (slower)")
+    tmp = ser.with_suffix(f".tmp{os.getpid()}")
+    _bundle(funcs).save(str(tmp))
+    os.replace(tmp, ser)
+    stats.path = str(ser)
+    return {f.name(): f for f in funcs}, stats
 
-    t1 = time.perf_counter()
-    if progress:
-        progress(f"compiling with {cc} (once, about a minute)")
+
+def _compile(funcs: list[ca.Function], key: str, d: Path, so: Path, cc: str) -> str | None:
+    """Generate C and build the shared library; None on success, else the compiler's complaint."""
     with tempfile.TemporaryDirectory(dir=d) as tmpd:
         cname = f"cr_{key}.c"
         cg = ca.CodeGenerator(cname, {"with_header": False})
@@ -103,14 +115,9 @@ def load_or_build(key_parts: Sequence, build: Callable[[], list[ca.Function]], n
         cmd = [cc, "-O2", "-fPIC", "-shared", "-fno-math-errno", str(Path(tmpd) / cname), "-o", str(tmp_so), "-lm"]
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
-            raise RuntimeError(f"compiling the model functions failed: {res.stderr.strip()[:500]}")
+            return res.stderr.strip().splitlines()[-1][:300] if res.stderr.strip() else f"exit {res.returncode}"
         os.replace(tmp_so, so)  # atomic: concurrent processes see the old or the new file, never half
-    stats.compile_s = time.perf_counter() - t1
-    t2 = time.perf_counter()
-    fns = {n: ca.external(n, str(so)) for n in names}
-    stats.load_s = time.perf_counter() - t2
-    stats.path = str(so)
-    return fns, stats
+    return None
 
 
 def _bundle(funcs: list[ca.Function]) -> ca.Function:
