@@ -268,6 +268,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         raise IdentificationError("the simulation from the initial guess is not finite; check the cylinder file "
                                   "(units, dead volumes, supply pressure) against the run.")
     lam, mu = 0.0, 0.0
+    linearized_at = None
     status = "max_iterations"
     history = []
     it = 0
@@ -275,7 +276,8 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         E, D, X, Sens = ev
         lin_ = _linearize(ev, out_idx, wts, mask, M, nx, ny, nth)
         G, Hth = lin_[0], lin_[1]
-        Nmat, g, P, Q, q, _ = _condense(lin_, E, D * sscale[:, None], layouts, has_next, nx, nth)
+        Nmat, g, P, Q, q, scores = _condense(lin_, E, D * sscale[:, None], layouts, has_next, nx, nth)
+        linearized_at = (ev, Nmat, scores)
         R = len(layouts)
         cost = 0.5 * float(np.sum(E * E))
         viol = float(np.sum(np.abs(D)))
@@ -353,8 +355,11 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     E, D, X, Sens = ev
     cost = 0.5 * float(np.sum(E * E))
     nres = float(mask.sum() * ny)
-    Nfinal, _, _, _, _, scores = _condense(_linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E, 0 * D,
-                                           layouts, has_next, nx, nth)
+    if linearized_at is not None and linearized_at[0] is ev:  # converged where the loop linearised
+        Nfinal, scores = linearized_at[1], linearized_at[2]
+    else:
+        Nfinal, _, _, _, _, scores = _condense(_linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E,
+                                               D * sscale[:, None], layouts, has_next, nx, nth)
     cov_gn = _covariance(Nfinal, len(layouts) * nx, cost, nres)
     cov_robust = _cluster_covariance(Nfinal, scores, layouts, len(layouts) * nx,
                                      max(1, int(round(1.0 / (M * dt0)))))
