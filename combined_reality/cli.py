@@ -43,20 +43,24 @@ def _load_config(path: str | None) -> Cylinder:
     return load_cylinder(path if path else default_config_path())
 
 
-def _write_json_atomic(path: str | Path, data: dict) -> None:
+def _write_text_atomic(path: str | Path, text: str) -> None:
+    """Write via a temporary file and rename: readers see the old file or the whole new one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2, allow_nan=False, default=_json_default)
-            f.write("\n")
+            f.write(text)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _write_json_atomic(path: str | Path, data: dict) -> None:
+    _write_text_atomic(path, json.dumps(data, indent=2, allow_nan=False, default=_json_default) + "\n")
 
 
 def _json_default(o):
@@ -215,7 +219,7 @@ def cmd_identify(args) -> int:
     if args.write_config:
         from sim.cylinder import cylinder_to_toml
 
-        Path(args.write_config).write_text(cylinder_to_toml(result.cylinder), encoding="utf-8")
+        _write_text_atomic(args.write_config, cylinder_to_toml(result.cylinder))
     print(_format_table(result))
     status = result.solver["status"]
     if status != "converged":

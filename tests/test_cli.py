@@ -118,7 +118,8 @@ def test_simulate_then_identify_end_to_end(tmp_path):
     text = run.read_text()
     assert text.startswith("# combined-reality virtual rig") and "valve_delay(tau=0.004)" in text
     ident = subprocess.run([sys.executable, "-m", "combined_reality", "identify", "--config", str(CFG), str(run),
-                            "--json", str(out), "--effect", "valve_delay", "--estimate", "Fc,Fv,kp,valve_delay.tau"],
+                            "--json", str(out), "--effect", "valve_delay", "--estimate", "Fc,Fv,kp,valve_delay.tau",
+                            "--write-config", str(tmp_path / "identified.toml")],
                            capture_output=True, text=True, env=env)
     assert ident.returncode == 0, ident.stderr
     res = json.loads(out.read_text())
@@ -126,3 +127,7 @@ def test_simulate_then_identify_end_to_end(tmp_path):
     assert abs(res["params"]["valve_delay.tau"]["value"] - 0.004) < 0.0004
     assert abs(res["params"]["Fc"]["value"] - 24.8) / 24.8 < 0.03
     assert "Fc" in ident.stdout and "N s/m" in ident.stdout  # the readable table
+    from sim.cylinder import load_cylinder
+
+    written = load_cylinder(tmp_path / "identified.toml")
+    assert written.friction.Fc == res["params"]["Fc"]["value"]
