@@ -24,10 +24,11 @@ class ProgramOptions:
     bandwidth_hz: float = 4.0  # position-loop crossover
 
 
-def _reference_segments(L: float, duration: float, rng: np.random.Generator):
+def _reference_segments(L: float, duration: float, rng: np.random.Generator,
+                        kinds: tuple[str, ...] = ("step", "ramp", "sine")):
     """(t_end, kind, params) segments filling `duration`; positions within [0.15L, 0.85L]."""
     lo, hi = 0.15 * L, 0.85 * L
-    kinds = ["step", "ramp", "sine"]
+    kinds = list(kinds)
     segs = []
     t = 0.0
     x = 0.5 * L
@@ -60,13 +61,14 @@ def _reference_segments(L: float, duration: float, rng: np.random.Generator):
 class PositionProgram:
     """Closed-loop position control along a seeded reference; call `command(t, x_measured)`."""
 
-    def __init__(self, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
+    def __init__(self, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions(),
+                 kinds: tuple[str, ...] = ("step", "ramp", "sine")):
         self.cyl = cyl
         self.opts = options
         self.rng = np.random.default_rng(seed + 7919)
         L = cyl.geometry.stroke
         self.L = L
-        self.segments = _reference_segments(L, duration, np.random.default_rng(seed))
+        self.segments = _reference_segments(L, duration, np.random.default_rng(seed), kinds)
         # velocity per unit command near mid-pressure: choked flow at full opening into
         # a chamber at ~70 % of supply; the loop gain follows from the crossover
         g = cyl.geometry
@@ -98,10 +100,68 @@ class PositionProgram:
         lo, hi = self.opts.margin * self.L, (1 - self.opts.margin) * self.L
         r = min(max(r, lo), hi)
         u = self.kp * (r - x_meas) + self.kff * rdot + self.opts.dither * self.rng.standard_normal()
-        u = max(-self.opts.u_max, min(self.opts.u_max, u))
-        # soft stroke limits: past them, only a command back into the stroke is allowed
-        if x_meas < 0.5 * lo:
-            u = max(u, 0.05)
-        elif x_meas > self.L - 0.5 * lo:
-            u = min(u, -0.05)
-        return u
+        return guarded(u, x_meas, self.L, self.opts)
+
+
+def guarded(u: float, x_meas: float, L: float, opts: ProgramOptions) -> float:
+    """A command within the bound that, past a soft stroke limit, can only push back into the stroke."""
+    u = 0.0 if u != u else max(-opts.u_max, min(opts.u_max, float(u)))
+    lo = opts.margin * L
+    if x_meas < 0.5 * lo:
+        u = max(u, 0.05)
+    elif x_meas > L - 0.5 * lo:
+        u = min(u, -0.05)
+    return u
+
+
+class PulseProgram:
+    """Open-loop pulse train: alternating pulses of random height and length with rests
+    between them; the soft stroke limits still apply (on the measured position)."""
+
+    def __init__(self, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
+        self.L, self.opts = cyl.geometry.stroke, options
+        rng = np.random.default_rng(seed)
+        self.edges, self.levels = [0.0], []  # levels[i] holds over [edges[i], edges[i+1])
+        sign, t = 1.0, 0.0
+        while t < duration:
+            on, rest = rng.uniform(0.05, 0.3), rng.uniform(0.2, 0.6)
+            self.levels += [sign * rng.uniform(0.1, options.u_max), 0.0]
+            self.edges += [t + on, t + on + rest]
+            t, sign = t + on + rest, -sign
+
+    def command(self, t: float, x_meas: float) -> float:
+        i = min(int(np.searchsorted(self.edges, t, side="right")) - 1, len(self.levels) - 1)
+        return guarded(self.levels[max(i, 0)], x_meas, self.L, self.opts)
+
+
+class CommandFileProgram:
+    """Open-loop commands from a CSV file with columns t and u (held between rows)."""
+
+    def __init__(self, path, cyl: Cylinder, options: ProgramOptions = ProgramOptions()):
+        data = np.genfromtxt(path, delimiter=",", names=True, comments="#")
+        names = data.dtype.names or ()
+        if "t" not in names or "u" not in names:
+            raise ValueError(f"{path}: a command file needs columns t and u (found {', '.join(names) or 'none'}).")
+        self.t, self.u = np.atleast_1d(data["t"]).astype(float), np.atleast_1d(data["u"]).astype(float)
+        if not (np.all(np.isfinite(self.t)) and np.all(np.isfinite(self.u)) and np.all(np.diff(self.t) > 0)):
+            raise ValueError(f"{path}: times must be finite and increasing, commands finite.")
+        self.L, self.opts = cyl.geometry.stroke, options
+
+    def command(self, t: float, x_meas: float) -> float:
+        i = max(int(np.searchsorted(self.t, t, side="right")) - 1, 0)
+        return guarded(self.u[i], x_meas, self.L, self.opts)
+
+
+PROGRAMS = {"mixed": ("step", "ramp", "sine"), "steps": ("step",), "ramps": ("ramp",), "sines": ("sine",),
+            "pulses": None}
+
+
+def make_program(name: str, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
+    """A built-in program by name (mixed, steps, ramps, sines, pulses) or `file:PATH` (t,u CSV)."""
+    if name.startswith("file:"):
+        return CommandFileProgram(name[5:], cyl, options)
+    if name not in PROGRAMS:
+        raise ValueError(f"unknown program '{name}' (available: {', '.join(PROGRAMS)}, file:PATH).")
+    if name == "pulses":
+        return PulseProgram(cyl, duration, seed, options)
+    return PositionProgram(cyl, duration, seed, options, PROGRAMS[name])

@@ -11,7 +11,7 @@ from .runs import Run
 
 
 def run_program(rig: Rig, program, n_samples: int, progress: Callable[[int], None] | None = None) -> Run:
-    """Read a sample, decide the command, send it; the command is recorded with its sample."""
+    """Read a sample, decide the command, send it; each row records the command the rig held from that tick."""
     t = np.empty(n_samples)
     u = np.empty(n_samples)
     x = np.empty(n_samples)
@@ -23,7 +23,7 @@ def run_program(rig: Rig, program, n_samples: int, progress: Callable[[int], Non
             s = rig.read()
             cmd = program.command(s.t, s.x)
             rig.send(cmd)
-            t[k], u[k], x[k], p1[k], p2[k] = s.t, cmd, s.x, s.p1, s.p2
+            t[k], u[k], x[k], p1[k], p2[k] = s.t, s.u_applied, s.x, s.p1, s.p2
             if progress and k % 1000 == 0:
                 progress(k)
     finally:

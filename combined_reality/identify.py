@@ -119,30 +119,43 @@ def _derivative_kernels(half: int) -> tuple[np.ndarray, np.ndarray]:
     return pinv[1][::-1], 2.0 * pinv[2][::-1]
 
 
-def equation_error_friction(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> dict[str, float]:
-    """Fc, Fv, kp by linear least squares on the piston equation with measured pressures.
+def friction_from_newton(cyl: Cylinder, run: Run, half: int = 15,
+                         plant: Plant | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Friction the piston equation implies, with measured pressures (seed 000's method).
 
     Friction = M (a_without_friction - a): the pressure drive of the plant, evaluated with
     zero friction at the measured pressures, gives the acceleration without friction; a and v
-    are Savitzky-Golay derivatives of the position. Where the piston slides (|v| well above
-    v_smooth) the nominal friction is linear in (Fc, kp, Fv). Biased by filtering, but a
-    start from which Gauss-Newton needs few iterations. Empty if the runs barely move."""
-    plant = build_plant("pressure")
+    are Savitzky-Golay derivatives of the position. Returns (index, v, F) for the samples
+    away from the ends (index into the run)."""
+    if run.n < 4 * half:
+        return np.empty(0, int), np.empty(0), np.empty(0)
+    plant = plant or build_plant("pressure")
     frictionless = np.array(plant.parameter_vector(cyl.with_values({"Fc": 0.0, "Fv": 0.0, "kp": 0.0})))
     k1, k2 = _derivative_kernels(half)
+    dt = run.sample_period
+    v = np.convolve(run.x, k1, mode="same")[half:-half] / dt
+    a = np.convolve(run.x, k2, mode="same")[half:-half] / dt**2
+    idx = np.arange(half, run.n - half)
+    xdot = np.asarray(plant.rhs.map(len(v))(np.vstack([run.x[idx], v]), np.vstack([run.p1[idx], run.p2[idx]]),
+                                            frictionless))
+    return idx, v, cyl.mechanics.moving_mass * (xdot[1] - a)
+
+
+def equation_error_friction(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> dict[str, float]:
+    """Fc, Fv, kp by linear least squares on the friction Newton's law implies.
+
+    Where the piston slides (|v| well above v_smooth) the nominal friction is linear in
+    (Fc, kp, Fv). Biased by filtering, but a start from which Gauss-Newton needs few
+    iterations. Empty if the runs barely move."""
     rows, rhs = [], []
     for r in runs:
-        if r.n < 4 * half:
+        idx, v, F = friction_from_newton(cyl, r, half)
+        if len(idx) == 0:
             continue
-        dt = r.sample_period
-        v = np.convolve(r.x, k1, mode="same")[half:-half] / dt
-        a = np.convolve(r.x, k2, mode="same")[half:-half] / dt**2
-        p1, p2 = r.p1[half:-half], r.p2[half:-half]
-        xdot = np.asarray(plant.rhs.map(len(v))(np.vstack([r.x[half:-half], v]), np.vstack([p1, p2]), frictionless))
-        F = cyl.mechanics.moving_mass * (xdot[1] - a)
         sliding = np.abs(v) > max(20 * cyl.friction.v_smooth, 0.005)
         sgn = np.sign(v[sliding])
-        rows.append(np.column_stack([sgn, sgn * np.abs(p1 - p2)[sliding], v[sliding]]))
+        dp = np.abs(r.p1[idx] - r.p2[idx])[sliding]
+        rows.append(np.column_stack([sgn, sgn * dp, v[sliding]]))
         rhs.append(F[sliding])
     if not rows or sum(len(x) for x in rhs) < 50:
         return {}
@@ -152,6 +165,26 @@ def equation_error_friction(cyl: Cylinder, runs: Sequence[Run], half: int = 15) 
     if not np.all(np.isfinite(sol)):
         return {}
     return {"Fc": max(float(sol[0]), 0.0), "kp": max(float(sol[1]), 0.0), "Fv": max(float(sol[2]), 0.0)}
+
+
+def free_parameters(plant: Plant, estimate: Sequence[str]) -> list[int]:
+    """Indices of the estimated parameters in the plant's parameter vector (checked)."""
+    for name in estimate:
+        if name not in plant.param_names or (name in PARAMETERS and name not in ESTIMABLE):
+            raise IdentificationError(f"parameter '{name}' cannot be estimated (estimable: "
+                                      f"{', '.join(ESTIMABLE + tuple(n for n in plant.param_names if '.' in n))}).")
+    return [plant.param_names.index(n) for n in estimate]
+
+
+def residual_scales(plant: Plant, cyl: Cylinder, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Output weights (1 / sensor noise) and defect scales (what a state can be trusted to
+    from the sensors)."""
+    sen = cyl.sensors
+    noise = {"x": sen.position_noise, "p1": sen.pressure_noise, "p2": sen.pressure_noise}
+    wts = np.array([1.0 / noise[n] for n in plant.output_names])
+    sscale = np.array([{"p1": sen.pressure_noise, "p2": sen.pressure_noise, "x": sen.position_noise,
+                        "v": sen.position_noise / dt}.get(n, 1e-3) for n in plant.state_names])
+    return wts, sscale
 
 
 def _layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> _RunLayout:
@@ -179,6 +212,45 @@ def _layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> _RunLa
 
 # ------------------------------------------------------------------ the solver
 
+class ShootingProblem:
+    """Weighted output residuals and scaled continuity defects of K shooting intervals."""
+
+    def __init__(self, sf: ShootingFunctions, K: int, threads: int, W, H, Y, mask, wts, sscale, nxt):
+        plant = sf.plant
+        self.f_sens = sf.sens.map(K, "thread", threads) if threads > 1 else sf.sens.map(K)
+        self.f_sim = sf.interval.map(K, "thread", threads) if threads > 1 else sf.interval.map(K)
+        self.W, self.H, self.Y, self.mask, self.wts, self.sscale, self.nxt = W, H, Y, mask, wts, sscale, nxt
+        self.K, self.M = K, sf.interval_len
+        self.nx, self.nth = plant.nx, len(sf.free)
+        self.out_idx = [plant.state_names.index(n) for n in plant.output_names]
+
+    def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
+        """(E, D, X, Sens) or None when the simulation is not finite."""
+        nx, K, M = self.nx, self.K, self.M
+        if with_sens:
+            Xr, Sr = self.f_sens(S, self.W, p, self.H)
+            X = np.asarray(Xr).reshape(nx, K, M)
+            Sens = np.asarray(Sr).reshape(nx, K, M, nx + self.nth)
+        else:
+            X = np.asarray(self.f_sim(S, self.W, p, self.H)).reshape(nx, K, M)
+            Sens = None
+        if not np.all(np.isfinite(X)):
+            return None
+        E, D = self.residuals(S, X)
+        return E, D, X, Sens
+
+    def residuals(self, S: np.ndarray, X: np.ndarray):
+        """Weighted output residuals E (K, M, ny) and scaled defects D of trajectories X."""
+        M = self.M
+        # predicted outputs at the interval's own samples: node state, then the first M-1 steps
+        oi = self.out_idx
+        Ypred = np.concatenate([S[oi, :, None], X[oi][:, :, : M - 1]], axis=2).transpose(1, 2, 0)
+        E = (Ypred - self.Y) * self.wts * self.mask[:, :, None]  # (K, M, ny)
+        nxt = self.nxt
+        D = (X[:, nxt, M - 1] - S[:, nxt + 1]) / self.sscale[:, None]  # scaled defects (nx, n_links)
+        return E, D
+
+
 def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = IdentifyOptions(),
              effects: Sequence[Effect] = (), initial: Mapping[str, float] | None = None,
              progress: Callable[[str], None] | None = None) -> IdentifyResult:
@@ -187,11 +259,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         raise IdentificationError("no runs to identify from.")
     plant = build_plant(options.drive, effects)
     estimate = tuple(options.estimate)
-    for name in estimate:
-        if name not in plant.param_names or (name in PARAMETERS and name not in ESTIMABLE):
-            raise IdentificationError(f"parameter '{name}' cannot be estimated (estimable: "
-                                      f"{', '.join(ESTIMABLE + tuple(n for n in plant.param_names if '.' in n))}).")
-    free = [plant.param_names.index(n) for n in estimate]
+    free = free_parameters(plant, estimate)
     p = np.array(plant.parameter_vector(cyl), dtype=float)
     for name, val in (initial or {}).items():
         p[plant.param_names.index(name)] = val
@@ -228,12 +296,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     Y = np.concatenate([l.Y for l in layouts])  # (Ktot, M, ny)
     mask = np.concatenate([l.mask for l in layouts])  # (Ktot, M)
     S = np.hstack([l.S0 for l in layouts])  # (nx, Ktot)
-    noise = {"x": cyl.sensors.position_noise, "p1": cyl.sensors.pressure_noise, "p2": cyl.sensors.pressure_noise}
-    wts = np.array([1.0 / noise[n] for n in plant.output_names])
-    # defect scaling: what a state can be trusted to from the sensors
-    sscale = np.array([{"p1": cyl.sensors.pressure_noise, "p2": cyl.sensors.pressure_noise,
-                        "x": cyl.sensors.position_noise, "v": cyl.sensors.position_noise / dt0}.get(n, 1e-3)
-                       for n in plant.state_names])
+    wts, sscale = residual_scales(plant, cyl, dt0)
     # node k is followed by node k+1 within the same run
     has_next = np.ones(Ktot, bool)
     for l in layouts:
@@ -241,24 +304,8 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     nxt = np.flatnonzero(has_next)
 
     threads = max(1, min(options.threads, Ktot))
-    f_sens = sf.sens.map(Ktot, "thread", threads) if threads > 1 else sf.sens.map(Ktot)
-    f_sim = sf.interval.map(Ktot, "thread", threads) if threads > 1 else sf.interval.map(Ktot)
-
-    def evaluate(S: np.ndarray, p: np.ndarray, with_sens: bool):
-        if with_sens:
-            Xr, Sr = f_sens(S, W, p, H)
-            X = np.asarray(Xr).reshape(nx, Ktot, M)
-            Sens = np.asarray(Sr).reshape(nx, Ktot, M, nx + nth)
-        else:
-            X = np.asarray(f_sim(S, W, p, H)).reshape(nx, Ktot, M)
-            Sens = None
-        if not np.all(np.isfinite(X)):
-            return None
-        # predicted outputs at the interval's own samples: node state, then the first M-1 steps
-        Ypred = np.concatenate([S[out_idx, :, None], X[out_idx][:, :, : M - 1]], axis=2).transpose(1, 2, 0)
-        E = (Ypred - Y) * wts * mask[:, :, None]  # (K, M, ny)
-        D = (X[:, nxt, M - 1] - S[:, nxt + 1]) / sscale[:, None]  # scaled defects (nx, n_links)
-        return E, D, X, Sens
+    problem = ShootingProblem(sf, Ktot, threads, W, H, Y, mask, wts, sscale, nxt)
+    evaluate = problem.evaluate
 
     def merit(E, D, mu):
         return 0.5 * float(np.sum(E * E)) + mu * float(np.sum(np.abs(D)))
@@ -473,10 +520,11 @@ def _linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
     return G, Hth, A, B
 
 
-def _condense(lin, E, Draw, layouts, has_next, nx, nth):
+def _reduce(lin, E, Draw, has_next, nx, nth):
     """Eliminate the node increments: ds_k = P_k ds0 + Q_k dtheta + q_k within each run.
 
-    Returns the reduced normal equations (N, g) in (ds0 per run, dtheta) and P, Q, q."""
+    Returns P, Q, q and the reduced residual Jacobians Js = dr/ds0, Jt = dr/dtheta and the
+    linearised residual r0 (all per interval)."""
     G, Hth, A, B = lin
     Ktot = G.shape[0]
     P = np.empty((Ktot, nx, nx))
@@ -496,7 +544,14 @@ def _condense(lin, E, Draw, layouts, has_next, nx, nth):
     Js = np.einsum("kmoi,kij->kmoj", G, P)
     Jt = np.einsum("kmoi,kij->kmoj", G, Q) + Hth
     r0 = E + np.einsum("kmoi,ki->kmo", G, q)
-    R = len(layouts)
+    return P, Q, q, Js, Jt, r0
+
+
+def _condense(lin, E, Draw, layouts, has_next, nx, nth):
+    """The reduced normal equations (N, g) in (ds0 per run, dtheta), with P, Q, q of `_reduce`
+    and the per-interval gradient contributions."""
+    P, Q, q, Js, Jt, r0 = _reduce(lin, E, Draw, has_next, nx, nth)
+    Ktot, R = Js.shape[0], len(layouts)
     nred = R * nx + nth
     N = np.zeros((nred, nred))
     g = np.zeros(nred)

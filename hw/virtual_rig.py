@@ -43,7 +43,9 @@ class VirtualRig:
         p1 = p2 - accel * cyl.mechanics.moving_mass / cyl.geometry.area_cap
         self.state = np.array(self.plant.initial_state(cyl, x_start, p1, p2), float)
         self.k = 0  # sample counter: t = k * dt without accumulated rounding
-        self.u = 0.0
+        self.u = 0.0  # the command latched at the last tick, held until the next one
+        self._u_sent = 0.0
+        self._t_shift = 0.0  # time gained or lost by advance() periods that differ from dt
         self._started = False
 
     @property
@@ -54,16 +56,24 @@ class VirtualRig:
         self._started = True
 
     def send(self, u: float) -> None:
-        self.u = bounded(u)
+        self._u_sent = bounded(u)
 
     def read(self, timeout: float | None = None) -> Sample:
+        return self.advance(self.dt)
+
+    def advance(self, dt: float) -> Sample:
+        """Like read(), over a period of `dt` seconds: a real-time rig ticks with jitter."""
         if self._started:
-            self.state = np.asarray(self.funcs.step(self.state, self.u, self.u, self.params, self.dt)).ravel()
+            self.state = np.asarray(self.funcs.step(self.state, self.u, self.u, self.params, dt)).ravel()
             self.k += 1
+            self._t_shift += dt - self.dt  # exactly 0.0 for read(): t stays k * dt
             if not np.all(np.isfinite(self.state)):
-                raise RuntimeError(f"virtual rig: the plant diverged at t = {self.k * self.dt:.3f} s")
+                raise RuntimeError(f"virtual rig: the plant diverged at t = {self.k * self.dt + self._t_shift:.3f} s")
         else:
             self._started = True
+        # like a rig's firmware: the latest command is latched at the tick and reported with
+        # the sample, so a sample's u_applied is what the valve holds until the next tick
+        self.u = self._u_sent
         s = dict(zip(self.plant.state_names, self.state))
         x, p1, p2 = s["x"], s["p1"], s["p2"]
         if self.noise:
@@ -71,7 +81,7 @@ class VirtualRig:
             x += sen.position_noise * self.rng.standard_normal()
             p1 += sen.pressure_noise * self.rng.standard_normal()
             p2 += sen.pressure_noise * self.rng.standard_normal()
-        return Sample(t=self.k * self.dt, x=float(x), p1=float(p1), p2=float(p2), u_applied=self.u)
+        return Sample(t=self.k * self.dt + self._t_shift, x=float(x), p1=float(p1), p2=float(p2), u_applied=self.u)
 
     def stop(self) -> None:
-        self.u = 0.0
+        self.u = self._u_sent = 0.0
