@@ -49,6 +49,9 @@ def _write_text_atomic(path: str | Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private; results are ordinary files
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
             f.flush()
@@ -256,6 +259,249 @@ def cmd_demo(args) -> int:
     return 0 if result.solver["status"] == "converged" else 1
 
 
+# ------------------------------------------------------------------ virtual-rig
+
+def _cmd_virtual_rig(args) -> int:
+    import signal
+
+    from hw.rig_server import FaultSpec, RigServer, ServerOptions
+
+    cyl = _load_config(args.config)
+    effects = _parse_effects(args.effect)
+    if not 10 <= args.rate <= 100_000:
+        raise UsageError(f"--rate must lie between 10 and 100000 Hz, not {args.rate}.")
+    if not 0 <= args.jitter_us <= 0.25e6 / args.rate:
+        raise UsageError(f"--jitter-us must lie between 0 and a quarter period ({0.25e6 / args.rate:g} us), "
+                         f"not {args.jitter_us}.")
+    if not args.watchdog_ms > 0:
+        raise UsageError(f"--watchdog-ms must be positive, not {args.watchdog_ms}.")
+    for name in ("drop", "corrupt"):
+        if not 0 <= getattr(args, name) <= 1:
+            raise UsageError(f"--{name} is a probability between 0 and 1, not {getattr(args, name)}.")
+    if args.corrupt and args.can:
+        raise UsageError("--corrupt applies to --serial only: CAN frames carry a hardware CRC, so use --drop.")
+    if (args.stall_at is None) != (args.stall_for is None):
+        raise UsageError("--stall-at and --stall-for go together.")
+    if args.vanish_for is not None and args.vanish_at is None:
+        raise UsageError("--vanish-for needs --vanish-at.")
+    for name in ("stall_at", "stall_for", "vanish_at", "vanish_for", "duration"):
+        v = getattr(args, name)
+        if v is not None and not (v >= 0 and math.isfinite(v)):
+            raise UsageError(f"--{name.replace('_', '-')} must be a non-negative number of seconds, not {v}.")
+    if args.link:
+        link = Path(args.link)
+        if not link.parent.is_dir():
+            raise UsageError(f"--link {args.link}: the folder {link.parent} does not exist.")
+        if link.exists() and not link.is_symlink():
+            raise UsageError(f"--link {args.link} exists and is not a symbolic link; refusing to replace it.")
+    faults = FaultSpec(drop=args.drop, corrupt=args.corrupt, stall_at=args.stall_at, stall_for=args.stall_for or 0.0,
+                       vanish_at=args.vanish_at, vanish_for=args.vanish_for, seed=args.seed)
+    options = ServerOptions(rate=args.rate, jitter_us=args.jitter_us, watchdog_ms=args.watchdog_ms)
+    server = RigServer(cyl, effects, transport="slcan" if args.can else "serial", options=options, faults=faults,
+                       seed=args.seed, noise=not args.no_noise, link_path=args.link, log=_eprint,
+                       on_path=lambda path: print(path, flush=True), progress=_eprint)
+    print(server.path, flush=True)  # the first line of stdout: what the host opens
+    truth = ", ".join(f"{n}={cyl.value(n):g}" for n in ("Fc", "Fv", "kp"))
+    _eprint(f"virtual rig: '{cyl.name}' ({truth}) at {args.rate:g} Hz, "
+            f"{'SLCAN adapter' if args.can else 'serial protocol'} on {server.path}"
+            + (f" (link {args.link})" if args.link else "") + "; SIGINT or SIGTERM ends it")
+    previous = {sig: signal.signal(sig, lambda *_: server.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        stats = server.run(args.duration)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    _eprint(f"virtual rig: stopped after {stats.wall_s:.1f} s: {stats.summary()}")
+    return 1 if server.failure else 0
+
+
+# ------------------------------------------------------------------ live and replay
+
+def _online_options(args, cyl: Cylinder):
+    from .online import OnlineOptions
+
+    names = _estimate_list(args.estimate, cyl)
+    for name in ("window", "update"):
+        v = getattr(args, name)
+        if not (v > 0 and math.isfinite(v)):
+            raise UsageError(f"--{name} must be a positive number of seconds, not {v}.")
+    if args.update > args.window:
+        raise UsageError(f"--update ({args.update:g} s) must not exceed --window ({args.window:g} s).")
+    if not args.memory > 0:
+        raise UsageError(f"--memory must be a positive number of seconds (or inf), not {args.memory}.")
+    return OnlineOptions(window_s=args.window, update_s=args.update, memory_s=args.memory, estimate=names)
+
+
+def _rerun_sink(args, cyl, window_s: float):
+    mode, *rest = args.rerun
+    if mode not in ("spawn", "connect", "save", "off"):
+        raise UsageError(f"--rerun {mode}: use spawn, connect ADDR, save FILE or off.")
+    if mode == "save" and len(rest) != 1:
+        raise UsageError("--rerun save needs exactly one file name (--rerun save session.rrd).")
+    if mode in ("spawn", "off") and rest or len(rest) > 1:
+        raise UsageError(f"--rerun {' '.join(args.rerun)}: too many arguments.")
+    if mode == "off":
+        return None
+    from .visual import RerunSink, open_recording
+
+    return RerunSink(open_recording(mode, rest[0] if rest else None), cyl, window_s)
+
+
+def _stream_json(result, options, wall_s: float) -> dict:
+    import numpy as np
+
+    final = result.final
+    walls = np.array([e.wall_s for e in result.estimates]) * 1e3
+    out = {"params": {}, "fit": {}, "solver": {
+        "status": "online" if final else "no_estimate", "method": "moving-horizon multiple shooting",
+        "updates": len(result.estimates), "window_s": options.window_s, "wall_s": round(wall_s, 3),
+        "update_ms_p50": float(np.percentile(walls, 50)) if len(walls) else None,
+        "update_ms_p95": float(np.percentile(walls, 95)) if len(walls) else None,
+        "n_samples": int(result.run.n), "stop_reason": result.stop_reason},
+        "link": result.counters, "events": result.events,
+        "history": [{"t": e.t, "values": e.values, "std": e.std, "sigma": e.sigma} for e in result.estimates]}
+    if final:
+        out["params"] = {n: {"value": final.values[n], "std": final.std[n], "unit": final.units[n]} for n in final.values}
+        out["fit"] = {**final.rmse, "sigma": final.sigma, "window": list(final.window)}
+    return out
+
+
+def _run_stream(args, cyl, rig, program, duration, record: str | None, effects=()) -> int:
+    import signal
+
+    from .stream import ConsoleSink, InlineEstimator, LockstepSimulator, ProcessEstimator, run_session
+
+    options = _online_options(args, cyl)
+    prog = _progress(args.quiet)
+    inline = getattr(args, "speed", None) == math.inf
+    dt = 1.0 / args.rate if getattr(args, "rate", None) else None
+    if dt is None:
+        dt = rig.run.sample_period
+    if prog:
+        prog("preparing the model (compiled once, then cached) ...")
+    simulator = LockstepSimulator(cyl)
+    estimator = (InlineEstimator(cyl, dt, options) if inline else ProcessEstimator(cyl, dt, options))
+    sinks = []
+    counters = lambda: {k: v for k, v in (("lost", getattr(getattr(rig, "stats", None), "samples_lost", None)),
+                                          ("corrupt", getattr(getattr(rig, "stats", None), "frames_corrupt", None)))
+                        if v is not None}
+    if not args.quiet:
+        sinks.append(ConsoleSink(_eprint, 1.0, counters))
+    try:
+        rr_sink = _rerun_sink(args, cyl, options.window_s)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    if rr_sink is not None:
+        sinks.append(rr_sink)
+    recorder = None
+    if record:
+        from .runs import RunRecorder
+
+        recorder = RunRecorder(record, comments=[f"combined-reality {args.command}: {cyl.name}",
+                                                 f"config {cyl.source}", f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"])
+    # SIGTERM ends a session like Ctrl-C: valve centred, files complete
+    def _term(*_):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, _term)
+    t_wall = time.perf_counter()
+    try:
+        result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, recorder=recorder,
+                             sinks=sinks, simulator=simulator, on_event=_eprint, give_up_s=args.give_up)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        estimator.close()
+    wall = time.perf_counter() - t_wall
+    c = result.counters
+    summary = (f"{result.stop_reason}: {c['samples']} samples in {wall:.1f} s"
+               + "".join(f", {c[k]} {k.replace('_', ' ')}" for k in ("samples_lost", "frames_corrupt", "gaps",
+                                                                     "reconnects", "rig_errors") if k in c))
+    _eprint(summary)
+    if record:
+        _eprint(f"recorded {result.run.n} samples to {record}")
+    final = result.final
+    if final:
+        print(f"online estimate at t = {final.t:.2f} s ({len(result.estimates)} updates, residual σ = "
+              f"{final.sigma:.2f} × noise):")
+        for n, v in final.values.items():
+            print(f"  {n:4s} = {v:.6g} ± {final.std[n]:.2g} {final.units[n]}")
+    else:
+        print("no online estimate: fewer samples than one estimation window.")
+    if args.json:
+        _write_json_atomic(args.json, _clean_json(_stream_json(result, options, wall)))
+    if getattr(estimator, "error", None):
+        return 1
+    return 1 if result.stop_reason.startswith("no samples") else 0
+
+
+def cmd_live(args) -> int:
+    from .excitation import make_program
+
+    cyl = _load_config(args.config)
+    if not (args.duration > 0 and math.isfinite(args.duration)):
+        raise UsageError(f"--duration must be a positive number of seconds, not {args.duration}.")
+    try:
+        program = make_program(args.program, cyl, args.duration, seed=args.seed)
+    except (ValueError, OSError) as e:
+        raise UsageError(f"--program {args.program}: {e}") from None
+    effects = _parse_effects(args.effect)
+    if effects and not args.virtual:
+        raise UsageError("--effect switches effects on in the virtual rig; it needs --virtual.")
+    if args.serial:
+        from hw.serial_rig import SerialRig
+
+        rig = SerialRig(args.serial, on_event=_eprint)
+    elif args.can:
+        from hw.can_rig import CanRig
+
+        rig = CanRig(args.can, interface=args.interface, on_event=_eprint)
+    else:
+        from hw.virtual_rig import VirtualRig
+
+        from .stream import PacedRig
+
+        rig = PacedRig(VirtualRig(cyl, effects, rate=args.rate, seed=args.seed))
+    return _run_stream(args, cyl, rig, program, args.duration, args.record, effects)
+
+
+def cmd_replay(args) -> int:
+    from .stream import ReplayRig
+
+    cyl = _load_config(args.config)
+    run = read_run(args.run)
+    _check_run_against_cylinder(run, cyl)
+    if run.n < 3:
+        raise UsageError(f"{args.run}: a run needs at least 3 samples.")
+    speed = math.inf if args.speed == "max" else _positive_float(args.speed, "--speed")
+    args.speed = speed
+    rig = ReplayRig(run, speed)
+    return _run_stream(args, cyl, rig, None, None, None)
+
+
+def _positive_float(text: str, what: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise UsageError(f"{what} {text}: give a number or max.") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise UsageError(f"{what} must be positive, not {text}.")
+    return v
+
+
+def _add_online_arguments(a) -> None:
+    a.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
+    a.add_argument("--json", help="write the final online estimate (identify format, plus its history)")
+    a.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
+                   help="spawn | connect ADDR | save FILE | off (default off)")
+    a.add_argument("--estimate", help="comma-separated parameters (default Fc,Fv,kp)")
+    a.add_argument("--window", type=float, default=2.0, help="moving horizon, s (default 2)")
+    a.add_argument("--update", type=float, default=0.2, help="data between estimator updates, s (default 0.2)")
+    a.add_argument("--memory", type=float, default=math.inf,
+                   help="forgetting time constant of old data, s (default inf: keep all)")
+    a.add_argument("--give-up", type=float, default=5.0, help="end the session after this long without samples, s")
+    a.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+
+
 # ------------------------------------------------------------------ parser
 
 def build_parser() -> argparse.ArgumentParser:
@@ -308,6 +554,60 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="combined_reality_demo", help="folder for the run and the result")
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
+
+    v = sub.add_parser("virtual-rig", help="serve the virtual rig in real time over a pseudo-terminal (serial or SLCAN)",
+                       description="Run the virtual rig in real time behind the wire protocol of docs/protocol.md, "
+                                   "on a pseudo-terminal that a host opens like a serial port (or an SLCAN CAN "
+                                   "adapter). The first line of stdout is the pty path; status and fault messages "
+                                   "go to stderr. Runs until SIGINT/SIGTERM or --duration. The cylinder file's "
+                                   "[friction] is the truth.")
+    v.add_argument("--config", help="cylinder TOML file (default: the built-in 32 mm x 100 mm cylinder)")
+    kind = v.add_mutually_exclusive_group(required=True)
+    kind.add_argument("--serial", action="store_true", help="serial protocol: COBS frames with CRC-16")
+    kind.add_argument("--can", action="store_true", help="an SLCAN adapter with the rig on its bus (hw/rig_can.dbc)")
+    v.add_argument("--rate", type=float, default=1000.0, help="sample rate in Hz (default 1000)")
+    v.add_argument("--effect", action="append", metavar="NAME[:k=v,...]",
+                   help="switch on an unmodelled effect in the plant (repeatable)")
+    v.add_argument("--seed", type=int, default=1, help="seed of the noise, jitter and faults (default 1)")
+    v.add_argument("--no-noise", action="store_true", help="noise-free sensors")
+    v.add_argument("--jitter-us", type=float, default=20.0, help="standard deviation of the tick times (default 20)")
+    v.add_argument("--watchdog-ms", type=float, default=50.0,
+                   help="host silence after which the valve is centred (default 50)")
+    v.add_argument("--drop", type=float, default=0.0, metavar="P", help="probability of dropping a frame")
+    v.add_argument("--corrupt", type=float, default=0.0, metavar="P",
+                   help="probability of corrupting bytes of a frame (--serial only)")
+    v.add_argument("--stall-at", type=float, metavar="T", help="stop sending at T s ...")
+    v.add_argument("--stall-for", type=float, metavar="D", help="... for D s (frames are delayed, not lost)")
+    v.add_argument("--vanish-at", type=float, metavar="T", help="close the pty at T s (the rig vanishes)")
+    v.add_argument("--vanish-for", type=float, metavar="D", help="come back on a new pty after D s (see --link)")
+    v.add_argument("--link", metavar="PATH", help="keep a symbolic link PATH to the current pty (like "
+                                                  "/dev/serial/by-id), so a host finds the rig again")
+    v.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run until stopped)")
+    v.set_defaults(func=_cmd_virtual_rig)
+
+    lv = sub.add_parser("live", help="run an experiment on a rig with the model in lock-step and online estimation",
+                        description="Drive a rig with a safe experiment program, record every sample, simulate "
+                                    "the model with the same command and estimate the friction online.")
+    src = lv.add_mutually_exclusive_group(required=True)
+    src.add_argument("--serial", metavar="PORT", help="a rig on a serial port (docs/protocol.md)")
+    src.add_argument("--can", metavar="CHANNEL", help="a rig on CAN (hw/rig_can.dbc), via python-can")
+    src.add_argument("--virtual", action="store_true", help="the virtual rig in this process, in real time")
+    lv.add_argument("--interface", default="socketcan", help="python-can interface for --can (default socketcan; slcan, ...)")
+    lv.add_argument("--program", default="mixed",
+                    help="mixed | steps | ramps | sines (closed-loop position) | pulses (open loop) | file:CMD.csv")
+    lv.add_argument("--duration", type=float, required=True, help="seconds of rig time")
+    lv.add_argument("--record", required=True, help="run CSV written as samples arrive")
+    lv.add_argument("--seed", type=int, default=0, help="seed of the experiment program (and the virtual rig)")
+    lv.add_argument("--rate", type=float, default=1000.0, help="sample rate of the rig, Hz (default 1000)")
+    lv.add_argument("--effect", action="append", metavar="SPEC", help="with --virtual: an unmodelled effect as truth")
+    _add_online_arguments(lv)
+    lv.set_defaults(func=cmd_live)
+
+    rp = sub.add_parser("replay", help="replay a recorded run through the lock-step model and the online estimator")
+    rp.add_argument("run", help="recorded run CSV")
+    rp.add_argument("--speed", default="1", help="1 = real time, 2 = twice as fast, max = as fast as possible")
+    _add_online_arguments(rp)
+    rp.set_defaults(func=cmd_replay)
     return p
 
 

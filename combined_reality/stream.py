@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import queue
 import time
 from dataclasses import dataclass, field
@@ -123,13 +124,16 @@ class InlineEstimator:
         pass
 
 
-def _estimator_main(cyl, sample_period, options, effects, inbox, outbox) -> None:
-    """The estimator process: take rows, update whenever a window is due, send estimates."""
+def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent: int) -> None:
+    """The estimator process: take rows, update whenever a window is due, send estimates.
+    It ends with its parent, even one killed outright (no orphan keeps computing)."""
     try:
         mhe = MovingHorizonEstimator(cyl, sample_period, options, effects)
         outbox.put(("ready", None))
         finishing = False
         while True:
+            if os.getppid() != parent:
+                return
             try:
                 msg = inbox.get(timeout=0.05)
             except queue.Empty:
@@ -162,7 +166,7 @@ class ProcessEstimator:
         ctx = mp.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
         self.proc = ctx.Process(target=_estimator_main, name="combined-reality-estimator", daemon=True,
-                                args=(cyl, sample_period, options, tuple(effects), self.inbox, self.outbox))
+                                args=(cyl, sample_period, options, tuple(effects), self.inbox, self.outbox, os.getpid()))
         self.proc.start()
         self.error: str | None = None
         kind, _ = self._get(start_timeout)
@@ -219,11 +223,14 @@ class ProcessEstimator:
 
 class LockstepSimulator:
     """The model fed with the very command the rig applied, sample by sample, with the latest
-    estimated parameters. It is resynchronised to the measured state every `resync_s`, so
-    its gap to the measurement shows how far the model drifts within that horizon. Blocks
-    of up to `block` rows go through one call of the compiled step, accumulated."""
+    estimated parameters. Each online estimate also resynchronises it: the estimator's state
+    at the end of its window is carried forward through the rows since then, so the gap to
+    the measurement is the model's own prediction error over the last update period.
+    Without estimates for `resync_s` it restarts from the measured state instead. Blocks of
+    up to `block` rows go through one call of the compiled step, accumulated."""
 
-    def __init__(self, cyl: Cylinder, effects: Sequence[Effect] = (), resync_s: float = 1.0, block: int = 20):
+    def __init__(self, cyl: Cylinder, effects: Sequence[Effect] = (), resync_s: float = 2.0, block: int = 20,
+                 history_s: float = 10.0):
         self.cyl = cyl
         self.plant = plant = build_plant("command", effects)
         sf = shooting_functions(plant, 1, ())
@@ -231,60 +238,82 @@ class LockstepSimulator:
         self._acc = sf.step.mapaccum("lockstep", block, [0], [0])  # states after each of B steps
         self._friction = plant.friction.map(block)
         self.p = np.array(plant.parameter_vector(cyl), float)
-        self.resync_s = resync_s
+        self.resync_s, self.history_s = resync_s, history_s
         self.state: np.ndarray | None = None  # at the last row seen
         self._t_sync = -math.inf
-        self._last = (0.0, 0.0)  # the last row's (t, u)
-        self._hist = np.empty((2, 0))  # recent (t, x) for the resync velocity
+        self._pending: tuple[float, np.ndarray] | None = None  # (t, state) of the newest estimate
+        self._hist = np.empty((3, 0))  # recent rows (t, u, x)
         ix = plant.state_names.index
         self._out = [ix("x"), ix("p1"), ix("p2"), ix("v")]
 
     def set_params(self, p: np.ndarray) -> None:
         self.p = np.asarray(p, float)
 
+    def set_estimate(self, e) -> None:
+        self.set_params(e.params)
+        self._pending = (e.t, np.asarray(e.state, float))
+
+    def _run(self, s0: np.ndarray, u: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """States after each step of holding u[i] for h[i], from s0: (nx, len(u))."""
+        B, out = self.B, np.empty((self.plant.nx, len(u)))
+        P = np.tile(self.p[:, None], (1, B))
+        for a in range(0, len(u), B):
+            m = min(B, len(u) - a)
+            U, H = np.zeros(B), np.zeros(B)  # zero-length steps pad the block, leaving the state alone
+            U[:m], H[:m] = u[a:a + m], h[a:a + m]
+            X = np.asarray(self._acc(s0, U[None], U[None], P, H[None]))
+            out[:, a:a + m] = X[:, :m]
+            s0 = X[:, m - 1]
+        return out
+
     def advance(self, rows: np.ndarray) -> np.ndarray:
         """Simulated (x, p1, p2, v, friction) at each row's time: (5, n), n <= block."""
         t, u, x, p1, p2 = rows
-        n, B, nx = len(t), self.B, self.plant.nx
-        # the command held since the previous row carries the state to each row
-        u_held = np.concatenate([[self._last[1]], u[:-1]])
-        h = np.diff(np.concatenate([[self._last[0]], t]))
+        n, nx = len(t), self.plant.nx
+        hist = np.hstack([self._hist, np.vstack([t, u, x])])
+        hist = hist[:, hist[0] >= t[-1] - self.history_s]
+        if self._pending is not None and self.state is not None:
+            te, se = self._pending
+            i = int(np.searchsorted(hist[0], te - 1e-9))
+            if i < hist.shape[1] and abs(hist[0, i] - te) < 1e-6 and hist[0, i] <= t[0] - 1e-12:
+                j = hist.shape[1] - n  # rows before this block: carry the estimate up to the last of them
+                seg = slice(i, j)
+                hs = np.diff(hist[0, i:j + 1])[: j - i - 1] if j - i > 1 else np.empty(0)
+                self.state = self._run(se, hist[1, i:j - 1], hs)[:, -1] if len(hs) else se
+                self._t_sync = te
+            self._pending = None
         states = np.empty((nx, n))
-        hist = np.hstack([self._hist, np.vstack([t, x])])[:, -(n + 10):]
         k = 0
         while k < n:
-            # rows k.. are simulated from the state at row k-1 (or a resync at row k)
-            resync = self.state is None or t[k] - self._t_sync >= self.resync_s or not np.all(np.isfinite(self.state))
-            if resync:
+            if self.state is None or t[k] - self._t_sync >= self.resync_s or not np.all(np.isfinite(self.state)):
+                # no estimate lately: start again from the measured state (velocity from a
+                # quadratic through the last samples)
                 j = hist.shape[1] - n + k
-                ja = max(0, j - 10)
-                v = (hist[1, j] - hist[1, ja]) / (hist[0, j] - hist[0, ja]) if j > ja else 0.0
-                start = np.array(self.plant.initial_state(self.cyl, x[k], p1[k], p2[k], v), float)
+                ja = max(0, j - 19)
+                v = float(np.polyfit(hist[0, ja:j + 1] - hist[0, j], hist[2, ja:j + 1], 2)[1]) if j - ja >= 3 else 0.0
+                states[:, k] = self.plant.initial_state(self.cyl, x[k], p1[k], p2[k], v)
                 self._t_sync = t[k]
-                states[:, k] = start
-                s0, k0 = start, k + 1
             else:
-                s0, k0 = self.state, k
-            # up to the next resync (or the block's end)
-            k1 = k0
-            while k1 < n and t[k1] - self._t_sync < self.resync_s:
-                k1 += 1
-            m = k1 - k0
-            if m > 0:
-                U = np.zeros(B)
-                H = np.zeros(B)  # zero-length steps pad the block and leave the state alone
-                U[:m], H[:m] = u_held[k0:k1], h[k0:k1]
-                X = np.asarray(self._acc(s0, U[None], U[None], np.tile(self.p[:, None], (1, B)), H[None]))
-                states[:, k0:k1] = X[:, :m]
-            self.state = states[:, k1 - 1] if k1 > 0 else self.state
-            k = k1
-        self._last = (t[-1], u[-1])
-        self._hist = hist[:, -10:]
-        S = np.zeros((nx, B))
+                h = t[k] - self._last[0]
+                states[:, k] = self._run(self.state, np.array([self._last[1]]), np.array([h]))[:, 0]
+            self.state = states[:, k]
+            self._last = (t[k], u[k])
+            k += 1
+            # the rest of the block in one call, up to a resynchronisation
+            m = 0
+            while k + m < n and t[k + m] - self._t_sync < self.resync_s:
+                m += 1
+            if m:
+                states[:, k:k + m] = self._run(self.state, u[k - 1:k - 1 + m], t[k:k + m] - t[k - 1:k - 1 + m])
+                self.state = states[:, k + m - 1]
+                self._last = (t[k + m - 1], u[k + m - 1])
+                k += m
+        self._hist = hist
+        S = np.zeros((nx, self.B))
         S[:, :n] = states
-        Uf = np.zeros(B)
+        Uf = np.zeros(self.B)
         Uf[:n] = u
-        F = np.asarray(self._friction(S, Uf[None], np.tile(self.p[:, None], (1, B)))).ravel()[:n]
+        F = np.asarray(self._friction(S, Uf[None], np.tile(self.p[:, None], (1, self.B)))).ravel()[:n]
         return np.vstack([states[self._out], F[None]])
 
 
@@ -381,7 +410,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         estimates.append(e)
         counters["estimates"] += 1
         if simulator is not None:
-            simulator.set_params(e.params)
+            simulator.set_estimate(e)
         for s in sinks:
             s.estimate(e)
 
