@@ -454,7 +454,9 @@ def cmd_live(args) -> int:
     elif args.can:
         from hw.can_rig import CanRig
 
-        rig = CanRig(args.can, interface=args.interface, on_event=_eprint)
+        # python-can's slcan waits 2 s after opening unless told otherwise
+        extra = {"sleep_after_open": 0.1} if args.interface == "slcan" else {}
+        rig = CanRig(args.can, interface=args.interface, on_event=_eprint, **extra)
     else:
         from hw.virtual_rig import VirtualRig
 

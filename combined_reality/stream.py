@@ -9,6 +9,7 @@ replaying as fast as possible.
 """
 from __future__ import annotations
 
+import gc
 import math
 import multiprocessing as mp
 import os
@@ -389,6 +390,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     t0 = None
     t_prev = None
     dt_nominal = None
+    first_dts: list[float] = []
     reason = "duration reached"
     last_sample_wall = time.monotonic()
 
@@ -414,6 +416,10 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         for s in sinks:
             s.estimate(e)
 
+    # a full garbage collection can pause the loop for tens of milliseconds, long enough for
+    # the rig's watchdog: collect now and keep what exists out of later collections
+    gc.collect()
+    gc.freeze()
     rig.start()
     try:
         while True:
@@ -442,10 +448,11 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
                 if dt <= 0:
                     event(f"sample at t = {s.t:.6f} s does not advance the rig clock; dropped")
                     continue
-                if dt_nominal is None:
-                    dt_nominal = dt
-                elif dt > 1.5 * dt_nominal:
-                    counters["gaps"] += 1
+                if len(first_dts) < 50:
+                    first_dts.append(dt)
+                    dt_nominal = float(np.median(first_dts))
+                elif dt > 1.9 * dt_nominal:
+                    counters["gaps"] += 1  # at least one sample period without a sample
             t_prev = s.t
             ps = s.ps if s.ps is not None and math.isfinite(s.ps) else None
             if recorder is not None:

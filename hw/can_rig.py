@@ -1,0 +1,87 @@
+"""A rig on a CAN bus through python-can (socketcan, slcan, virtual, ...), docs/protocol.md.
+
+    rig = CanRig("can0")                                     # socketcan
+    rig = CanRig("/dev/ttyACM0", interface="slcan")          # a USB SLCAN adapter
+    rig = CanRig("test", interface="virtual")                # unit tests
+
+Identifiers and scaling come from hw/rig_can.dbc (hw.can_mapping). Extra keyword
+arguments go to `can.Bus` (e.g. `sleep_after_open=0` for an SLCAN adapter that needs no
+reset time).
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import can
+
+from .can_mapping import CanCodec, SampleAssembler
+from .protocol import HostFrame, LinkDown, LinkRig
+from .rig import RigError
+
+
+class CanRig(LinkRig):
+    link = "CAN"
+    seq_bits = 8  # RigSample*.Seq
+    t_bits = 32  # RigSampleTime.TimeUs
+    cmd_seq_mask = 0xFFFF  # RigCommand.CmdSeq
+
+    def __init__(self, channel: str, *, interface: str = "socketcan", bitrate: int = 1_000_000,
+                 on_event: Callable[[str], None] | None = None, reconnect: bool = True,
+                 give_up_after: float | None = None, queue_size: int = 100_000, **bus_kwargs: Any):
+        self.channel = channel
+        self.interface = interface
+        self.bitrate = bitrate
+        self.bus_kwargs = bus_kwargs
+        self.codec = CanCodec()
+        self._assembler = SampleAssembler(self.codec)
+        self._bad_lines = 0  # frames the interface could not parse (garbled SLCAN text)
+        self._bus: can.BusABC | None = None
+        super().__init__(f"{interface}:{channel}", on_event=on_event, reconnect=reconnect,
+                         give_up_after=give_up_after, queue_size=queue_size)
+
+    def _open(self) -> None:
+        try:
+            bus = can.Bus(channel=self.channel, interface=self.interface, bitrate=self.bitrate, **self.bus_kwargs)
+        except (can.CanError, OSError, ValueError, ImportError) as e:
+            raise RigError(f"cannot open CAN {self.interface} channel {self.channel}: {e}") from None
+        self._assembler.reset()
+        self._bus = bus
+
+    def _close(self) -> None:
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            bus.shutdown()
+
+    def _receive(self, timeout: float) -> None:
+        bus = self._bus
+        if bus is None:
+            raise LinkDown(f"{self.where}: not open")
+        try:
+            msg = bus.recv(timeout)
+        except (ValueError, IndexError):  # a garbled SLCAN line: python-can cannot parse it
+            self._bad_lines += 1
+            self._corrupt(1)
+            return
+        except (can.CanError, OSError) as e:
+            raise LinkDown(f"{self.where}: {e}") from None
+        if msg is None:
+            return
+        before = self._assembler.malformed
+        for frame in self._assembler.feed(msg):
+            self._deliver(frame)
+        self._corrupt(self._assembler.malformed - before)
+
+    def _transmit(self, frame: HostFrame) -> None:
+        bus = self._bus
+        if bus is None:
+            raise LinkDown(f"{self.where}: not open")
+        try:
+            for msg in self.codec.host_messages(frame):
+                bus.send(msg, timeout=0.2)
+        except (can.CanError, OSError):
+            # buffer full or the adapter is gone: this frame is lost and the rig's watchdog
+            # takes over; a dead link is noticed (and reopened) by the reader thread
+            pass
+
+    def _frame_counts(self) -> tuple[int, int]:
+        return self._bad_lines + self._assembler.malformed, 0

@@ -1,0 +1,681 @@
+"""The virtual rig speaking the wire protocol over a pseudo-terminal (or a python-can bus).
+
+`RigServer` owns an in-process `hw.virtual_rig.VirtualRig` (the same plant as everything
+else) and behaves like rig firmware: a real-time loop at `rate` with deadline scheduling
+and jitter, rig timestamps = actual tick times, the plant integrated over the actual
+period, streaming between START and STOP, the latest command latched at each tick, a
+watchdog that centres the valve when the host goes silent, soft stroke limits, and faults
+on demand (`FaultSpec`). The host sees a real serial device (`transport="serial"`), an
+SLCAN adapter (`"slcan"`, hw.slcan_server) or, in tests, a python-can bus (`"can-bus"`).
+
+    combined-reality virtual-rig --serial --link /tmp/rig     # prints the pty path first
+"""
+from __future__ import annotations
+
+import gc
+import math
+import os
+import select
+import threading
+import time
+import tty
+from collections import deque
+from dataclasses import dataclass, field, replace
+from typing import Callable, Sequence
+
+import numpy as np
+
+from sim.cylinder import Cylinder
+from sim.effects import Effect
+
+from .protocol import (Command, ErrorCode, ErrorFrame, EventLimiter, Frame, FrameDecoder, Heartbeat, HostFrame,
+                       SampleFrame, Start, StatusFrame, Stop, encode)
+from .rig import Status, bounded
+from .virtual_rig import VirtualRig
+
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """Faults the virtual rig injects on demand (times in s since the server started)."""
+
+    drop: float = 0.0  # probability that a rig->host frame is dropped (on CAN: each of a sample's 3 frames)
+    corrupt: float = 0.0  # probability that a serial frame gets 1 to 3 of its bytes overwritten
+    # stall: the link stops sending at stall_at for stall_for seconds. The rig keeps sampling;
+    # its frames wait in the transmit buffer and go out in one burst when the stall ends
+    # (delayed, not lost, as when a USB link or a host driver hiccups)
+    stall_at: float | None = None
+    stall_for: float = 0.0
+    # vanish: the pty is closed at vanish_at (an unplugged cable: the rig runs on, its watchdog
+    # trips); after vanish_for it comes back on a new pty (same --link), or never if None
+    vanish_at: float | None = None
+    vanish_for: float | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "corrupt"):
+            p = getattr(self, name)
+            if not 0.0 <= p <= 1.0:
+                raise ValueError(f"fault probability {name} = {p} is outside [0, 1]")
+        if self.stall_for < 0 or (self.vanish_for is not None and self.vanish_for < 0):
+            raise ValueError("fault durations must not be negative")
+
+
+@dataclass(frozen=True)
+class ServerOptions:
+    rate: float = 1000.0  # Hz
+    jitter_us: float = 20.0  # standard deviation of the tick times around the nominal grid
+    watchdog_ms: float = 50.0  # host silence (no COMMAND/HEARTBEAT/START) that centres the valve
+    end_zone: float = 0.03  # soft stroke limits: this fraction of the stroke at each end
+    spin_us: float = 200.0  # sleep until this long before a deadline, then spin
+    status_period_s: float = 0.1  # STATUS frames while not streaming
+    tx_limit: int = 1 << 16  # bytes the rig buffers when the host reads too slowly
+    realtime: bool = True  # ask for SCHED_FIFO (root or CAP_SYS_NICE): a rig's loop is not preempted
+
+
+@dataclass
+class ServerStats:
+    ticks: int = 0
+    samples_sent: int = 0
+    frames_dropped: int = 0  # by fault injection
+    frames_corrupted: int = 0  # by fault injection
+    tx_overflow: int = 0  # frames dropped because the host did not read
+    overruns: int = 0  # ticks missed entirely
+    watchdog_trips: int = 0
+    # the last 10^5 ticks: actual - target wake-up time, and t_k - t_k-1 of streamed samples
+    late_us: deque = field(default_factory=lambda: deque(maxlen=100_000), repr=False)
+    period_us: deque = field(default_factory=lambda: deque(maxlen=100_000), repr=False)
+    busy_us: deque = field(default_factory=lambda: deque(maxlen=100_000), repr=False)  # work per streamed tick
+    cpu_s: float = 0.0
+    wall_s: float = 0.0
+
+    def summary(self) -> str:
+        per = np.asarray(self.period_us)
+        late = np.asarray(self.late_us)
+        jitter = f"period {per.mean() / 1000:.3f} ms +- {per.std():.1f} us (min {per.min():.0f}, " \
+                 f"max {per.max():.0f} us)" if len(per) > 1 else "no samples streamed"
+        late_s = f", wake-up late by {np.percentile(late, 99):.0f} us (99 %)" if len(late) else ""
+        if len(self.busy_us):
+            busy = np.asarray(self.busy_us)
+            late_s += f", tick work {np.median(busy):.0f} us (median), {busy.max():.0f} us (max)"
+        cpu = f", CPU {100 * self.cpu_s / self.wall_s:.0f} %" if self.wall_s > 0 else ""
+        faults = f"; faults injected: {self.frames_dropped} frames dropped, {self.frames_corrupted} corrupted" \
+            if self.frames_dropped or self.frames_corrupted else ""
+        return (f"{self.ticks} ticks, {self.samples_sent} samples sent; {jitter}{late_s}; {self.overruns} overruns, "
+                f"{self.watchdog_trips} watchdog trips, {self.tx_overflow} frames dropped for a slow host{faults}{cpu}")
+
+
+# ------------------------------------------------------------------ rig logic
+
+
+class RigCore:
+    """The rig's firmware logic, without I/O or clock: host frames in, samples out."""
+
+    def __init__(self, rig: VirtualRig, options: ServerOptions, log: Log):
+        self.rig = rig
+        self.opts = options
+        self.log = log
+        L = rig.cyl.geometry.stroke
+        self.zone = (options.end_zone * L, (1.0 - options.end_zone) * L)
+        self.running = False
+        self.seq = 0
+        self.t_us: int | None = None
+        self.cmd_u = 0.0
+        self.cmd_seq = 0
+        self.cmd_clipped = False
+        self.last_host_us = 0
+        self.watchdog = False
+        self.in_zone = False
+        self.x = rig.true_state["x"]  # last measured position, for the soft limits
+        self.stats_watchdog = 0
+        self.bad_commands = 0  # since the last BAD_COMMAND error frame
+        self._bad_reported_us = -(10**12)
+
+    def host_frame(self, frame: HostFrame, t_us: int) -> list[Frame]:
+        """Take a frame from the host; returns frames to send back (errors)."""
+        out: list[Frame] = []
+        match frame:
+            case Command(seq, u):
+                self.last_host_us = t_us
+                self.cmd_u = bounded(u)  # never trust the wire
+                self.cmd_clipped = not (math.isfinite(u) and abs(u) <= 1.0)
+                if self.cmd_clipped:
+                    self.bad_commands += 1
+                    if t_us - self._bad_reported_us >= 1_000_000:  # one error frame per second at most
+                        out.append(ErrorFrame(ErrorCode.BAD_COMMAND, t_us, self.bad_commands))
+                        self.bad_commands, self._bad_reported_us = 0, t_us
+                self.cmd_seq = seq
+                self.watchdog = False  # only a new command re-arms a tripped watchdog
+            case Heartbeat():
+                self.last_host_us = t_us
+            case Start():
+                self.last_host_us = t_us
+                if not self.running:
+                    self.running = True
+                    self.log("streaming started by the host")
+            case Stop():
+                if self.running:
+                    self.log("streaming stopped by the host")
+                self.running = False
+                self.cmd_u, self.cmd_clipped = 0.0, False
+        return out
+
+    def tick(self, t_us: int, overrun: bool = False) -> tuple[SampleFrame, list[Frame]]:
+        """Advance the plant to the tick at t_us, latch the command, take the sample."""
+        out: list[Frame] = []
+        status = Status(0)
+        silence_ms = (t_us - self.last_host_us) / 1000.0
+        if self.running and not self.watchdog and silence_ms > self.opts.watchdog_ms:
+            self.watchdog = True
+            self.stats_watchdog += 1
+            out.append(ErrorFrame(ErrorCode.WATCHDOG, t_us, int(round(silence_ms))))
+            self.log(f"watchdog: no command for {silence_ms:.0f} ms; valve centred")
+        u = self.cmd_u if self.running and not self.watchdog else 0.0
+        if self.watchdog:
+            status |= Status.WATCHDOG
+        if self.cmd_clipped and u == self.cmd_u:
+            status |= Status.CMD_CLIPPED
+        # soft stroke limits on the last measurement: never drive further into an end zone
+        lo, hi = self.zone
+        into = (self.x < lo and u < 0) or (self.x > hi and u > 0)
+        if into:
+            u = 0.0
+            status |= Status.SOFT_LIMIT
+            if not self.in_zone:
+                out.append(ErrorFrame(ErrorCode.SOFT_LIMIT, t_us, int(round(self.x * 1e6))))
+        self.in_zone = into
+        dt = 1.0 / self.opts.rate if self.t_us is None else (t_us - self.t_us) * 1e-6
+        self.rig.send(u)
+        s = self.rig.advance(dt)  # integrates with the previous latch, then latches u
+        self.t_us = t_us
+        self.x = s.x
+        self.seq += 1
+        if self.running:
+            status |= Status.RUNNING
+        if overrun:
+            status |= Status.OVERRUN
+        return SampleFrame(seq=self.seq, t_us=t_us, x=s.x, p1=s.p1, p2=s.p2, ps=s.ps, u_applied=u,
+                           status=int(status), cmd_seq=self.cmd_seq), out
+
+
+# ------------------------------------------------------------------ links
+
+
+class Link:
+    """Rig side of a transport: host frames in, rig frames out through fault injection and a
+    transmit buffer. Subclasses turn frames into wire units and move bytes/messages."""
+
+    can_corrupt = True
+
+    def __init__(self, faults: FaultSpec, rng: np.random.Generator, stats: ServerStats, tx_limit: int):
+        if faults.corrupt > 0 and not self.can_corrupt:
+            raise ValueError(f"{type(self).__name__} cannot corrupt bytes (CAN frames carry a hardware CRC; "
+                             "use drop)")
+        self.faults = faults
+        self.rng = rng
+        self.stats = stats
+        self.tx_limit = tx_limit
+        self.stalled = False
+        self.overflowed = 0  # frames dropped for lack of buffer since the last report
+        self.path: str | None = None
+        self._pending: deque = deque()
+        self._pending_size = 0
+
+    @property
+    def rx_corrupt(self) -> int:
+        """Damaged frames from the host rejected so far."""
+        return 0
+
+    def poll(self) -> list[HostFrame]:
+        raise NotImplementedError
+
+    def _units(self, frame: Frame) -> list:
+        raise NotImplementedError
+
+    def _write(self, unit) -> int | None:
+        """Write as much of `unit` as the OS takes now: bytes written (None = all)."""
+        raise NotImplementedError
+
+    def _corrupt(self, unit):
+        return unit
+
+    def _size(self, unit) -> int:
+        return len(unit)
+
+    def close(self) -> None:
+        pass
+
+    def send(self, frame: Frame) -> None:
+        for unit in self._units(frame):
+            if self.faults.drop and self.rng.random() < self.faults.drop:
+                self.stats.frames_dropped += 1
+                continue
+            if self.faults.corrupt and self.rng.random() < self.faults.corrupt:
+                unit = self._corrupt(unit)
+                self.stats.frames_corrupted += 1
+            if not self.stalled and self._pending_size > self.tx_limit:
+                self.stats.tx_overflow += 1
+                self.overflowed += 1
+                continue
+            self._pending.append(unit)
+            self._pending_size += self._size(unit)
+
+    def flush(self) -> None:
+        while self._pending and not self.stalled:
+            unit = self._pending[0]
+            n = self._write(unit)
+            if n is None:
+                self._pending.popleft()
+                self._pending_size -= self._size(unit)
+            else:  # partly written: keep the rest for the next tick
+                self._pending[0] = unit[n:]
+                self._pending_size -= n
+                return
+
+
+class PtyLink(Link):
+    """A pseudo-terminal in raw mode; the host opens `path` like any serial port.
+
+    Input is read by a helper thread: a read on a pty master may wait for the kernel's
+    tty worker (normal priority, so starved on a busy machine) for milliseconds, which
+    must not hold up the sampling loop."""
+
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)  # bytes pass unchanged: no echo, no line editing, no CR/LF mapping
+        tty.setraw(self.master)
+        os.set_blocking(self.master, False)
+        # the slave stays open here too, so the pty survives the host closing and reopening it
+        self.path = os.ttyname(self.slave)
+        self._inbox: deque[bytes] = deque()
+        self._closing = False
+        self._wake_r, self._wake_w = os.pipe()
+        self._reader = threading.Thread(target=self._read_loop, name=f"pty reader {self.path}", daemon=True)
+        self._reader.start()
+
+    def _read_loop(self) -> None:
+        while not self._closing:
+            try:
+                ready, _, _ = select.select([self.master, self._wake_r], [], [], 0.5)
+            except (OSError, ValueError):
+                return
+            if self._closing:
+                return
+            if self.master in ready:
+                try:
+                    data = os.read(self.master, 65536)
+                except (BlockingIOError, InterruptedError):
+                    continue
+                except OSError:
+                    return
+                self._inbox.append(data)
+
+    def _read(self) -> bytes:
+        chunks = []
+        while self._inbox:
+            chunks.append(self._inbox.popleft())
+        return b"".join(chunks)
+
+    def _write(self, unit: bytes) -> int | None:
+        try:
+            n = os.write(self.master, unit)
+        except BlockingIOError:
+            return 0
+        return None if n == len(unit) else n
+
+    def flush(self) -> None:
+        # one write per tick: a write to a pty costs ~20 us whatever its size
+        if len(self._pending) > 1 and not self.stalled:
+            data = b"".join(self._pending)
+            self._pending.clear()
+            self._pending.append(data)
+        super().flush()
+
+    def close(self) -> None:
+        # stop the reader before closing: its fd numbers could be reused by the next pty
+        self._closing = True
+        os.write(self._wake_w, b"x")
+        self._reader.join(timeout=2.0)
+        for fd in (self.master, self.slave, self._wake_r, self._wake_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+class SerialPtyLink(PtyLink):
+    """docs/protocol.md serial framing (COBS + CRC-16) on a pty."""
+
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.decoder = FrameDecoder()
+
+    @property
+    def rx_corrupt(self) -> int:
+        return self.decoder.frames_corrupt
+
+    def poll(self) -> list[HostFrame]:
+        data = self._read()
+        if not data:
+            return []
+        return [f for f in self.decoder.feed(data) if isinstance(f, (Start, Stop, Command, Heartbeat))]
+
+    def _units(self, frame: Frame) -> list[bytes]:
+        return [encode(frame)]
+
+    def _corrupt(self, unit: bytes) -> bytes:
+        b = bytearray(unit)
+        for _ in range(int(self.rng.integers(1, 4))):
+            b[int(self.rng.integers(len(b)))] = int(self.rng.integers(256))
+        return bytes(b)
+
+
+class CanBusLink(Link):
+    """The rig as a node on a python-can bus (virtual in tests; socketcan vcan/can works too)."""
+
+    can_corrupt = False
+
+    def __init__(self, bus, *args, **kw):
+        super().__init__(*args, **kw)
+        from .can_mapping import CanCodec
+
+        self.bus = bus
+        self.codec = CanCodec()
+        self.path = str(bus.channel_info)
+
+    def poll(self) -> list[HostFrame]:
+        out = []
+        while (msg := self.bus.recv(0)) is not None:
+            f = self.codec.host_frame(msg)
+            if f is not None:
+                out.append(f)
+        return out
+
+    def _units(self, frame: Frame) -> list:
+        return self.codec.rig_messages(frame)
+
+    def _size(self, unit) -> int:
+        return 16
+
+    def _write(self, unit) -> int | None:
+        self.bus.send(unit)
+        return None
+
+
+# ------------------------------------------------------------------ the server
+
+
+class RigServer:
+    """A real-time virtual rig behind a wire. `run()` blocks until `stop()`, `duration`, or a
+    vanish fault without return; `step(t_us)` runs one tick without waiting (tests)."""
+
+    def __init__(self, cyl: Cylinder, effects: Sequence[Effect] = (), *, transport: str = "serial",
+                 options: ServerOptions = ServerOptions(), faults: FaultSpec = FaultSpec(), seed: int = 0,
+                 noise: bool = True, link_path: str | None = None, log: Log | None = None,
+                 on_path: Callable[[str], None] | None = None, can_bus=None, progress: Log | None = None):
+        if transport not in ("serial", "slcan", "can-bus"):
+            raise ValueError(f"unknown transport {transport!r} (serial, slcan, can-bus)")
+        if transport == "can-bus" and can_bus is None:
+            raise ValueError("transport 'can-bus' needs a python-can bus")
+        if not 10 <= options.rate <= 100_000:
+            raise ValueError(f"rate {options.rate} Hz is outside 10 to 100000 Hz")
+        self.opts = options
+        self.faults = faults
+        self.transport = transport
+        self.link_path = link_path
+        self.on_path = on_path
+        self._can_bus = can_bus
+        self._log = log or (lambda msg: None)
+        self._events = EventLimiter()
+        self.stats = ServerStats()
+        self._rng = np.random.default_rng(faults.seed)  # jitter and faults; the plant's noise has its own
+        self.rig = VirtualRig(cyl, effects, rate=options.rate, seed=seed, noise=noise, progress=progress)
+        self.rig.start()
+        self.core = RigCore(self.rig, options, self.log)
+        self._stop = False
+        self.failure: str | None = None  # why the rig stopped by itself (the plant diverged)
+        self._last_status_us = -(10**12)
+        self._last_tx_us: int | None = None
+        self._stall_until_us: int | None = None
+        self._vanished_at_us: int | None = None
+        self._done_faults: set[str] = set()
+        self._realtime_ok = False
+        self._rx_corrupt_reported = 0
+        self._rx_corrupt_us = -(10**12)
+        self._overrun_us = 0  # how late the last missed deadline was
+        self._overrun_reported_us = -(10**12)
+        self.link: Link | None = self._new_link()
+
+    # ---------------------------------------------------------------- public
+
+    @property
+    def path(self) -> str | None:
+        """The pty path the host opens (or the bus channel)."""
+        return None if self.link is None else self.link.path
+
+    def log(self, msg: str) -> None:
+        self._log(f"virtual rig: {msg}")
+
+    def stop(self) -> None:
+        """Ask run() to return (safe from a signal handler or another thread)."""
+        self._stop = True
+
+    def run(self, duration: float | None = None) -> ServerStats:
+        """The real-time loop; returns the statistics when it ends."""
+        period_ns = int(round(1e9 / self.opts.rate))
+        spin_ns = int(self.opts.spin_us * 1000)
+        sigma_ns = self.opts.jitter_us * 1000.0
+        jmax = min(3 * sigma_ns, 0.25 * period_ns)
+        if self.opts.realtime:
+            self._realtime()
+            # process-wide, meant for a dedicated server process: the objects alive now (the
+            # plant's thousands) are left out of full collections, which took ms off the tick
+            gc.freeze()
+        t0 = time.perf_counter_ns()
+        cpu0 = time.process_time()
+        k = 0
+        try:
+            while not self._stop:
+                k += 1
+                jitter = float(np.clip(self._rng.normal(0.0, sigma_ns), -jmax, jmax)) if sigma_ns > 0 else 0.0
+                target = t0 + k * period_ns + int(jitter)
+                self._wait(target, spin_ns if self.core.running else 0)
+                now = time.perf_counter_ns()
+                overrun = now - target > period_ns
+                if overrun:  # missed whole ticks: skip them rather than burst to catch up
+                    k += max(int((now - t0) // period_ns - k), 0)
+                if self.core.running:  # idle ticks only sleep: their timing does not matter
+                    self.stats.late_us.append((now - target) / 1000.0)
+                    if overrun:
+                        self._overrun_us = (now - target) // 1000
+                        self.stats.overruns += 1
+                        self._events.count("overrun", 1, "virtual rig: {n} sampling deadline{s} missed in the "
+                                                         "last second (the machine is busy)")
+                if not self._tick((now - t0) // 1000, overrun):
+                    break
+                if self.core.running:
+                    self.stats.busy_us.append((time.perf_counter_ns() - now) / 1000.0)
+                if duration is not None and now - t0 >= duration * 1e9:
+                    break
+        finally:
+            self.stats.wall_s = (time.perf_counter_ns() - t0) * 1e-9
+            self.stats.cpu_s = time.process_time() - cpu0
+            self._shutdown()
+        return self.stats
+
+    def step(self, t_us: int) -> bool:
+        """One tick at rig time t_us, without waiting (deterministic tests); False once the rig is gone."""
+        return self._tick(t_us, False)
+
+    def close(self) -> None:
+        self._shutdown()
+
+    # ---------------------------------------------------------------- internals
+
+    def _new_link(self) -> Link:
+        args = (self.faults, self._rng, self.stats, self.opts.tx_limit)
+        if self.transport == "serial":
+            link: Link = SerialPtyLink(*args)
+        elif self.transport == "slcan":
+            from .slcan_server import SlcanPtyLink
+
+            link = SlcanPtyLink(*args, rate=self.opts.rate, log=self.log)
+        else:
+            link = CanBusLink(self._can_bus, *args)
+        if self.link_path and self.transport != "can-bus":
+            _replace_symlink(self.link_path, link.path)
+        return link
+
+    def _realtime(self) -> None:
+        try:  # this thread only (pid 0); the kernel still keeps 5 % of each second for others
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+            self._realtime_ok = True
+        except (AttributeError, OSError) as e:
+            self.log(f"runs without real-time priority ({e.strerror if isinstance(e, OSError) else e}); "
+                     "expect more jitter")
+        self._realtime_helpers()
+
+    def _realtime_helpers(self) -> None:
+        """The pty reader thread too: preempted while holding the GIL it would stall the loop."""
+        reader = getattr(self.link, "_reader", None)
+        if self._realtime_ok and reader is not None and reader.native_id is not None:
+            try:
+                os.sched_setscheduler(reader.native_id, os.SCHED_FIFO, os.sched_param(9))
+            except OSError:
+                pass
+
+    def _wait(self, target_ns: int, spin_ns: int) -> None:
+        # sleep until shortly before the deadline, then spin: time.sleep alone overshoots by
+        # 50-100 us; a rig's timer interrupt does not
+        while True:
+            left = target_ns - time.perf_counter_ns()
+            if left <= spin_ns or self._stop:
+                break
+            time.sleep((left - spin_ns) * 1e-9)
+        while time.perf_counter_ns() < target_ns and not self._stop:
+            pass
+
+    def _tick(self, t_us: int, overrun: bool) -> bool:
+        self.stats.ticks += 1
+        if not self._faults_at(t_us):
+            return False
+        link = self.link
+        frames: list[Frame] = []
+        if link is not None:
+            for f in link.poll():
+                frames += self.core.host_frame(f, t_us)
+        try:
+            sample, errors = self.core.tick(t_us, overrun)
+        except RuntimeError as e:  # the plant diverged: tell the host, then stop like firmware would
+            self.failure = str(e)
+            self.log(f"internal fault: {e}; stopping")
+            if link is not None:
+                link.send(ErrorFrame(ErrorCode.INTERNAL, t_us, 0))
+                link.flush()
+            return False
+        frames += errors
+        if overrun and self.core.running and t_us - self._overrun_reported_us >= 1_000_000:
+            frames.append(ErrorFrame(ErrorCode.OVERRUN, t_us, self._overrun_us))  # once a second at most
+            self._overrun_reported_us = t_us
+        if link is not None and link.rx_corrupt > self._rx_corrupt_reported \
+                and t_us - self._rx_corrupt_us >= 1_000_000:
+            frames.append(ErrorFrame(ErrorCode.RX_CORRUPT, t_us, link.rx_corrupt - self._rx_corrupt_reported))
+            self._rx_corrupt_reported, self._rx_corrupt_us = link.rx_corrupt, t_us
+        self.stats.watchdog_trips = self.core.stats_watchdog
+        if link is not None:
+            if link.overflowed:
+                frames.append(ErrorFrame(ErrorCode.TX_OVERFLOW, t_us, link.overflowed))
+                self._events.count("overflow", link.overflowed, "virtual rig: {n} frame{s} dropped in the last "
+                                                                 "second: the host does not read fast enough")
+                sample = _with_status(sample, Status.TX_OVERFLOW)
+                link.overflowed = 0
+            for f in frames:
+                link.send(f)
+            if self.core.running:
+                link.send(sample)
+                self.stats.samples_sent += 1
+                if self._last_tx_us is not None:
+                    self.stats.period_us.append(t_us - self._last_tx_us)
+                self._last_tx_us = t_us
+            else:
+                self._last_tx_us = None
+                if t_us - self._last_status_us >= self.opts.status_period_s * 1e6:
+                    link.send(StatusFrame(sample.seq, t_us, sample.status))
+                    self._last_status_us = t_us
+            link.flush()
+        self._events.flush()
+        for line in self._events.pop_lines():
+            self._log(line)
+        return True
+
+    def _faults_at(self, t_us: int) -> bool:
+        """Start and end stalls and vanishings; False when the rig is gone for good."""
+        f = self.faults
+        t = t_us * 1e-6
+        if f.stall_at is not None and "stall" not in self._done_faults and t >= f.stall_at and self.link:
+            self._done_faults.add("stall")
+            self._stall_until_us = t_us + int(f.stall_for * 1e6)
+            self.link.stalled = True
+            self.log(f"fault: link stalled for {f.stall_for:g} s (samples are delayed, not lost)")
+        if self._stall_until_us is not None and t_us >= self._stall_until_us and self.link:
+            self._stall_until_us = None
+            self.link.stalled = False
+            self.log("fault: stall over, sending the delayed frames")
+        if f.vanish_at is not None and "vanish" not in self._done_faults and t >= f.vanish_at:
+            self._done_faults.add("vanish")
+            self._drop_link()
+            self._vanished_at_us = t_us
+            self.log("fault: the rig vanished (pty closed)" +
+                     ("" if f.vanish_for is None else f"; back in {f.vanish_for:g} s"))
+            if f.vanish_for is None:
+                return False
+        if self._vanished_at_us is not None and f.vanish_for is not None \
+                and t_us - self._vanished_at_us >= f.vanish_for * 1e6:
+            self._vanished_at_us = None
+            self.link = self._new_link()
+            self._realtime_helpers()
+            self.log(f"back on {self.link.path}")
+            if self.on_path:
+                self.on_path(self.link.path)
+        return True
+
+    def _drop_link(self) -> None:
+        if self.link is None:
+            return
+        path = self.link.path
+        self.link.close()
+        self.link = None
+        if self.link_path:
+            _remove_symlink(self.link_path, path)
+
+    def _shutdown(self) -> None:
+        self._drop_link()
+        self._events.flush(force=True)
+        for line in self._events.pop_lines():
+            self._log(line)
+
+
+def _with_status(sample: SampleFrame, bit: Status) -> SampleFrame:
+    return replace(sample, status=sample.status | int(bit))
+
+
+def _replace_symlink(link: str, target: str) -> None:
+    """Point `link` at `target` atomically (like udev's /dev/serial/by-id links)."""
+    tmp = f"{link}.{os.getpid()}.tmp"
+    try:
+        os.unlink(tmp)
+    except FileNotFoundError:
+        pass
+    os.symlink(target, tmp)
+    os.replace(tmp, link)
+
+
+def _remove_symlink(link: str, target: str | None) -> None:
+    """Remove `link` if it still points at our pty (another server may own it by now)."""
+    try:
+        if os.readlink(link) == target:
+            os.unlink(link)
+    except OSError:
+        pass

@@ -1,0 +1,219 @@
+"""SerialRig and CanRig behind the Rig interface, and the rig's firmware logic, without real time.
+
+CanRig talks to the virtual rig on python-can's `virtual` bus; the test steps the rig tick
+by tick, so every check is exact. SerialRig talks to a pseudo-terminal the test writes.
+"""
+import math
+import os
+import time
+import tty
+
+import can
+import numpy as np
+import pytest
+
+from combined_reality.excitation import PositionProgram
+from hw.can_rig import CanRig
+from hw.protocol import Command, FrameDecoder, SampleFrame, Start, Stop, encode
+from hw.rig import LinkLost, Rig, RigError, Status, bounded
+from hw.rig_server import RigCore, RigServer, ServerOptions
+from hw.serial_rig import SerialRig
+from hw.virtual_rig import VirtualRig
+
+
+@pytest.fixture
+def can_pair(cyl_a, request):
+    channel = f"transports-{request.node.name}"
+    events: list[str] = []
+    with can.Bus(channel=channel, interface="virtual") as rig_bus:
+        server = RigServer(cyl_a, transport="can-bus", can_bus=rig_bus, seed=3,
+                           options=ServerOptions(watchdog_ms=50.0))
+        rig = CanRig(channel, interface="virtual", on_event=events.append)
+        try:
+            yield server, rig, events
+        finally:
+            rig.stop()
+            server.close()
+
+
+def test_can_rig_closed_loop_over_the_virtual_bus(can_pair, cyl_a):
+    server, rig, events = can_pair
+    assert isinstance(rig, Rig)
+    program = PositionProgram(cyl_a, 2.0, seed=4)
+    rig.start()
+    got, replies = [], {}
+    for k in range(1, 1201):
+        server.step(1000 * k)
+        s = rig.read(timeout=2.0)
+        assert s is not None
+        got.append(s)
+        u = program.command(s.t, s.x)
+        rig.send(u)
+        replies[s.seq] = rig.codec.quantise_u(bounded(u))
+    seq = np.array([s.seq for s in got])
+    assert np.all(np.diff(seq) == 1)
+    assert np.allclose([s.t for s in got], 1e-3 * np.arange(1, 1201), atol=1e-9)
+    # timing contract: the reply to sample k is what the valve holds from tick k+1 on
+    assert all(s.u_applied == replies[s.seq - 1] for s in got[1:])
+    assert np.ptp([s.x for s in got]) > 0.01  # it moved
+    st = rig.stats
+    assert st.samples == 1200 and st.samples_lost == 0 and st.commands_late == 0 and st.frames_corrupt == 0
+    assert events == []
+
+
+def test_watchdog_centres_the_valve_when_the_host_goes_silent(can_pair):
+    server, rig, events = can_pair
+    rig.start()
+    got = []
+    for k in range(1, 301):
+        server.step(1000 * k)
+        s = rig.read(timeout=2.0)
+        got.append(s)
+        if k <= 100:
+            rig.send(0.03)
+            last_reply = s.seq
+        elif k >= 200:
+            rig.send(-0.02)  # the host is back: only a command re-arms
+    first_held = next(s for s in got if s.seq == last_reply + 1)
+    tripped = next(s for s in got if s.status & Status.WATCHDOG)
+    assert 0.05 < tripped.t - first_held.t <= 0.1  # rig timestamps
+    for s in got:
+        if first_held.seq <= s.seq < tripped.seq:
+            assert s.u_applied == pytest.approx(0.03) and s.status == 0
+        elif tripped.seq <= s.seq <= 200:
+            assert s.u_applied == 0.0 and s.status & Status.WATCHDOG
+        elif s.seq > 201:
+            assert s.u_applied == pytest.approx(-0.02) and s.status == 0
+    assert rig.stats.rig_errors == 1
+    assert rig.read(timeout=0.01) is None  # delivers the event
+    assert events == ["rig reports watchdog: valve centred after 51 ms of host silence"]
+
+
+def test_heartbeat_keeps_the_watchdog_quiet(can_pair):
+    server, rig, _ = can_pair
+    rig.start()
+    rig.send(0.1)
+    for k in range(1, 201):
+        server.step(1000 * k)
+        s = rig.read(timeout=2.0)
+        rig.heartbeat()
+    assert s.status == 0 and s.u_applied == pytest.approx(0.1)
+
+
+def _core(cyl, x0):
+    rig = VirtualRig(cyl, x0=x0, noise=False)
+    rig.start()
+    return RigCore(rig, ServerOptions(), log=lambda m: None)
+
+
+def test_rig_bounds_every_command_and_nan_centres(cyl_a):
+    core = _core(cyl_a, 0.05)
+    core.host_frame(Start(), 0)
+    core.host_frame(Command(1, math.nan), 0)
+    s, _ = core.tick(1000)
+    assert s.u_applied == 0.0 and s.status & Status.CMD_CLIPPED
+    errs = core.host_frame(Command(2, 7.0), 1000)
+    s, _ = core.tick(2000)
+    assert s.u_applied == 1.0 and s.status & Status.CMD_CLIPPED
+    assert errs == []  # one BAD_COMMAND report per second: the NaN one was reported
+    core.host_frame(Command(3, -0.3), 2000)
+    s, _ = core.tick(3000)
+    assert s.u_applied == pytest.approx(-0.3) and s.status == Status.RUNNING
+    core.host_frame(Stop(), 3000)
+    s, _ = core.tick(4000)
+    assert s.u_applied == 0.0 and not s.status & Status.RUNNING
+
+
+@pytest.mark.parametrize("x0, u, blocked", [(0.001, -0.5, True), (0.001, 0.5, False),
+                                             (0.099, 0.5, True), (0.099, -0.5, False)])
+def test_soft_stroke_limits_only_block_moves_further_in(cyl_a, x0, u, blocked):
+    core = _core(cyl_a, x0)  # end zones: 3 % of the 100 mm stroke
+    core.host_frame(Start(), 0)
+    core.host_frame(Command(1, u), 0)
+    s, errs = core.tick(1000)
+    assert (s.u_applied == 0.0) == blocked
+    assert bool(s.status & Status.SOFT_LIMIT) == blocked and len(errs) == blocked
+
+
+# ------------------------------------------------------------------ SerialRig on a bare pty
+
+
+@pytest.fixture
+def pty():
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    yield master, os.ttyname(slave)
+    for fd in (master, slave):
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
+def _drain(master, timeout=1.0):
+    dec, out, end = FrameDecoder(), [], time.monotonic() + timeout
+    os.set_blocking(master, False)
+    while time.monotonic() < end:
+        try:
+            out += dec.feed(os.read(master, 4096))
+        except BlockingIOError:
+            time.sleep(0.01)
+    return out
+
+
+def test_serial_rig_speaks_the_protocol_and_rejects_damage(pty):
+    master, path = pty
+    events: list[str] = []
+    rig = SerialRig(path, reconnect=False, on_event=events.append)
+    rig.start()
+    rig.send(math.nan)
+    rig.send(5.0)
+    host_frames = _drain(master, 0.3)
+    assert host_frames[0] == Start() and [f.u for f in host_frames[1:3]] == [0.0, 1.0]
+    frames = [encode(SampleFrame(k, 1000 * k, 0.05, 3e5, 2e5, None, 0.0, 1, 0)) for k in (1, 2, 3, 4)]
+    bad = bytearray(frames[2])
+    bad[7] ^= 0xFF
+    os.write(master, b"\x13\x37garbage" + frames[0] + frames[1] + bytes(bad) + frames[3])
+    got = [rig.read(timeout=2.0) for _ in range(3)]
+    assert [s.seq for s in got] == [1, 2, 4] and [s.t for s in got] == [0.001, 0.002, 0.004]
+    st = rig.stats
+    assert st.frames_corrupt == 1 and st.samples_lost == 1 and st.bytes_discarded > 0
+    rig.stop()
+    assert Stop() in _drain(master, 0.3)
+    assert sorted(events) == ["serial link: 1 corrupted frame rejected in the last second",
+                              "serial link: 1 sample lost (sequence gaps) in the last second"]
+
+
+def test_serial_rig_without_reconnect_raises_link_lost(pty):
+    master, path = pty
+    events: list[str] = []
+    rig = SerialRig(path, reconnect=False, on_event=events.append)
+    rig.start()
+    os.write(master, encode(SampleFrame(1, 1000, 0.05, 3e5, 2e5, None, 0.0, 1, 0)))
+    assert rig.read(timeout=2.0).seq == 1
+    os.close(master)  # the rig vanishes
+    with pytest.raises(LinkLost):
+        rig.read(timeout=2.0)
+    assert len(events) == 1 and events[0].startswith(f"serial link lost ({path}: ")
+    rig.stop()
+
+
+def test_a_missing_port_is_one_clear_error(tmp_path):
+    with pytest.raises(RigError, match="cannot open serial port .*nope"):
+        SerialRig(str(tmp_path / "nope"))
+
+
+def test_serial_rig_retries_then_gives_up(pty):
+    master, path = pty
+    events: list[str] = []
+    rig = SerialRig(path, give_up_after=0.3, on_event=events.append)
+    rig.start()
+    os.close(master)
+    t0 = time.monotonic()
+    assert rig.read(timeout=0.1) is None  # meanwhile: no samples, no exception
+    with pytest.raises(LinkLost, match="gave up"):
+        while time.monotonic() - t0 < 5:
+            rig.read(timeout=0.1)
+    assert events[0].startswith(f"serial link lost ({path}: ") and events[0].endswith("; retrying")
+    assert "gave up" in events[-1]
+    rig.stop()
