@@ -30,7 +30,7 @@ from sim.effects import Effect
 from sim.integrator import IntegratorOptions
 from sim.plant import Plant, build_plant
 
-from .runs import Run
+from .runs import Run, split_at_gaps
 
 UNITS = {name: spec.unit for name, spec in PARAMETERS.items()}
 
@@ -257,6 +257,15 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     t_start = time.perf_counter()
     if not runs:
         raise IdentificationError("no runs to identify from.")
+    n_runs = len(runs)
+    pieces = [piece for r in runs for piece in split_at_gaps(r)]
+    if len(pieces) > n_runs:
+        runs = [q for q in pieces if q.n >= 3]
+        if not runs:
+            raise IdentificationError("the runs have no gap-free stretch of 3 samples or more.")
+        if progress:
+            progress(f"  {len(pieces) - n_runs} gap(s) of lost samples: {len(runs)} gap-free pieces "
+                     "identified jointly (no simulation bridges a gap)")
     plant = build_plant(options.drive, effects)
     estimate = tuple(options.estimate)
     free = free_parameters(plant, estimate)

@@ -43,6 +43,7 @@ class OnlineOptions:
     iterations: int = 1
     max_iterations: int = 3
     first_iterations: int = 6
+    max_missing: int = 0  # lost samples a window may bridge (see `add`)
     estimate: tuple[str, ...] = ("Fc", "Fv", "kp")
     memory_s: float = math.inf  # forgetting time constant of the arrival cost
     prefit: bool = True  # first window: start from the equation-error fit
@@ -101,6 +102,9 @@ class MovingHorizonEstimator:
         self._threads = max(1, min(options.threads, K))
         self._buf = np.empty((5, 0))  # rows t, u, x, p1, p2
         self._base = 0  # stream index of _buf[:, 0]
+        self._seg0 = 0  # stream index where the current gap-free segment starts
+        self._breaks: list[int] = []  # stream indices of the first rows after gaps
+        self._fitted = False
         self._seen = 0  # stream index one past the newest row
         self._prev: dict | None = None  # the last update's window start, nodes, trajectory, Jacobians
         self.units = {n: _unit(plant, n) for n in self.names}
@@ -109,23 +113,52 @@ class MovingHorizonEstimator:
     def add(self, t, u, x, p1, p2) -> None:
         """Append complete rows (u is the command held from t until the next sample)."""
         rows = np.vstack([np.atleast_1d(np.asarray(a, float)) for a in (t, u, x, p1, p2)])
+        if rows.shape[1] == 0:
+            return
+        # a gap in the stream starts a new segment that no window bridges: the command held
+        # during a lost sample is unknown, and one sample of a wrong command moves a chamber
+        # pressure by kilopascals, ten times the sensor noise
+        t_all = rows[0] if self._buf.shape[1] == 0 else np.concatenate([self._buf[0, -1:], rows[0]])
+        off = self._seen - (len(t_all) - rows.shape[1])
+        limit = (self.options.max_missing + 1.5) * self.dt
+        for j in np.flatnonzero(np.diff(t_all) > limit):
+            self._breaks.append(off + j + 1)
         self._buf = np.hstack([self._buf, rows])
         self._seen += rows.shape[1]
 
     @property
     def backlog(self) -> int:
-        """Samples received but not yet inside any window."""
-        end = self._prev["i0"] + self.N if self._prev else self._base
-        return self._seen - end
+        """Samples received, not yet inside any window, and before the next gap."""
+        end = self._prev["i0"] + self.N if self._prev else self._seg0
+        limit = min(self._seen, self._breaks[0]) if self._breaks else self._seen
+        return limit - end
 
     @property
     def started(self) -> bool:
         return self._prev is not None
 
     def ready(self) -> bool:
+        self._skip_gaps()
         if self._prev is None:
-            return self._seen - self._base >= self.N
+            return self.backlog >= self.N
         return self.backlog >= self.slide_min
+
+    def _skip_gaps(self) -> None:
+        """No window bridges a gap. When too little is left before the next gap for another
+        slide, what the current window taught goes into the arrival cost and estimation
+        starts again after the gap, as soon as a whole window has arrived there."""
+        while self._breaks and self._seen >= self._breaks[0]:
+            b = self._breaks[0]
+            if self._prev is not None and self.backlog >= self.slide_min:
+                return  # data before the gap still to use
+            if self._prev is None and self.backlog >= self.N:
+                return  # a whole window fits before the gap
+            if self._prev is not None:
+                self._absorb_leaving(self._prev, self.K)
+                self.prior_mean = self.theta.copy()
+                self._prev = None
+            self._seg0 = b
+            self._breaks.pop(0)
 
     # ------------------------------------------------------------ one update
     def update(self) -> OnlineEstimate | None:
@@ -135,9 +168,9 @@ class MovingHorizonEstimator:
         M, K, N, nx, nth = self.M, self.K, self.N, self.plant.nx, len(self.free)
         prev = self._prev
         if prev is None:
-            i0, left = self._base, K
+            i0, left = self._seg0, K
         else:
-            left = min(self.backlog // M, K)
+            left = min(self.backlog // M, K)  # the backlog stops at the next gap
             i0 = prev["i0"] + left * M
         rows = self._buf[:, i0 - self._base: i0 - self._base + N]
         run = Run(t=rows[0], u=rows[1], x=rows[2], p1=rows[3], p2=rows[4])
@@ -151,7 +184,7 @@ class MovingHorizonEstimator:
         if prev is not None:
             self._absorb_leaving(prev, left)
             self.prior_mean = self.theta.copy()
-        elif self.options.prefit and {"Fc", "Fv", "kp"} & set(self.names):
+        elif self.options.prefit and not self._fitted and {"Fc", "Fv", "kp"} & set(self.names):
             start = equation_error_friction(self.cyl, [run])
             for n, v in start.items():
                 if n in self.names:
@@ -246,6 +279,7 @@ class MovingHorizonEstimator:
             if it >= self.options.iterations and alpha == 1.0 and (pred < 1e-3 * cost or pred < 1.0):
                 break  # the warm start was good: the real-time iteration was enough
         self.theta, self.p = theta, p
+        self._fitted = True
         nres = E.size
         sigma2 = float(np.sum(E * E)) / max(1.0, nres - nx - nth)
         std = np.full(nth, np.nan)

@@ -106,6 +106,17 @@ class Run:
         )
 
 
+def split_at_gaps(run: Run, factor: float = 1.5) -> list[Run]:
+    """The gap-free pieces of a run: a step longer than `factor` median periods means lost
+    samples, whose commands are unknown, so no simulation may bridge it."""
+    if run.n < 3:
+        return [run]
+    dt = np.diff(run.t)
+    cuts = np.flatnonzero(dt > factor * np.median(dt)) + 1
+    bounds = [0, *cuts.tolist(), run.n]
+    return [run.slice(a, b) for a, b in zip(bounds, bounds[1:]) if b > a]
+
+
 def _as_column(value: object, name: str) -> np.ndarray:
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim != 1:

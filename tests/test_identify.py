@@ -117,3 +117,17 @@ def test_reported_std_is_honest_over_20_seeds(which, request):
           {n: float(np.sqrt(np.mean([z[n] ** 2 for z in zs]))) for n in inside})
     for n, k in inside.items():
         assert k >= 18, (n, k, zs)
+
+
+def test_offline_identification_never_bridges_lost_samples(cyl_a, run_a):
+    from combined_reality.runs import Run
+
+    keep = np.ones(run_a.n, bool)
+    keep[[3000, 3001, 11111]] = False
+    idx = np.flatnonzero(keep)
+    run = Run(t=run_a.t[idx], u=run_a.u[idx], x=run_a.x[idx], p1=run_a.p1[idx], p2=run_a.p2[idx])
+    res = identify(cyl_a, [run], IdentifyOptions())
+    assert len(res.fit_per_run) == 3  # three gap-free pieces
+    assert res.solver["residual_sigma"] < 1.05
+    for n in ("Fc", "Fv", "kp"):
+        assert abs(res.params[n].value - cyl_a.value(n)) < 4 * res.params[n].std

@@ -6,6 +6,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from combined_reality.cli import main
@@ -66,3 +67,64 @@ def test_sixty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, 
     for n in ("Fc", "Fv", "kp"):
         online = res["params"][n]
         assert abs(online["value"] - off[n]["value"]) < 3 * online["std"] + 3 * off[n]["std"], n
+
+
+def test_faulty_link_is_counted_reported_and_recorded_honestly(cyl_a, tmp_path, capsys):
+    """Corrupted bytes and dropped frames: rejected and counted, each reported, never
+    interpolated; the recording holds exactly the samples that arrived intact."""
+    from combined_reality.runs import read_run
+
+    rig, path = _start_rig("--config", str(cyl_a.source), "--serial", "--corrupt", "0.01", "--drop", "0.01")
+    rec, out = tmp_path / "run.csv", tmp_path / "live.json"
+    try:
+        code = main(["live", "--config", str(cyl_a.source), "--serial", path, "--duration", "6",
+                     "--record", str(rec), "--json", str(out), "-q"])
+    finally:
+        _stop(rig)
+    err = capsys.readouterr().err
+    assert code == 0, err
+    link = json.loads(out.read_text())["link"]
+    run = read_run(rec)
+    assert link["frames_corrupt"] > 10 and link["samples_lost"] > 10
+    assert run.n == link["samples"]  # every intact sample recorded, nothing invented
+    assert run.n + link["samples_lost"] == pytest.approx(6000, abs=30)
+    assert "corrupt" in err and "lost" in err  # said in plain lines
+
+
+def test_a_vanished_serial_rig_is_reported_and_picked_up_again(cyl_a, tmp_path, capsys):
+    from combined_reality.runs import read_run
+
+    link_path = tmp_path / "rig0"
+    rig, _ = _start_rig("--config", str(cyl_a.source), "--serial", "--link", str(link_path),
+                        "--vanish-at", "3", "--vanish-for", "1.0")
+    rec, out = tmp_path / "run.csv", tmp_path / "live.json"
+    try:
+        code = main(["live", "--config", str(cyl_a.source), "--serial", str(link_path), "--duration", "8",
+                     "--record", str(rec), "--json", str(out), "-q"])
+    finally:
+        _stop(rig)
+    err = capsys.readouterr().err
+    assert code == 0, err
+    res = json.loads(out.read_text())
+    assert res["link"]["reconnects"] >= 1
+    assert "lost" in err and "back" in err
+    run = read_run(rec)  # valid across the outage; the gap is there, not filled in
+    assert np.max(np.diff(run.t)) > 0.5
+    assert res["solver"]["stop_reason"] == "duration reached"
+
+
+def test_a_rig_that_vanishes_for_good_ends_the_session_with_one_clear_line(cyl_a, tmp_path, capsys):
+    from combined_reality.runs import read_run
+
+    rig, path = _start_rig("--config", str(cyl_a.source), "--serial", "--vanish-at", "3")
+    rec = tmp_path / "run.csv"
+    try:
+        code = main(["live", "--config", str(cyl_a.source), "--serial", path, "--duration", "20",
+                     "--record", str(rec), "--give-up", "2", "-q"])
+    finally:
+        _stop(rig)
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "no samples for" in err
+    run = read_run(rec)
+    assert 2500 < run.n < 3500

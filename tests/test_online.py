@@ -68,3 +68,24 @@ def test_rejects_unknown_parameters(cyl_a):
 
     with pytest.raises(IdentificationError, match="cannot be estimated"):
         MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions(estimate=("Fc", "bogus")))
+
+
+def test_no_window_bridges_lost_samples(cyl_a, run_a):
+    """A lost sample hides the command held over its period; windows stop before a gap and
+    start again after it, keeping what they learnt, so the fit stays at the noise."""
+    from combined_reality.runs import Run
+
+    keep = np.ones(run_a.n, bool)
+    keep[[4321, 9876]] = False  # two lost samples
+    keep[12000:13000] = False  # and a 1 s outage
+    idx = np.flatnonzero(keep)
+    run = Run(t=run_a.t[idx], u=run_a.u[idx], x=run_a.x[idx], p1=run_a.p1[idx], p2=run_a.p2[idx])
+    mhe = MovingHorizonEstimator(cyl_a, run_a.sample_period, OnlineOptions())
+    est = _stream(mhe, run)
+    gaps = [(run_a.t[i - 1], run_a.t[i + 1]) for i in (4321, 9876)] + [(run_a.t[11999], run_a.t[13000])]
+    for e in est:
+        assert e.sigma < 1.15
+        for a, b in gaps:
+            assert not (e.window[0] <= a and e.window[1] >= b), (e.window, a, b)
+    for n in ("Fc", "Fv"):
+        assert abs(est[-1].values[n] - cyl_a.value(n)) < 4 * est[-1].std[n]
