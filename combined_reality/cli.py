@@ -444,20 +444,30 @@ def cmd_live(args) -> int:
         program = make_program(args.program, cyl, args.duration, seed=args.seed)
     except (ValueError, OSError) as e:
         raise UsageError(f"--program {args.program}: {e}") from None
+    record = Path(args.record)
+    if record.exists() and not args.overwrite:
+        raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
+    if not record.parent.is_dir():
+        raise UsageError(f"--record {record}: the folder {record.parent} does not exist.")
     effects = _parse_effects(args.effect)
     if effects and not args.virtual:
         raise UsageError("--effect switches effects on in the virtual rig; it needs --virtual.")
-    if args.serial:
-        from hw.serial_rig import SerialRig
+    from hw.rig import RigError
 
-        rig = SerialRig(args.serial, on_event=_eprint)
-    elif args.can:
-        from hw.can_rig import CanRig
+    try:
+        if args.serial:
+            from hw.serial_rig import SerialRig
 
-        # python-can's slcan waits 2 s after opening unless told otherwise
-        extra = {"sleep_after_open": 0.1} if args.interface == "slcan" else {}
-        rig = CanRig(args.can, interface=args.interface, on_event=_eprint, **extra)
-    else:
+            rig = SerialRig(args.serial, on_event=_eprint)
+        elif args.can:
+            from hw.can_rig import CanRig
+
+            # python-can's slcan waits 2 s after opening unless told otherwise
+            extra = {"sleep_after_open": 0.1} if args.interface == "slcan" else {}
+            rig = CanRig(args.can, interface=args.interface, on_event=_eprint, **extra)
+    except RigError as e:
+        raise UsageError(f"{e}.") from None
+    if not (args.serial or args.can):
         from hw.virtual_rig import VirtualRig
 
         from .stream import PacedRig
@@ -599,6 +609,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="mixed | steps | ramps | sines (closed-loop position) | pulses (open loop) | file:CMD.csv")
     lv.add_argument("--duration", type=float, required=True, help="seconds of rig time")
     lv.add_argument("--record", required=True, help="run CSV written as samples arrive")
+    lv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
     lv.add_argument("--seed", type=int, default=0, help="seed of the experiment program (and the virtual rig)")
     lv.add_argument("--rate", type=float, default=1000.0, help="sample rate of the rig, Hz (default 1000)")
     lv.add_argument("--effect", action="append", metavar="SPEC", help="with --virtual: an unmodelled effect as truth")

@@ -110,19 +110,26 @@ class MovingHorizonEstimator:
         self.units = {n: _unit(plant, n) for n in self.names}
 
     # ------------------------------------------------------------ data
-    def add(self, t, u, x, p1, p2) -> None:
-        """Append complete rows (u is the command held from t until the next sample)."""
+    def add(self, t, u, x, p1, p2, lost_before=None) -> None:
+        """Append complete rows (u is the command held from t until the next sample).
+
+        `lost_before` flags rows that follow lost samples (from the rig's sequence numbers);
+        without it, a step longer than 1.9 sample periods is taken for a loss."""
         rows = np.vstack([np.atleast_1d(np.asarray(a, float)) for a in (t, u, x, p1, p2)])
         if rows.shape[1] == 0:
             return
         # a gap in the stream starts a new segment that no window bridges: the command held
         # during a lost sample is unknown, and one sample of a wrong command moves a chamber
         # pressure by kilopascals, ten times the sensor noise
-        t_all = rows[0] if self._buf.shape[1] == 0 else np.concatenate([self._buf[0, -1:], rows[0]])
-        off = self._seen - (len(t_all) - rows.shape[1])
-        limit = (self.options.max_missing + 1.5) * self.dt
-        for j in np.flatnonzero(np.diff(t_all) > limit):
-            self._breaks.append(off + j + 1)
+        if lost_before is not None:
+            flagged = np.flatnonzero(np.asarray(lost_before, bool))
+            self._breaks.extend(int(self._seen + j) for j in flagged if self._seen + j > 0)
+        else:
+            t_all = rows[0] if self._buf.shape[1] == 0 else np.concatenate([self._buf[0, -1:], rows[0]])
+            off = self._seen - (len(t_all) - rows.shape[1])
+            limit = (self.options.max_missing + 1.9) * self.dt
+            for j in np.flatnonzero(np.diff(t_all) > limit):
+                self._breaks.append(off + j + 1)
         self._buf = np.hstack([self._buf, rows])
         self._seen += rows.shape[1]
 

@@ -109,7 +109,7 @@ class InlineEstimator:
         self.catch_up = catch_up
 
     def add(self, rows: np.ndarray) -> None:
-        self.mhe.add(*rows)
+        self.mhe.add(*rows[:5], lost_before=rows[5])
 
     def poll(self, final: bool = False) -> list[OnlineEstimate]:
         out = []
@@ -129,6 +129,10 @@ def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent:
     """The estimator process: take rows, update whenever a window is due, send estimates.
     It ends with its parent, even one killed outright (no orphan keeps computing)."""
     try:
+        try:
+            os.nice(10)  # best effort: acquisition and the rig's link come first on a busy machine
+        except OSError:
+            pass
         mhe = MovingHorizonEstimator(cyl, sample_period, options, effects)
         outbox.put(("ready", None))
         finishing = False
@@ -143,7 +147,7 @@ def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent:
                 if isinstance(msg, str):  # "finish"
                     finishing = True
                 else:
-                    mhe.add(*msg)
+                    mhe.add(*msg[:5], lost_before=msg[5])
                 try:
                     msg = inbox.get_nowait()
                 except queue.Empty:
@@ -388,7 +392,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     estimates: list[OnlineEstimate] = []
     counters = {"samples": 0, "gaps": 0, "estimates": 0}
     t0 = None
-    t_prev = None
+    t_prev = seq_prev = None
     dt_nominal = None
     first_dts: list[float] = []
     reason = "duration reached"
@@ -397,9 +401,10 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     def flush_block() -> None:
         if not pending:
             return
-        rows = np.array([r[:5] for r in pending]).T
+        rows_all = np.array(pending).T  # t, u, x, p1, p2, lost_before
+        rows = rows_all[:5]
         pending.clear()
-        estimator.add(rows)
+        estimator.add(rows_all)
         sim = None
         if simulator is not None:
             sim = simulator.advance(rows)
@@ -443,24 +448,28 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
                 t0 = s.t
             if program is not None:
                 rig.send(program.command(s.t - t0, s.x))
+            lost_before = False
             if t_prev is not None:
                 dt = s.t - t_prev
                 if dt <= 0:
                     event(f"sample at t = {s.t:.6f} s does not advance the rig clock; dropped")
                     continue
-                if len(first_dts) < 50:
+                if s.seq is not None and seq_prev is not None:
+                    lost_before = s.seq != seq_prev + 1  # the rig numbers its samples: exact
+                elif len(first_dts) < 50:
                     first_dts.append(dt)
                     dt_nominal = float(np.median(first_dts))
-                elif dt > 1.9 * dt_nominal:
-                    counters["gaps"] += 1  # at least one sample period without a sample
-            t_prev = s.t
+                else:
+                    lost_before = dt > 1.9 * dt_nominal  # at least one period without a sample
+                counters["gaps"] += lost_before
+            t_prev, seq_prev = s.t, s.seq
             ps = s.ps if s.ps is not None and math.isfinite(s.ps) else None
             if recorder is not None:
                 recorder.append(s.t, s.u_applied, s.x, s.p1, s.p2, ps if recorder.with_ps else None)
             for c, v in zip(cols, (s.t, s.u_applied, s.x, s.p1, s.p2, ps if ps is not None else math.nan)):
                 c.append(v)
             counters["samples"] += 1
-            pending.append((s.t, s.u_applied, s.x, s.p1, s.p2))
+            pending.append((s.t, s.u_applied, s.x, s.p1, s.p2, float(lost_before)))
             if len(pending) >= block:
                 flush_block()
             if duration is not None and s.t - t0 >= duration:

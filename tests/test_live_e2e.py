@@ -54,8 +54,7 @@ def test_sixty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, 
     link = res["link"]
     print(f"{transport}: {link}, {res['solver']}")
     assert res["solver"]["n_samples"] >= 59_900
-    assert link["samples_lost"] == 0 and link["frames_corrupt"] == 0
-    assert link["gaps"] <= 20  # a late tick of the rig on a loaded machine, never a lost sample
+    assert link["samples_lost"] == 0 and link["frames_corrupt"] == 0 and link["gaps"] == 0
     # Fc and Fv within 5 % of the truth within 30 s, and from then on
     for h in res["history"]:
         if h["t"] - res["history"][0]["t"] + 2.0 >= 30.0:

@@ -122,6 +122,8 @@ def test_replay_cli_writes_identify_format_and_a_rerun_recording(cyl_a, run_a, t
     (["replay", "RUN", "--window", "0"], "--window"),
     (["live", "--virtual", "--duration", "5", "--record", "r.csv", "--program", "zigzag"], "zigzag"),
     (["live", "--serial", "/dev/null", "--duration", "5", "--record", "r.csv", "--effect", "leakage"], "--virtual"),
+    (["live", "--virtual", "--duration", "5", "--record", "RUN"], "never overwritten"),
+    (["live", "--serial", "/dev/does-not-exist", "--duration", "5", "--record", "r.csv"], "cannot open serial port"),
 ])
 def test_bad_input_is_refused_with_one_sentence(run_a, tmp_path, capsys, monkeypatch, args, message):
     monkeypatch.chdir(tmp_path)
