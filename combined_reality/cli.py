@@ -315,6 +315,45 @@ def _cmd_virtual_rig(args) -> int:
     return 1 if server.failure else 0
 
 
+# ------------------------------------------------------------------ diagnose
+
+def cmd_diagnose(args) -> int:
+    from sim.effects import EFFECTS
+
+    from .diagnose import DiagnoseOptions, diagnose
+
+    cyl = _load_config(args.config)
+    train, valid = read_run(args.train), read_run(args.validate)
+    for r in (train, valid):
+        _check_run_against_cylinder(r, cyl)
+        if r.n < 1000:
+            raise UsageError(f"{r.source}: {r.n} samples are too few to diagnose (at least 1 s at 1 kHz).")
+    if abs(valid.sample_period / train.sample_period - 1) > 0.01:
+        raise UsageError(f"{args.validate} is sampled every {valid.sample_period * 1e3:.3g} ms but {args.train} every "
+                         f"{train.sample_period * 1e3:.3g} ms; validate with a run of the same rig and rate.")
+    names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
+    unknown = [n for n in names if n not in EFFECTS]
+    if unknown:
+        raise UsageError(f"--candidates: unknown effect {', '.join(unknown)} (known: {', '.join(EFFECTS)}).")
+    if not (args.horizon > 0 and math.isfinite(args.horizon)):
+        raise UsageError(f"--horizon must be a positive number of seconds, not {args.horizon}.")
+    opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers))
+    result = diagnose(cyl, train, valid, opts, progress=_progress(args.quiet))
+    base = result["baseline"]["rmse_x_validation"]
+    print(f"validation position RMSE of the nominal model: {base * 1e6:.1f} um ({args.horizon:g} s horizon)")
+    print(f"verdict: {result['verdict']}")
+    print(f"{'effect':20s} {'shrink':>8s} {'rmse_x [um]':>12s}  parameters")
+    for c in result["ranking"]:
+        pars = ", ".join(f"{k}={v:.4g}±{c['std'][k]:.2g}" for k, v in c["params"].items())
+        print(f"{c['effect']:20s} {c['shrink']:8.1%} {c['rmse_x_validation'] * 1e6:12.1f}  {pars or c.get('error', '')}")
+    print("where the gap lies (share of the squared error / share of the samples):")
+    for r in result["regions"][:5]:
+        print(f"  {r['where']:34s} {r['share_of_error']:6.1%} / {r['fraction_of_samples']:6.1%}")
+    if args.json:
+        _write_json_atomic(args.json, _clean_json(result))
+    return 0
+
+
 # ------------------------------------------------------------------ live and replay
 
 def _online_options(args, cyl: Cylinder):
@@ -615,6 +654,17 @@ def build_parser() -> argparse.ArgumentParser:
     lv.add_argument("--effect", action="append", metavar="SPEC", help="with --virtual: an unmodelled effect as truth")
     _add_online_arguments(lv)
     lv.set_defaults(func=cmd_live)
+
+    dg = sub.add_parser("diagnose", help="explain the sim-to-real gap: where, which unmodelled effect, how far it shrinks")
+    dg.add_argument("train", help="run CSV the models are identified on")
+    dg.add_argument("--validate", required=True, help="run CSV the models are scored on (never fitted)")
+    dg.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
+    dg.add_argument("--json", help="write the diagnosis (FORMATS.md)")
+    dg.add_argument("--candidates", help="comma-separated effects to try (default: the whole vocabulary)")
+    dg.add_argument("--horizon", type=float, default=1.0, help="validation simulation horizon, s (default 1)")
+    dg.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="parallel processes for the candidates")
+    dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    dg.set_defaults(func=cmd_diagnose)
 
     rp = sub.add_parser("replay", help="replay a recorded run through the lock-step model and the online estimator")
     rp.add_argument("run", help="recorded run CSV")
