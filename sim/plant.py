@@ -52,8 +52,18 @@ def mass_flow(conductance, p_from, p_to, b, temperature):
 class Signals:
     """The symbolic quantities of one evaluation of the plant, passed through effect hooks.
 
-    Hooks read and overwrite attributes (u, ps, mdot1, mdot2, Ff, M, ...) and set
-    derivatives of their own states in `deriv`.
+    Hooks read and overwrite attributes and set derivatives of their own states in `deriv`.
+    Stages, in order (the command drive only: on_command, on_supply, on_flows, on_chambers):
+
+    on_command         u (clipped valve command, read by the valve)
+    on_supply          ps (supply pressure at the valve inlet)
+    on_flows           mdot1, mdot2 (net into each chamber); read mdot_s1, mdot_s2,
+                       mdot_supply (drawn from the supply through the valve)
+    on_friction_terms  Fseal (seal level Fc + kp|p1-p2|, >= 0), sgn (direction function
+                       tanh(v/v_smooth)), Fvisc (Fv v); afterwards Ff = Fseal*sgn + Fvisc
+    on_friction        Ff (total friction force, opposing motion)
+    on_piston          M (moving mass used in the piston equation and the weight)
+    on_chambers        dp1, dp2 (V1, V2, A1, A2 are available)
     """
 
     def __init__(self, **kw):
@@ -97,7 +107,7 @@ class Plant:
 
     def initial_state(self, cyl: Cylinder, x0: float, p1: float, p2: float, v0: float = 0.0) -> list[float]:
         base = [p1, p2, x0, v0] if self.drive == "command" else [x0, v0]
-        extra = [s0 for e in self.effects if _applies(e, self.drive) for s0 in e.initial_states(cyl, p1, p2)]
+        extra = [s0 for e in self.effects if _applies(e, self.drive) for s0 in e.initial_states(cyl, p1, p2, v0)]
         return base + extra
 
 
@@ -166,14 +176,25 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
             e.on_supply(sig, *own(e))
         c_pos = sig.C * ca.fmax(sig.u, 0.0)
         c_neg = sig.C * ca.fmax(-sig.u, 0.0)
-        sig.mdot1 = mass_flow(c_pos, sig.ps, p1, sig.b, sig.T) + mass_flow(c_neg, sig.pa, p1, sig.b, sig.T)
-        sig.mdot2 = mass_flow(c_neg, sig.ps, p2, sig.b, sig.T) + mass_flow(c_pos, sig.pa, p2, sig.b, sig.T)
+        # supply -> chamber paths (drawn from the supply) and chamber <- exhaust paths
+        sig.mdot_s1 = mass_flow(c_pos, sig.ps, p1, sig.b, sig.T)
+        sig.mdot_s2 = mass_flow(c_neg, sig.ps, p2, sig.b, sig.T)
+        sig.mdot1 = sig.mdot_s1 + mass_flow(c_neg, sig.pa, p1, sig.b, sig.T)
+        sig.mdot2 = sig.mdot_s2 + mass_flow(c_pos, sig.pa, p2, sig.b, sig.T)
+        sig.mdot_supply = sig.mdot_s1 + sig.mdot_s2  # net mass flow drawn from the supply
         for e in active:
             e.on_flows(sig, *own(e))
 
-    # friction: every term opposes motion
+    # friction: every term opposes motion. Ff = Fseal * sgn + Fvisc, with the seal (Coulomb
+    # plus pressure) level Fseal >= 0, the direction function sgn in [-1, 1] and the viscous
+    # term Fvisc; on_friction_terms hooks reshape these before they are combined.
     v = sig.v
-    sig.Ff = (par["Fc"] + par["kp"] * ca.fabs(p1 - p2)) * ca.tanh(v / par["v_smooth"]) + par["Fv"] * v
+    sig.sgn = ca.tanh(v / par["v_smooth"])
+    sig.Fseal = par["Fc"] + par["kp"] * ca.fabs(p1 - p2)
+    sig.Fvisc = par["Fv"] * v
+    for e in active:
+        e.on_friction_terms(sig, *own(e))
+    sig.Ff = sig.Fseal * sig.sgn + sig.Fvisc
     for e in active:
         e.on_friction(sig, *own(e))
     for e in active:

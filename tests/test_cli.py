@@ -116,7 +116,7 @@ def test_simulate_then_identify_end_to_end(tmp_path):
                           "--effect", "valve_delay:tau=0.004"], capture_output=True, text=True, env=env)
     assert sim.returncode == 0, sim.stderr
     text = run.read_text()
-    assert text.startswith("# combined-reality virtual rig") and "valve_delay(tau=0.004)" in text
+    assert text.startswith("# combined-reality virtual rig") and "valve_delay(tau=0.004" in text
     ident = subprocess.run([sys.executable, "-m", "combined_reality", "identify", "--config", str(CFG), str(run),
                             "--json", str(out), "--effect", "valve_delay", "--estimate", "Fc,Fv,kp,valve_delay.tau",
                             "--write-config", str(tmp_path / "identified.toml")],

@@ -53,7 +53,9 @@ def test_sixty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, 
     res = json.loads(out.read_text())
     link = res["link"]
     print(f"{transport}: {link}, {res['solver']}")
-    assert res["solver"]["n_samples"] >= 59_900
+    # 60 s of rig time; a loaded machine makes the rig's tick late now and then (a longer
+    # period, not a lost sample: the sequence numbers say so)
+    assert res["solver"]["n_samples"] >= 59_000
     assert link["samples_lost"] == 0 and link["frames_corrupt"] == 0 and link["gaps"] == 0
     # Fc and Fv within 5 % of the truth within 30 s, and from then on
     for h in res["history"]:
