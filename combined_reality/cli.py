@@ -571,7 +571,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rate", type=float, default=1000.0, help="sample rate in Hz (default 1000)")
     s.add_argument("--effect", action="append", metavar="NAME[:k=v,...]",
                    help="switch on an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 "
-                        "(repeatable; available: stiction, valve_delay, leakage)")
+                        "(repeatable; any word of the vocabulary, see docs/effects.md)")
     s.add_argument("--no-noise", action="store_true", help="noise-free sensors")
     s.add_argument("-o", "--output", required=True, help="run CSV to write")
     s.add_argument("-q", "--quiet", action="store_true")
