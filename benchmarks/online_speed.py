@@ -56,7 +56,7 @@ def bench_updates(cyl, duration: float, update_s: float) -> dict:
     for i0 in (3000, run.n // 2, run.n - 2500):
         w = run.slice(i0, i0 + 2000)
         t0 = time.perf_counter()
-        identify(start, [w], IdentifyOptions(threads=1))
+        identify(start, [w], IdentifyOptions())
         base.append(time.perf_counter() - t0)
     return {"updates": len(walls), "p50_ms": float(np.percentile(walls, 50)),
             "p95_ms": float(np.percentile(walls, 95)), "max_ms": float(walls.max()),

@@ -14,6 +14,7 @@ skipped when the estimator falls behind (it then slides further per update inste
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -48,7 +49,7 @@ class OnlineOptions:
     memory_s: float = math.inf  # forgetting time constant of the arrival cost
     prefit: bool = True  # first window: start from the equation-error fit
     integrator: IntegratorOptions = IntegratorOptions()
-    threads: int = 1
+    threads: int = max(1, os.cpu_count() or 1)  # the estimator process runs niced
 
 
 @dataclass
@@ -246,11 +247,12 @@ class MovingHorizonEstimator:
             lin_J = (Js, Jt)
             cost = 0.5 * float(np.sum(E * E)) + 0.5 * float(dev @ self.info @ dev)
             viol = float(np.sum(np.abs(D)))
-            accepted = False
-            for _attempt in range(4):
+            accepted = converged = False
+            # a bounded line search: an update that cannot improve keeps the previous
+            # estimate and tries again with the next data, instead of stalling the stream
+            for lam in (lam, max(1e-2, 10 * lam)):
                 step = _solve_bounded(Nm, g, theta, self.lower, self.upper, nx, lam)
                 if step is None:
-                    lam = max(1e-6, 10 * lam)
                     continue
                 ds0, dth = step[:nx], step[nx:]
                 dS = (P @ ds0 + Q @ dth + q).T
@@ -258,10 +260,13 @@ class MovingHorizonEstimator:
                 r_lin = r + js @ ds0 + jt @ dth
                 d_lin = dev + dth
                 pred = cost - 0.5 * float(r_lin @ r_lin) - 0.5 * float(d_lin @ self.info @ d_lin)
+                if pred < max(0.5 * nth, 1e-3 * cost) and viol < 1e-2 * K:
+                    converged = True  # less to gain than a fraction of a standard deviation
+                    break
                 if viol > 0:
                     mu = max(mu, 2 * abs(pred) / viol + 1.0)
                 alpha = 1.0
-                while alpha >= 1 / 16:
+                while alpha >= 1 / 4:
                     S_try = S + alpha * dS
                     th_try = np.clip(theta + alpha * dth, self.lower, self.upper)
                     p_try = p.copy()
@@ -277,8 +282,7 @@ class MovingHorizonEstimator:
                     alpha *= 0.5
                 if accepted:
                     break
-                lam = max(1e-6, 10 * lam)
-            if not accepted:
+            if converged or not accepted:
                 break
             lam = lam / 10 if lam > 1e-6 else 0.0
             S, theta, p = S_try, th_try, p_try
