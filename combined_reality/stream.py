@@ -282,7 +282,6 @@ class LockstepSimulator:
             i = int(np.searchsorted(hist[0], te - 1e-9))
             if i < hist.shape[1] and abs(hist[0, i] - te) < 1e-6 and hist[0, i] <= t[0] - 1e-12:
                 j = hist.shape[1] - n  # rows before this block: carry the estimate up to the last of them
-                seg = slice(i, j)
                 hs = np.diff(hist[0, i:j + 1])[: j - i - 1] if j - i > 1 else np.empty(0)
                 self.state = self._run(se, hist[1, i:j - 1], hs)[:, -1] if len(hs) else se
                 self._t_sync = te
