@@ -405,39 +405,28 @@ def _stream_json(result, options, wall_s: float) -> dict:
     return out
 
 
-def _run_stream(args, cyl, rig, program, duration, record: str | None, effects=()) -> int:
+def _run_stream(args, cyl, rig, program, duration, record: str | None, sample_period: float, inline: bool) -> int:
     import signal
 
     from .stream import ConsoleSink, InlineEstimator, LockstepSimulator, ProcessEstimator, run_session
 
     options = _online_options(args, cyl)
-    prog = _progress(args.quiet)
-    inline = getattr(args, "speed", None) == math.inf
-    dt = 1.0 / args.rate if getattr(args, "rate", None) else None
-    if dt is None:
-        dt = rig.run.sample_period
-    if prog:
-        prog("preparing the model (compiled once, then cached) ...")
-    simulator = LockstepSimulator(cyl)
-    estimator = (InlineEstimator(cyl, dt, options) if inline else ProcessEstimator(cyl, dt, options))
-    sinks = []
-    counters = lambda: {k: v for k, v in (("lost", getattr(getattr(rig, "stats", None), "samples_lost", None)),
-                                          ("corrupt", getattr(getattr(rig, "stats", None), "frames_corrupt", None)))
-                        if v is not None}
-    if not args.quiet:
-        sinks.append(ConsoleSink(_eprint, 1.0, counters))
     try:
         rr_sink = _rerun_sink(args, cyl, options.window_s)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    if rr_sink is not None:
-        sinks.append(rr_sink)
-    recorder = None
-    if record:
-        from .runs import RunRecorder
 
-        recorder = RunRecorder(record, comments=[f"combined-reality {args.command}: {cyl.name}",
-                                                 f"config {cyl.source}", f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"])
+    def link_counters() -> dict:
+        stats = getattr(rig, "stats", None)
+        return {} if stats is None else {"lost": stats.samples_lost, "corrupt": stats.frames_corrupt}
+
+    sinks = [s for s in (None if args.quiet else ConsoleSink(_eprint, 1.0, link_counters), rr_sink) if s is not None]
+    if not args.quiet:
+        _eprint("preparing the model (compiled once, then cached) ...")
+    simulator = LockstepSimulator(cyl)
+    estimator = (InlineEstimator if inline else ProcessEstimator)(cyl, sample_period, options)
+    comments = [f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
+                f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
     # SIGTERM ends a session like Ctrl-C: valve centred, files complete
     def _term(*_):
         raise KeyboardInterrupt
@@ -445,8 +434,9 @@ def _run_stream(args, cyl, rig, program, duration, record: str | None, effects=(
     previous = signal.signal(signal.SIGTERM, _term)
     t_wall = time.perf_counter()
     try:
-        result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, recorder=recorder,
-                             sinks=sinks, simulator=simulator, on_event=_eprint, give_up_s=args.give_up)
+        result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, record_to=record,
+                             record_comments=comments, sinks=sinks, simulator=simulator, on_event=_eprint,
+                             give_up_s=args.give_up)
     finally:
         signal.signal(signal.SIGTERM, previous)
         estimator.close()
@@ -512,7 +502,7 @@ def cmd_live(args) -> int:
         from .stream import PacedRig
 
         rig = PacedRig(VirtualRig(cyl, effects, rate=args.rate, seed=args.seed))
-    return _run_stream(args, cyl, rig, program, args.duration, args.record, effects)
+    return _run_stream(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, inline=False)
 
 
 def cmd_replay(args) -> int:
@@ -524,9 +514,7 @@ def cmd_replay(args) -> int:
     if run.n < 3:
         raise UsageError(f"{args.run}: a run needs at least 3 samples.")
     speed = math.inf if args.speed == "max" else _positive_float(args.speed, "--speed")
-    args.speed = speed
-    rig = ReplayRig(run, speed)
-    return _run_stream(args, cyl, rig, None, None, None)
+    return _run_stream(args, cyl, ReplayRig(run, speed), None, None, None, run.sample_period, inline=speed == math.inf)
 
 
 def _positive_float(text: str, what: str) -> float:

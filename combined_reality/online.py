@@ -67,13 +67,6 @@ class OnlineEstimate:
     state: np.ndarray = field(repr=False)  # model state at t, to resynchronise a simulation
     params: np.ndarray = field(repr=False)  # the full plant parameter vector
 
-    def to_json(self) -> dict:
-        return {"params": {n: {"value": self.values[n], "std": self.std[n], "unit": self.units[n]}
-                           for n in self.values},
-                "t": self.t, "window": list(self.window), "samples_seen": self.samples_seen,
-                "sigma": self.sigma, "fit_window": self.rmse, "iterations": self.iterations,
-                "wall_s": self.wall_s}
-
 
 class MovingHorizonEstimator:
     """Feed complete rows with `add`, call `update` when `ready`; each update returns an estimate."""

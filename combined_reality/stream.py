@@ -251,11 +251,8 @@ class LockstepSimulator:
         ix = plant.state_names.index
         self._out = [ix("x"), ix("p1"), ix("p2"), ix("v")]
 
-    def set_params(self, p: np.ndarray) -> None:
-        self.p = np.asarray(p, float)
-
-    def set_estimate(self, e) -> None:
-        self.set_params(e.params)
+    def set_estimate(self, e: OnlineEstimate) -> None:
+        self.p = np.asarray(e.params, float)
         self._pending = (e.t, np.asarray(e.state, float))
 
     def _run(self, s0: np.ndarray, u: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -374,11 +371,13 @@ class SessionResult:
 
 
 def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: float | None = None,
-                recorder: RunRecorder | None = None, sinks: Sequence[Sink] = (), effects: Sequence[Effect] = (),
-                simulator: LockstepSimulator | None = None, on_event: Callable[[str], None] | None = None,
-                block: int = 20, give_up_s: float = 3.0, should_stop: Callable[[], bool] | None = None) -> SessionResult:
+                record_to: str | os.PathLike | None = None, record_comments: Sequence[str] = (),
+                sinks: Sequence[Sink] = (), simulator: LockstepSimulator | None = None,
+                on_event: Callable[[str], None] | None = None, block: int = 20,
+                give_up_s: float = 3.0) -> SessionResult:
     """Acquire until `duration` of rig time, the end of a replayed run, a rig that stays
-    silent for `give_up_s`, or Ctrl-C; every sample is recorded the moment it arrives."""
+    silent for `give_up_s`, or Ctrl-C; every sample is recorded the moment it arrives (the
+    file is opened with the first sample, with a `ps` column if the rig measures it)."""
     events: list[str] = []
 
     def event(msg: str) -> None:
@@ -424,12 +423,10 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     # the rig's watchdog: collect now and keep what exists out of later collections
     gc.collect()
     gc.freeze()
+    recorder: RunRecorder | None = None
     rig.start()
     try:
         while True:
-            if should_stop and should_stop():
-                reason = "stopped"
-                break
             try:
                 s = rig.read(timeout=0.1)
             except EndOfRun:
@@ -445,6 +442,8 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
             last_sample_wall = time.monotonic()
             if t0 is None:
                 t0 = s.t
+                if record_to is not None:
+                    recorder = RunRecorder(record_to, with_ps=s.ps is not None, comments=record_comments)
             if program is not None:
                 rig.send(program.command(s.t - t0, s.x))
             lost_before = False
@@ -464,7 +463,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
             t_prev, seq_prev = s.t, s.seq
             ps = s.ps if s.ps is not None and math.isfinite(s.ps) else None
             if recorder is not None:
-                recorder.append(s.t, s.u_applied, s.x, s.p1, s.p2, ps if recorder.with_ps else None)
+                recorder.append(s.t, s.u_applied, s.x, s.p1, s.p2, s.ps if recorder.with_ps else None)
             for c, v in zip(cols, (s.t, s.u_applied, s.x, s.p1, s.p2, ps if ps is not None else math.nan)):
                 c.append(v)
             counters["samples"] += 1
@@ -480,6 +479,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         try:
             rig.stop()
         finally:
+            gc.unfreeze()
             if recorder is not None:
                 recorder.close()
     flush_block()

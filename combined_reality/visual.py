@@ -26,12 +26,12 @@ from .runs import Run
 APP_ID = "combined_reality"
 
 
-def open_recording(mode: str, target: str | None = None, recording_name: str | None = None) -> rr.RecordingStream | None:
+def open_recording(mode: str, target: str | None = None) -> rr.RecordingStream | None:
     """`spawn` a viewer, `connect` to one at ADDR (rerun+http://host:port/proxy), `save` to a
     .rrd file, or `off`."""
     if mode == "off":
         return None
-    rec = rr.RecordingStream(APP_ID, recording_id=recording_name)
+    rec = rr.RecordingStream(APP_ID)
     if mode == "spawn":
         rec.spawn()
     elif mode == "connect":

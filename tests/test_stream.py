@@ -12,7 +12,7 @@ import pytest
 
 from combined_reality.cli import main, simulate_run
 from combined_reality.online import OnlineOptions
-from combined_reality.runs import RunRecorder, read_run, write_run
+from combined_reality.runs import read_run, write_run
 from combined_reality.stream import InlineEstimator, LockstepSimulator, ReplayRig, run_session
 
 
@@ -38,9 +38,8 @@ def test_lockstep_simulation_follows_a_noise_free_rig_with_the_true_parameters(c
 
 
 def test_replay_as_fast_as_possible_records_every_sample_and_estimates(cyl_a, run_a, tmp_path):
-    rec = RunRecorder(tmp_path / "copy.csv")
     est = InlineEstimator(cyl_a, run_a.sample_period, OnlineOptions())
-    res = run_session(cyl_a, ReplayRig(run_a, math.inf), estimator=est, recorder=rec,
+    res = run_session(cyl_a, ReplayRig(run_a, math.inf), estimator=est, record_to=tmp_path / "copy.csv",
                       simulator=LockstepSimulator(cyl_a))
     assert res.stop_reason == "end of the recorded run"
     back = read_run(tmp_path / "copy.csv")
@@ -132,3 +131,14 @@ def test_bad_input_is_refused_with_one_sentence(run_a, tmp_path, capsys, monkeyp
     assert main(args) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+def test_a_measured_supply_pressure_is_recorded_too(cyl_a, run_a, tmp_path):
+    from dataclasses import replace
+
+    run = replace(run_a.slice(0, 500), ps=np.full(500, 7.0e5))
+    est = InlineEstimator(cyl_a, run.sample_period, OnlineOptions())
+    run_session(cyl_a, ReplayRig(run, math.inf), estimator=est, record_to=tmp_path / "r.csv")
+    back = read_run(tmp_path / "r.csv")
+    np.testing.assert_array_equal(back.ps, run.ps)
+    np.testing.assert_array_equal(back.x, run.x)
