@@ -25,7 +25,7 @@ from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
 from sim.plant import build_plant
 
-from .identify import IdentifyOptions, _velocity_estimate, identify
+from .identify import IdentifyOptions, _layout, _simulate_run, _velocity_estimate, identify
 from .runs import Run
 
 
@@ -63,35 +63,20 @@ def validation_residuals(cyl: Cylinder, effects: Sequence[Effect], run: Run, hor
     """Measured minus simulated (x, p1, p2), shape (3, n): `run` simulated in segments of
     `horizon_s`, each from the measured state at its start, with the recorded command."""
     plant = build_plant("command", effects)
-    dt = run.sample_period
-    M = max(5, int(round(0.1 / dt)))
+    M = max(5, int(round(0.1 / run.sample_period)))
     sf = shooting_functions(plant, M, ())
     p = np.array(plant.parameter_vector(cyl), float)
-    v = _velocity_estimate(run.t, run.x)
-    seg = max(M, int(round(horizon_s / dt)))
-    names = plant.state_names
-    out_idx = [names.index(n) for n in ("x", "p1", "p2")]
+    v = _velocity_estimate(run.t, run.x)  # over the whole run: no end effects at segment starts
+    seg = max(M, int(round(horizon_s / run.sample_period)))
     sim = np.empty((3, run.n))
     for a in range(0, run.n, seg):
-        b = min(run.n, a + seg)
-        s = np.array(plant.initial_state(cyl, run.x[a], run.p1[a], run.p2[a], v[a]), float)
-        k = a
-        while k < b:
-            m = min(M, b - k)
-            W = np.zeros((1, M + 1))
-            H = np.zeros((1, M))
-            W[0, : m + 1] = run.u[k:k + m + 1] if k + m < run.n else np.r_[run.u[k:k + m], run.u[k + m - 1]]
-            W[0, m + 1:] = W[0, m]
-            H[0, : m - 1] = np.diff(run.t[k:k + m])
-            if k + m < b:
-                H[0, m - 1] = run.t[k + m] - run.t[k + m - 1]
-            X = np.asarray(sf.interval(s, W, p, H))
-            sim[:, k] = s[out_idx]
-            sim[:, k + 1:k + m] = X[out_idx, : m - 1]
-            s = X[:, m - 1]
-            k += m
-    meas = np.vstack([run.x, run.p1, run.p2])
-    return meas - sim
+        piece = run.slice(a, a + seg)
+        s0 = plant.initial_state(cyl, run.x[a], run.p1[a], run.p2[a], v[a])
+        if piece.n < 2:  # a last lone sample is its own start
+            sim[:, a] = run.x[a], run.p1[a], run.p2[a]
+            continue
+        sim[:, a:a + piece.n] = _simulate_run(sf, s0, p, _layout(piece, plant, cyl, M, 0), M)
+    return np.vstack([run.x, run.p1, run.p2]) - sim
 
 
 def _rmse(r: np.ndarray) -> float:
