@@ -359,22 +359,11 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
                 break
             if viol > 0:
                 mu = max(mu, (gdir + 0.5 * quad) / (0.5 * viol) + 1.0)
-            m0 = cost + mu * viol
-            dmerit = gdir - mu * viol
-            alpha = 1.0
-            while alpha >= 1.0 / 64:
-                S_try = S + alpha * dS.T
-                th_try = np.clip(theta + alpha * dth, lower, upper)
-                p_try = p.copy()
-                p_try[free] = th_try
-                ev_try = evaluate(S_try, p_try, False)
-                if ev_try is not None:
-                    m1 = merit(ev_try[0], ev_try[1], mu)
-                    if m1 <= m0 + 1e-4 * alpha * min(dmerit, 0.0) or (abs(m1 - m0) <= 1e-12 * max(m0, 1.0)):
-                        accepted = True
-                        break
-                alpha *= 0.5
-            if accepted:
+            found = line_search(evaluate, lambda ev_, _th: merit(ev_[0], ev_[1], mu), S, dS.T, theta, dth, p,
+                                free, lower, upper, cost + mu * viol, min(gdir - mu * viol, 0.0), 1.0 / 64)
+            if found:
+                alpha, S_try, th_try, p_try, ev_try = found
+                accepted = True
                 break
             lam = max(1e-6, lam * 10)
         if converged_here:
@@ -482,6 +471,31 @@ def _bounds(plant: Plant, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]
     return np.array(lo, float), np.array(hi, float)
 
 
+def line_search(evaluate, merit, S, dS, theta, dth, p, free, lower, upper, m0: float, slope: float,
+                min_alpha: float):
+    """Backtracking from the full step on an l1 merit (Armijo, or a tie at the numerical noise
+    floor): (alpha, S, theta, p, evaluation) of the first accepted trial, or None."""
+    alpha = 1.0
+    while alpha >= min_alpha:
+        th = np.clip(theta + alpha * dth, lower, upper)
+        p_try = p.copy()
+        p_try[free] = th
+        S_try = S + alpha * dS
+        ev = evaluate(S_try, p_try, False)
+        if ev is not None:
+            m1 = merit(ev, th)
+            if m1 <= m0 + 1e-4 * alpha * slope or abs(m1 - m0) <= 1e-12 * max(m0, 1.0):
+                return alpha, S_try, th, p_try, ev
+        alpha *= 0.5
+    return None
+
+
+def scaled_inverse(N: np.ndarray) -> np.ndarray:
+    """N^-1 computed on the unit-diagonal scaling of N (parameters differ by 10 decades)."""
+    scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    return np.linalg.inv(N / np.outer(scale, scale)) / np.outer(scale, scale)
+
+
 def _solve_bounded(N: np.ndarray, g: np.ndarray, theta, lower, upper, n_state: int, lam: float):
     """min 0.5 d'Nd + g'd with theta + d_theta kept in bounds (active set on the parameters)."""
     n = len(g)
@@ -586,11 +600,9 @@ def _condense(lin, E, Draw, layouts, has_next, nx, nth):
 
 
 def _covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndarray | None:
-    n = N.shape[0]
-    sigma2 = 2 * cost / max(1.0, nres - n)
-    scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    sigma2 = 2 * cost / max(1.0, nres - N.shape[0])
     try:
-        inv = np.linalg.inv(N / np.outer(scale, scale)) / np.outer(scale, scale)
+        inv = scaled_inverse(N)
     except np.linalg.LinAlgError:
         return None
     return (sigma2 * inv)[n_state:, n_state:]
@@ -608,9 +620,8 @@ def _cluster_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int
     if nb < 5:
         return None
     meat = S.T @ S * nb / (nb - 1)
-    scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
     try:
-        inv = np.linalg.inv(N / np.outer(scale, scale)) / np.outer(scale, scale)
+        inv = scaled_inverse(N)
     except np.linalg.LinAlgError:
         return None
     return (inv @ meat @ inv)[n_state:, n_state:]

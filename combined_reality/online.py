@@ -28,7 +28,7 @@ from sim.integrator import IntegratorOptions
 from sim.plant import build_plant
 
 from .identify import (ShootingProblem, _bounds, _layout, _linearize, _reduce, _solve_bounded, _unit,
-                       equation_error_friction, free_parameters, residual_scales)
+                       equation_error_friction, free_parameters, line_search, residual_scales, scaled_inverse)
 from .runs import Run
 
 
@@ -258,22 +258,11 @@ class MovingHorizonEstimator:
                     break
                 if viol > 0:
                     mu = max(mu, 2 * abs(pred) / viol + 1.0)
-                alpha = 1.0
-                while alpha >= 1 / 4:
-                    S_try = S + alpha * dS
-                    th_try = np.clip(theta + alpha * dth, self.lower, self.upper)
-                    p_try = p.copy()
-                    p_try[self.free] = th_try
-                    ev_try = prob.evaluate(S_try, p_try, False)
-                    if ev_try is not None:
-                        d_try = th_try - self.prior_mean
-                        m1 = (0.5 * float(np.sum(ev_try[0] ** 2)) + 0.5 * float(d_try @ self.info @ d_try)
-                              + mu * float(np.sum(np.abs(ev_try[1]))))
-                        if m1 <= cost + mu * viol - 1e-4 * alpha * max(pred, 0.0):
-                            accepted = True
-                            break
-                    alpha *= 0.5
-                if accepted:
+                found = line_search(prob.evaluate, lambda ev_, th: self._merit(ev_, th, mu), S, dS, theta, dth, p,
+                                    self.free, self.lower, self.upper, cost + mu * viol, -max(pred, 0.0), 1 / 4)
+                if found:
+                    alpha, S_try, th_try, p_try, ev_try = found
+                    accepted = True
                     break
             if converged or not accepted:
                 break
@@ -288,9 +277,8 @@ class MovingHorizonEstimator:
         sigma2 = float(np.sum(E * E)) / max(1.0, nres - nx - nth)
         std = np.full(nth, np.nan)
         if Nm is not None:
-            sc = np.sqrt(np.maximum(np.diag(Nm), 1e-300))
             try:
-                cov = np.linalg.inv(Nm / np.outer(sc, sc)) / np.outer(sc, sc)
+                cov = scaled_inverse(Nm)
                 std = np.sqrt(np.maximum(np.diag(cov)[nx:], 0.0) * max(sigma2, 1e-12))
             except np.linalg.LinAlgError:
                 pass
@@ -303,6 +291,11 @@ class MovingHorizonEstimator:
             units=self.units, window=(float(run.t[0]), float(run.t[-1])), samples_seen=i0 + N,
             sigma=math.sqrt(sigma2), rmse=rmse, iterations=it, wall_s=time.perf_counter() - t_wall,
             state=X[:, K - 1, M - 2].copy(), params=p.copy())
+
+    def _merit(self, ev, theta: np.ndarray, mu: float) -> float:
+        """Data cost, arrival cost and the l1 penalty on the continuity defects."""
+        d = theta - self.prior_mean
+        return 0.5 * float(np.sum(ev[0] ** 2)) + 0.5 * float(d @ self.info @ d) + mu * float(np.sum(np.abs(ev[1])))
 
     def _absorb_leaving(self, prev: dict, left: int) -> None:
         """Move the information of the intervals leaving the window into the arrival cost."""

@@ -26,7 +26,7 @@ import casadi as ca
 from .integrator import IntegratorOptions, StepBuilder
 from .plant import Plant
 
-CODE_REVISION = 4  # bump when generated functions change shape or meaning
+CODE_REVISION = 5  # bump when generated functions change shape or meaning
 
 
 def cache_dir() -> Path:

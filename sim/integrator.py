@@ -163,39 +163,38 @@ class StepBuilder:
         err = sum((_B[i] - _B_EMBEDDED[i]) * ks[i] for i in range(4))[: self.nx]
         return z_next[: self.nx], ca.mmax(ca.fabs(err * ca.DM(self._inv_tol)))
 
-    def _coarse(self, with_error: bool) -> ca.Function:
-        x, w0, w1, p, h = self._symbols()
-        xn, err = self.rosenbrock(x, w0, w1, p, h)
-        outs = [xn, err] if with_error else [xn]
-        return ca.Function("rb_step", [x, w0, w1, p, h], outs)
-
     def step(self) -> ca.Function:
         """The adaptive one-sample step (x, w0, w1, p, h) -> x_next."""
-        return self._refine(self._coarse(True), self._coarse(False), self.opts.max_depth, "step")
+        x, w0, w1, p, h = self._symbols()
+        xn, err = self.rosenbrock(x, w0, w1, p, h)
+        coarse = ca.Function("rb_step", [x, w0, w1, p, h], [xn, err], ["x", "w0", "w1", "p", "h"], ["xn", "err"])
+        return self._refine(coarse, self.opts.max_depth, "step")
 
-    def _refine(self, coarse_err: ca.Function, coarse: ca.Function, depth: int, name: str) -> ca.Function:
-        """if error(coarse) <= 1: coarse, else two refined half steps (recursively).
-
-        The switch depends only on the plain step's error estimate, so a variant that also
-        carries sensitivities (extra inputs after h) takes exactly the same path."""
-        if depth == 0:
-            return coarse
-        half = self._refine(coarse_err, coarse, depth - 1, name)
+    def _refine(self, coarse: ca.Function, depth: int, name: str) -> ca.Function:
+        """coarse: (x, w0, w1, p, h, *carried) -> (*outputs, err). The result keeps the
+        coarse outputs when err <= 1, else takes two refined half steps (recursively); the
+        coarse step is evaluated once and only the refinement sits behind the switch.
+        The switch depends only on the state's error estimate, so a variant that also carries
+        sensitivities (inputs after h) takes exactly the same path."""
+        n_out = coarse.n_out() - 1
         sym = [ca.MX.sym(n, *coarse.sparsity_in(i).shape) for i, n in enumerate(coarse.name_in())]
+        res = coarse.call(sym)
+        outs, err = res[:n_out], res[n_out]
+        names_out = coarse.name_out()[:n_out]
+        if depth == 0:
+            return ca.Function(f"{name}_d0", sym, outs, coarse.name_in(), names_out)
+        half = self._refine(coarse, depth - 1, name)
         x, w0, w1, p, h = sym[:5]
-        extra = sym[5:]  # carried state (sensitivities) for the sensitivity variant
         # interpolated inputs split at the midpoint; a held input stays held in both halves
         wm = 0.5 * (w0 + w1) if self.interpolate else w0
-        first = half(x, w0, wm, p, h / 2, *extra)
-        first = first if isinstance(first, (list, tuple)) else [first]
-        second = half(first[0], wm, w1, p, h / 2, *first[1:])
-        second = second if isinstance(second, (list, tuple)) else [second]
-        fine = ca.Function(f"{name}_fine{depth}", sym, list(second))
-        switch = ca.Function.conditional(f"{name}_sw{depth}", [coarse], fine)
-        _, err = coarse_err(x, w0, w1, p, h)
-        out = switch(err > 1, *sym)
-        out = out if isinstance(out, (list, tuple)) else [out]
-        return ca.Function(f"{name}_d{depth}", sym, list(out), coarse.name_in(), coarse.name_out())
+        first = half.call([x, w0, wm, p, h / 2, *sym[5:]])
+        second = half.call([first[0], wm, w1, p, h / 2, *first[1:]])
+        held = [ca.MX.sym(f"coarse_{n}", *coarse.sparsity_out(i).shape) for i, n in enumerate(names_out)]
+        keep = ca.Function(f"{name}_keep{depth}", held + sym, held)
+        fine = ca.Function(f"{name}_fine{depth}", held + sym, second)
+        switch = ca.Function.conditional(f"{name}_sw{depth}", [keep], fine)
+        out = switch.call([err > 1, *outs, *sym])
+        return ca.Function(f"{name}_d{depth}", sym, out, coarse.name_in(), names_out)
 
     def sensitivity_step(self, free: Sequence[int]) -> ca.Function:
         """(x, w0, w1, p, h, S) -> (x_next, S_next), S = d x / d (x_start, p[free])."""
@@ -204,10 +203,10 @@ class StepBuilder:
 
         x, w0, w1, p, h = self._symbols()
         S = ca.SX.sym("S", self.nx, nz)
-        xn, _ = self.rosenbrock(x, w0, w1, p, h)
+        xn, err = self.rosenbrock(x, w0, w1, p, h)
         Fx = ca.jacobian(xn, x)
         Fp = ca.jacobian(xn, ca.vertcat(*[p[i] for i in free]))
         Sn = ca.mtimes(Fx, S) + ca.horzcat(ca.SX.zeros(self.nx, self.nx), Fp)
-        coarse = ca.Function("rb_sens", [x, w0, w1, p, h, S], [xn, Sn],
-                             ["x", "w0", "w1", "p", "h", "S"], ["xn", "Sn"])
-        return self._refine(self._coarse(True), coarse, self.opts.max_depth, "sens")
+        coarse = ca.Function("rb_sens", [x, w0, w1, p, h, S], [xn, Sn, err],
+                             ["x", "w0", "w1", "p", "h", "S"], ["xn", "Sn", "err"])
+        return self._refine(coarse, self.opts.max_depth, "sens")
