@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -105,7 +106,7 @@ class PositionProgram:
 
 def guarded(u: float, x_meas: float, L: float, opts: ProgramOptions) -> float:
     """A command within the bound that, past a soft stroke limit, can only push back into the stroke."""
-    u = 0.0 if u != u else max(-opts.u_max, min(opts.u_max, float(u)))
+    u = 0.0 if math.isnan(u) else max(-opts.u_max, min(opts.u_max, float(u)))
     lo = opts.margin * L
     if x_meas < 0.5 * lo:
         u = max(u, 0.05)
@@ -114,42 +115,45 @@ def guarded(u: float, x_meas: float, L: float, opts: ProgramOptions) -> float:
     return u
 
 
-class PulseProgram:
-    """Open-loop pulse train: alternating pulses of random height and length with rests
-    between them; the soft stroke limits still apply (on the measured position)."""
+class HeldCommandProgram:
+    """Open loop: command u[i] held from t[i] until t[i+1] (the last one to the end); the
+    bound and the soft stroke limits still apply, on the measured position."""
 
-    def __init__(self, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
-        self.L, self.opts = cyl.geometry.stroke, options
-        rng = np.random.default_rng(seed)
-        self.edges, self.levels = [0.0], []  # levels[i] holds over [edges[i], edges[i+1])
-        sign, t = 1.0, 0.0
-        while t < duration:
-            on, rest = rng.uniform(0.05, 0.3), rng.uniform(0.2, 0.6)
-            self.levels += [sign * rng.uniform(0.1, options.u_max), 0.0]
-            self.edges += [t + on, t + on + rest]
-            t, sign = t + on + rest, -sign
-
-    def command(self, t: float, x_meas: float) -> float:
-        i = min(int(np.searchsorted(self.edges, t, side="right")) - 1, len(self.levels) - 1)
-        return guarded(self.levels[max(i, 0)], x_meas, self.L, self.opts)
-
-
-class CommandFileProgram:
-    """Open-loop commands from a CSV file with columns t and u (held between rows)."""
-
-    def __init__(self, path, cyl: Cylinder, options: ProgramOptions = ProgramOptions()):
-        data = np.genfromtxt(path, delimiter=",", names=True, comments="#")
-        names = data.dtype.names or ()
-        if "t" not in names or "u" not in names:
-            raise ValueError(f"{path}: a command file needs columns t and u (found {', '.join(names) or 'none'}).")
-        self.t, self.u = np.atleast_1d(data["t"]).astype(float), np.atleast_1d(data["u"]).astype(float)
-        if not (np.all(np.isfinite(self.t)) and np.all(np.isfinite(self.u)) and np.all(np.diff(self.t) > 0)):
-            raise ValueError(f"{path}: times must be finite and increasing, commands finite.")
+    def __init__(self, t: np.ndarray, u: np.ndarray, cyl: Cylinder, options: ProgramOptions = ProgramOptions()):
+        self.t, self.u = np.asarray(t, float), np.asarray(u, float)
         self.L, self.opts = cyl.geometry.stroke, options
 
     def command(self, t: float, x_meas: float) -> float:
         i = max(int(np.searchsorted(self.t, t, side="right")) - 1, 0)
         return guarded(self.u[i], x_meas, self.L, self.opts)
+
+
+def pulse_program(cyl: Cylinder, duration: float, seed: int = 0,
+                  options: ProgramOptions = ProgramOptions()) -> HeldCommandProgram:
+    """Alternating pulses of random height and length, with rests between them."""
+    rng = np.random.default_rng(seed)
+    starts, levels = [], []
+    sign, t = 1.0, 0.0
+    while t < duration:
+        on, rest = rng.uniform(0.05, 0.3), rng.uniform(0.2, 0.6)
+        starts += [t, t + on]
+        levels += [sign * rng.uniform(0.1, options.u_max), 0.0]
+        t, sign = t + on + rest, -sign
+    return HeldCommandProgram(np.array(starts), np.array(levels), cyl, options)
+
+
+def command_file_program(path, cyl: Cylinder, options: ProgramOptions = ProgramOptions()) -> HeldCommandProgram:
+    """Commands from a CSV file with columns t and u."""
+    # comment lines go first: genfromtxt would take a leading one for the header
+    lines = [ln for ln in Path(path).read_text().splitlines() if not ln.lstrip().startswith("#")]
+    data = np.genfromtxt(lines, delimiter=",", names=True)
+    names = data.dtype.names or ()
+    if "t" not in names or "u" not in names:
+        raise ValueError(f"{path}: a command file needs columns t and u (found {', '.join(names) or 'none'}).")
+    t, u = np.atleast_1d(data["t"]).astype(float), np.atleast_1d(data["u"]).astype(float)
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.diff(t) > 0)):
+        raise ValueError(f"{path}: times must be finite and increasing, commands finite.")
+    return HeldCommandProgram(t, u, cyl, options)
 
 
 PROGRAMS = {"mixed": ("step", "ramp", "sine"), "steps": ("step",), "ramps": ("ramp",), "sines": ("sine",),
@@ -159,9 +163,9 @@ PROGRAMS = {"mixed": ("step", "ramp", "sine"), "steps": ("step",), "ramps": ("ra
 def make_program(name: str, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
     """A built-in program by name (mixed, steps, ramps, sines, pulses) or `file:PATH` (t,u CSV)."""
     if name.startswith("file:"):
-        return CommandFileProgram(name[5:], cyl, options)
+        return command_file_program(name[5:], cyl, options)
     if name not in PROGRAMS:
         raise ValueError(f"unknown program '{name}' (available: {', '.join(PROGRAMS)}, file:PATH).")
     if name == "pulses":
-        return PulseProgram(cyl, duration, seed, options)
+        return pulse_program(cyl, duration, seed, options)
     return PositionProgram(cyl, duration, seed, options, PROGRAMS[name])
