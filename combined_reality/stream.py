@@ -138,6 +138,7 @@ def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent:
         finishing = False
         while True:
             if os.getppid() != parent:
+                outbox.cancel_join_thread()  # nobody reads any more: exit without flushing
                 return
             try:
                 msg = inbox.get(timeout=0.05)

@@ -9,6 +9,16 @@ CONFIGS = ROOT / "configs"
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the test oracle module
 
 
+def assert_refused(code, err, *fragments):
+    """Bad input: exit status 2 and one sentence naming the culprit, no traceback."""
+    assert code == 2
+    assert "Traceback" not in err
+    lines = [l for l in err.strip().splitlines() if l.strip()]
+    assert len(lines) == 1, err
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _model_cache(tmp_path_factory):
     """Compiled model functions go to the user cache unless CI asks for a fresh one."""

@@ -1,11 +1,11 @@
 """The command line per FORMATS.md: bad input refused with exit 2 and one clear sentence."""
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import assert_refused
 
 from combined_reality.cli import main
 
@@ -26,15 +26,6 @@ def _run(argv, capsys):
     return code, out.out, out.err
 
 
-def _assert_refused(code, err, *fragments):
-    assert code == 2
-    assert "Traceback" not in err
-    lines = [l for l in err.strip().splitlines() if l.strip()]
-    assert len(lines) == 1, err  # one sentence
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-
-
 @pytest.mark.parametrize("lines, fragments", [
     (["t,u,x,p1", *[r.rsplit(",", 1)[0] for r in GOOD_ROWS]], ["'p2'"]),  # missing column
     (["t,u,x,p1,p2", GOOD_ROWS[0], "0.001,0.1,abc,4.0e5,3.0e5", GOOD_ROWS[2]], ["line 3", "'x'", "abc"]),
@@ -49,20 +40,20 @@ def _assert_refused(code, err, *fragments):
 def test_bad_run_files_are_refused(tmp_path, capsys, lines, fragments):
     run = _csv(tmp_path, lines)
     code, _, err = _run(["identify", "--config", CFG, run, "--json", tmp_path / "o.json"], capsys)
-    _assert_refused(code, err, "run.csv", *fragments)
+    assert_refused(code, err, "run.csv", *fragments)
     assert not (tmp_path / "o.json").exists()  # nothing half-written
 
 
 def test_missing_run_file(tmp_path, capsys):
     code, _, err = _run(["identify", "--config", CFG, tmp_path / "nope.csv"], capsys)
-    _assert_refused(code, err, "nope.csv", "not found")
+    assert_refused(code, err, "nope.csv", "not found")
 
 
 def test_position_in_mm_against_the_stroke(tmp_path, capsys):
     run = _csv(tmp_path, ["t,u,x,p1,p2", "0.000,0.1,0.50,4.0e5,3.0e5", "0.001,0.1,0.501,4.0e5,3.0e5",
                           "0.002,0.1,0.502,4.0e5,3.0e5"])
     code, _, err = _run(["identify", "--config", CFG, run], capsys)
-    _assert_refused(code, err, "run.csv", "stroke")
+    assert_refused(code, err, "run.csv", "stroke")
 
 
 @pytest.mark.parametrize("edit, fragments", [
@@ -78,7 +69,7 @@ def test_bad_cylinder_files_are_refused(tmp_path, capsys, edit, fragments):
     cfg.write_text(edit(CFG.read_text()))
     run = _csv(tmp_path, ["t,u,x,p1,p2", *GOOD_ROWS])
     code, _, err = _run(["identify", "--config", cfg, run], capsys)
-    _assert_refused(code, err, "cyl.toml", *fragments)
+    assert_refused(code, err, "cyl.toml", *fragments)
 
 
 def _set(text, key, value):
@@ -93,34 +84,34 @@ def _set(text, key, value):
 def test_missing_config(tmp_path, capsys):
     run = _csv(tmp_path, ["t,u,x,p1,p2", *GOOD_ROWS])
     code, _, err = _run(["identify", "--config", tmp_path / "none.toml", run], capsys)
-    _assert_refused(code, err, "none.toml", "not found")
+    assert_refused(code, err, "none.toml", "not found")
 
 
 def test_bad_options(tmp_path, capsys):
     run = _csv(tmp_path, ["t,u,x,p1,p2", *GOOD_ROWS])
     code, _, err = _run(["identify", "--config", CFG, run, "--estimate", "Fc,colour"], capsys)
-    _assert_refused(code, err, "colour")
+    assert_refused(code, err, "colour")
     code, _, err = _run(["simulate", "--config", CFG, "-o", tmp_path / "r.csv", "--effect", "sticktion"], capsys)
-    _assert_refused(code, err, "sticktion")
+    assert_refused(code, err, "sticktion")
     code, _, err = _run(["simulate", "--config", CFG, "-o", tmp_path / "r.csv", "--duration", "-3"], capsys)
-    _assert_refused(code, err, "--duration")
+    assert_refused(code, err, "--duration")
 
 
 def test_simulate_then_identify_end_to_end(tmp_path):
     """As a user runs it: the installed console entry point, two processes, JSON per FORMATS."""
-    env = dict(os.environ)
+    exe = str(Path(sys.executable).parent / "combined-reality")
     run = tmp_path / "run.csv"
     out = tmp_path / "id.json"
-    sim = subprocess.run([sys.executable, "-m", "combined_reality", "simulate", "--config", str(CFG),
+    sim = subprocess.run([exe, "simulate", "--config", str(CFG),
                           "--duration", "6", "--seed", "4", "-o", str(run),
-                          "--effect", "valve_delay:tau=0.004"], capture_output=True, text=True, env=env)
+                          "--effect", "valve_delay:tau=0.004"], capture_output=True, text=True)
     assert sim.returncode == 0, sim.stderr
     text = run.read_text()
     assert text.startswith("# combined-reality virtual rig") and "valve_delay(tau=0.004" in text
-    ident = subprocess.run([sys.executable, "-m", "combined_reality", "identify", "--config", str(CFG), str(run),
+    ident = subprocess.run([exe, "identify", "--config", str(CFG), str(run),
                             "--json", str(out), "--effect", "valve_delay", "--estimate", "Fc,Fv,kp,valve_delay.tau",
                             "--write-config", str(tmp_path / "identified.toml")],
-                           capture_output=True, text=True, env=env)
+                           capture_output=True, text=True)
     assert ident.returncode == 0, ident.stderr
     res = json.loads(out.read_text())
     assert res["solver"]["status"] == "converged"

@@ -21,6 +21,7 @@ def test_diagnose_names_the_withheld_effect_or_none(cyl_a, tmp_path, capsys, spe
                  "--config", str(cyl_a.source), "--candidates", CANDIDATES, "--json", str(out), "-q"]) == 0
     d = json.loads(out.read_text())
     assert d["verdict"] == verdict
+    assert not [c for c in d["ranking"] if "error" in c]  # every candidate was fitted and scored
     assert {"rmse_x_validation"} <= set(d["baseline"])
     if spec:
         assert d["ranking"][0]["effect"] == verdict

@@ -58,10 +58,11 @@ def test_sixty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, 
     assert res["solver"]["n_samples"] >= 59_000
     assert link["samples_lost"] == 0 and link["frames_corrupt"] == 0 and link["gaps"] == 0
     # Fc and Fv within 5 % of the truth within 30 s, and from then on
-    for h in res["history"]:
-        if h["t"] - res["history"][0]["t"] + 2.0 >= 30.0:
-            for n in ("Fc", "Fv"):
-                assert abs(h["values"][n] - cyl_a.value(n)) < 0.05 * cyl_a.value(n), (h["t"], n)
+    late = [h for h in res["history"] if h["t"] - res["history"][0]["t"] + 2.0 >= 30.0]
+    assert len(late) > 50  # updates kept coming for the second half of the run
+    for h in late:
+        for n in ("Fc", "Fv"):
+            assert abs(h["values"][n] - cyl_a.value(n)) < 0.05 * cyl_a.value(n), (h["t"], n)
     # the recording, identified offline, gives the same parameters
     assert main(["identify", "--config", str(host_cfg), str(rec), "--json", str(tmp_path / "off.json"), "-q"]) == 0
     off = json.loads((tmp_path / "off.json").read_text())["params"]
