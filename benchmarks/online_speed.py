@@ -25,14 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from combined_reality.cli import simulate_run
+from combined_reality.identify import IdentifyOptions, identify
+from combined_reality.online import MovingHorizonEstimator, OnlineOptions
+from combined_reality.runs import write_run
+from sim.cylinder import load_cylinder
 
-from combined_reality.cli import simulate_run  # noqa: E402
-from combined_reality.identify import IdentifyOptions, identify  # noqa: E402
-from combined_reality.online import MovingHorizonEstimator, OnlineOptions  # noqa: E402
-from combined_reality.runs import write_run  # noqa: E402
-from sim.cylinder import load_cylinder  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 CFG = REPO / "configs" / "cyl_a_32x100.toml"
 BUDGET_MS = 50.0
@@ -73,7 +72,7 @@ def bench_replay(cyl, duration: float) -> dict:
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "combined_reality", "replay", str(path), "--config", str(CFG),
                         "--speed", "max", "--json", str(out), "-q"], check=True, cwd=REPO,
-                       env=dict(os.environ, PYTHONPATH=str(REPO)), stdout=subprocess.DEVNULL)
+                       stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - t0
         res = json.loads(out.read_text())
     return {"duration_s": run.duration, "wall_s": wall, "speed_up": run.duration / wall,
