@@ -262,44 +262,28 @@ def cmd_demo(args) -> int:
 # ------------------------------------------------------------------ virtual-rig
 
 def _cmd_virtual_rig(args) -> int:
+    import re
     import signal
 
     from hw.rig_server import FaultSpec, RigServer, ServerOptions
 
     cyl = _load_config(args.config)
     effects = _parse_effects(args.effect)
-    if not 10 <= args.rate <= 100_000:
-        raise UsageError(f"--rate must lie between 10 and 100000 Hz, not {args.rate}.")
-    if not 0 <= args.jitter_us <= 0.25e6 / args.rate:
-        raise UsageError(f"--jitter-us must lie between 0 and a quarter period ({0.25e6 / args.rate:g} us), "
-                         f"not {args.jitter_us}.")
-    if not args.watchdog_ms > 0:
-        raise UsageError(f"--watchdog-ms must be positive, not {args.watchdog_ms}.")
-    for name in ("drop", "corrupt"):
-        if not 0 <= getattr(args, name) <= 1:
-            raise UsageError(f"--{name} is a probability between 0 and 1, not {getattr(args, name)}.")
-    if args.corrupt and args.can:
-        raise UsageError("--corrupt applies to --serial only: CAN frames carry a hardware CRC, so use --drop.")
-    if (args.stall_at is None) != (args.stall_for is None):
-        raise UsageError("--stall-at and --stall-for go together.")
-    if args.vanish_for is not None and args.vanish_at is None:
-        raise UsageError("--vanish-for needs --vanish-at.")
-    for name in ("stall_at", "stall_for", "vanish_at", "vanish_for", "duration"):
-        v = getattr(args, name)
-        if v is not None and not (v >= 0 and math.isfinite(v)):
-            raise UsageError(f"--{name.replace('_', '-')} must be a non-negative number of seconds, not {v}.")
-    if args.link:
-        link = Path(args.link)
-        if not link.parent.is_dir():
-            raise UsageError(f"--link {args.link}: the folder {link.parent} does not exist.")
-        if link.exists() and not link.is_symlink():
-            raise UsageError(f"--link {args.link} exists and is not a symbolic link; refusing to replace it.")
-    faults = FaultSpec(drop=args.drop, corrupt=args.corrupt, stall_at=args.stall_at, stall_for=args.stall_for or 0.0,
-                       vanish_at=args.vanish_at, vanish_for=args.vanish_for, seed=args.seed)
-    options = ServerOptions(rate=args.rate, jitter_us=args.jitter_us, watchdog_ms=args.watchdog_ms)
-    server = RigServer(cyl, effects, transport="slcan" if args.can else "serial", options=options, faults=faults,
-                       seed=args.seed, noise=not args.no_noise, link_path=args.link, log=_eprint,
-                       on_path=lambda path: print(path, flush=True), progress=_eprint)
+    if args.duration is not None and not (args.duration >= 0 and math.isfinite(args.duration)):
+        raise UsageError(f"--duration must be a non-negative number of seconds, not {args.duration}.")
+    try:  # the library checks the options (before it builds the plant); its messages name them as fields
+        faults = FaultSpec(drop=args.drop, corrupt=args.corrupt, stall_at=args.stall_at, stall_for=args.stall_for,
+                           vanish_at=args.vanish_at, vanish_for=args.vanish_for, seed=args.seed)
+        options = ServerOptions(rate=args.rate, jitter_us=args.jitter_us, watchdog_ms=args.watchdog_ms)
+        server = RigServer(cyl, effects, transport="slcan" if args.can else "serial", options=options, faults=faults,
+                           seed=args.seed, noise=not args.no_noise, link_path=args.link, log=_eprint,
+                           on_path=lambda path: print(path, flush=True), progress=_eprint)
+    except ValueError as e:  # said with the options' names
+        flags = {f: "--" + f.replace("_", "-") for f in ("rate", "jitter_us", "watchdog_ms", "drop", "corrupt",
+                                                         "stall_at", "stall_for", "vanish_at", "vanish_for")}
+        flags["link_path"] = "--link"
+        msg = re.sub(r"(?<![\w/.-])[a-z_]+(?![\w/.-])", lambda m: flags.get(m[0], m[0]), str(e))
+        raise UsageError(f"{msg}.") from None
     print(server.path, flush=True)  # the first line of stdout: what the host opens
     truth = ", ".join(f"{n}={cyl.value(n):g}" for n in ("Fc", "Fv", "kp"))
     _eprint(f"virtual rig: '{cyl.name}' ({truth}) at {args.rate:g} Hz, "
@@ -436,7 +420,7 @@ def _run_stream(args, cyl, rig, program, duration, record: str | None, sample_pe
     try:
         result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, record_to=record,
                              record_comments=comments, sinks=sinks, simulator=simulator, on_event=_eprint,
-                             give_up_s=args.give_up)
+                             give_up_s=args.give_up, expected_period=sample_period)
     finally:
         signal.signal(signal.SIGTERM, previous)
         estimator.close()

@@ -375,7 +375,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
                 record_to: str | os.PathLike | None = None, record_comments: Sequence[str] = (),
                 sinks: Sequence[Sink] = (), simulator: LockstepSimulator | None = None,
                 on_event: Callable[[str], None] | None = None, block: int = 20,
-                give_up_s: float = 3.0) -> SessionResult:
+                give_up_s: float = 3.0, expected_period: float | None = None) -> SessionResult:
     """Acquire until `duration` of rig time, the end of a replayed run, a rig that stays
     silent for `give_up_s`, or Ctrl-C; every sample is recorded the moment it arrives (the
     file is opened with the first sample, with a `ps` column if the rig measures it)."""
@@ -453,12 +453,15 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
                 if dt <= 0:
                     event(f"sample at t = {s.t:.6f} s does not advance the rig clock; dropped")
                     continue
-                if s.seq is not None and seq_prev is not None:
-                    lost_before = s.seq != seq_prev + 1  # the rig numbers its samples: exact
-                elif len(first_dts) < 50:
+                if len(first_dts) < 50:
                     first_dts.append(dt)
                     dt_nominal = float(np.median(first_dts))
-                else:
+                    if len(first_dts) == 50 and expected_period and abs(dt_nominal / expected_period - 1) > 0.02:
+                        event(f"the rig samples every {dt_nominal * 1e3:.4g} ms, not every {expected_period * 1e3:.4g} ms "
+                              "as expected (--rate): the estimator's windows are that much longer or shorter")
+                if s.seq is not None and seq_prev is not None:
+                    lost_before = s.seq != seq_prev + 1  # the rig numbers its samples: exact
+                elif len(first_dts) == 50:
                     lost_before = dt > 1.9 * dt_nominal  # at least one period without a sample
                 counters["gaps"] += lost_before
             t_prev, seq_prev = s.t, s.seq

@@ -142,3 +142,11 @@ def test_a_measured_supply_pressure_is_recorded_too(cyl_a, run_a, tmp_path):
     back = read_run(tmp_path / "r.csv")
     np.testing.assert_array_equal(back.ps, run.ps)
     np.testing.assert_array_equal(back.x, run.x)
+
+
+def test_a_rig_sampling_at_another_rate_than_expected_is_reported(cyl_a, run_a):
+    est = InlineEstimator(cyl_a, run_a.sample_period, OnlineOptions())
+    res = run_session(cyl_a, ReplayRig(run_a.slice(0, 300), math.inf), estimator=est, expected_period=0.5e-3)
+    assert any("samples every 1 ms, not every 0.5 ms" in e for e in res.events)
+    res = run_session(cyl_a, ReplayRig(run_a.slice(0, 300), math.inf), estimator=est, expected_period=1e-3)
+    assert not res.events
