@@ -77,7 +77,7 @@ def test_mass_can_be_estimated(cyl_a, run_a):
     assert abs(res.params["mass"].value - cyl_a.mechanics.moving_mass) / cyl_a.mechanics.moving_mass < 0.05
 
 
-def test_bounds_hold(cyl_a, run_a):
+def test_bounds_hold(cyl_a):
     """A run with no pressure-dependent friction: kp pinned at its lower bound 0, not negative."""
     truth = cyl_a.with_values({"kp": 0.0})
     run = simulate_run(truth, 8.0, seed=5)
