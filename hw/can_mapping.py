@@ -130,7 +130,6 @@ class SampleAssembler:
         self.codec = codec
         self.incomplete = 0
         self.malformed = 0  # rig identifiers with the wrong length
-        self.foreign = 0  # other traffic on the bus (ignored)
         self._seq: int | None = None
         self._parts: dict[int, dict] = {}
 
@@ -142,8 +141,7 @@ class SampleAssembler:
     def feed(self, msg: can.Message) -> list[Frame]:
         fid = msg.arbitration_id
         if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or fid not in RIG_IDS:
-            self.foreign += 1
-            return []
+            return []  # other traffic on the bus
         try:
             d = self.codec._decode(msg)
         except Exception:

@@ -24,6 +24,7 @@ class CanRig(LinkRig):
     seq_bits = 8  # RigSample*.Seq
     t_bits = 32  # RigSampleTime.TimeUs
     cmd_seq_mask = 0xFFFF  # RigCommand.CmdSeq
+    DRAIN = 64  # messages handled per pass of the reader thread at most
 
     def __init__(self, channel: str, *, interface: str = "socketcan", bitrate: int = 1_000_000,
                  on_event: Callable[[str], None] | None = None, reconnect: bool = True,
@@ -53,23 +54,23 @@ class CanRig(LinkRig):
             bus.shutdown()
 
     def _receive(self, timeout: float) -> None:
+        # only the reader thread calls this, and only while the bus is open
         bus = self._bus
-        if bus is None:
-            raise LinkDown(f"{self.where}: not open")
+        msg, n = self._recv(bus, timeout), 0
+        while msg is not None:
+            for frame in self._assembler.feed(msg):
+                self._deliver(frame)
+            n += 1  # then what is waiting already (a sample is three messages), a bounded number
+            msg = self._recv(bus, 0) if n < self.DRAIN else None
+
+    def _recv(self, bus: can.BusABC, timeout: float) -> can.Message | None:
         try:
-            msg = bus.recv(timeout)
+            return bus.recv(timeout)
         except (ValueError, IndexError):  # a garbled SLCAN line: python-can cannot parse it
             self._bad_lines += 1
-            self._corrupt(1)
-            return
+            return None
         except (can.CanError, OSError) as e:
             raise LinkDown(f"{self.where}: {e}") from None
-        if msg is None:
-            return
-        before = self._assembler.malformed
-        for frame in self._assembler.feed(msg):
-            self._deliver(frame)
-        self._corrupt(self._assembler.malformed - before)
 
     def _transmit(self, frame: HostFrame) -> None:
         bus = self._bus

@@ -143,7 +143,7 @@ _LAYOUT: dict[FrameType, struct.Struct] = {
 _BY_LEN = {(int(t), s.size) for t, s in _LAYOUT.items()}
 _CRC = struct.Struct("<H")
 MAX_PAYLOAD = max(s.size for s in _LAYOUT.values()) + _CRC.size
-MAX_ENCODED = MAX_PAYLOAD + MAX_PAYLOAD // 254 + 1  # COBS overhead
+MAX_ENCODED = cobs.max_encoded_length(MAX_PAYLOAD)
 
 
 class FrameError(ValueError):
@@ -495,6 +495,7 @@ class LinkRig:
         self._queue: deque[Sample] = deque()
         self._queue_size = queue_size
         self._host_overflow = 0
+        self._corrupt_reported = 0  # frames_corrupt already counted into the fault messages
         self._reconnects = 0
         self._commands_sent = 0
         self._cmd_seq = 0
@@ -524,7 +525,7 @@ class LinkRig:
         raise NotImplementedError
 
     def _frame_counts(self) -> tuple[int, int]:
-        """(frames_corrupt, bytes_discarded) so far."""
+        """(frames_corrupt, bytes_discarded) since the rig object was made (never decreasing)."""
         raise NotImplementedError
 
     # ---------------------------------------------------------------- Rig interface
@@ -600,8 +601,6 @@ class LinkRig:
             self._events.flush(force=True)
         self._dispatch()
 
-    close = stop
-
     def __enter__(self):
         return self
 
@@ -663,12 +662,6 @@ class LinkRig:
             case _:
                 pass  # StatusFrame: the rig is alive; host frames echoed back are ignored
 
-    def _corrupt(self, n: int) -> None:
-        if n > 0:
-            with self._lock:
-                self._events.count("corrupt", n, f"{self.link} link: {{n}} corrupted frame{{s}} rejected "
-                                                 "in the last second")
-
     def _dispatch(self) -> None:
         with self._lock:
             lines = self._events.pop_lines()
@@ -695,8 +688,13 @@ class LinkRig:
             except LinkDown as e:
                 self._lost(str(e))
                 continue
+            corrupt = self._frame_counts()[0]
             now = time.monotonic()
             with self._lock:
+                if corrupt > self._corrupt_reported:
+                    self._events.count("corrupt", corrupt - self._corrupt_reported,
+                                       f"{self.link} link: {{n}} corrupted frame{{s}} rejected in the last second")
+                    self._corrupt_reported = corrupt
                 self._events.flush()
                 # an idle rig (lost START, or restarted) keeps sending STATUS frames but no samples
                 resend = self._streaming and now - max(self._last_sample, self._last_start) > self.START_RETRY_S

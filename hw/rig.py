@@ -77,8 +77,8 @@ class Rig(Protocol):
         ...
 
 
-def bounded(u: float, limit: float = 1.0) -> float:
-    """A command the valve can take: finite and within +-limit (NaN centres the valve)."""
+def bounded(u: float) -> float:
+    """A command the valve can take: finite and within +-1 (NaN centres the valve)."""
     if u != u:  # NaN
         return 0.0
-    return max(-limit, min(limit, float(u)))
+    return max(-1.0, min(1.0, float(u)))

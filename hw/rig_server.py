@@ -20,7 +20,8 @@ import threading
 import time
 import tty
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -46,9 +47,10 @@ class FaultSpec:
     # its frames wait in the transmit buffer and go out in one burst when the stall ends
     # (delayed, not lost, as when a USB link or a host driver hiccups)
     stall_at: float | None = None
-    stall_for: float = 0.0
-    # vanish: the pty is closed at vanish_at (an unplugged cable: the rig runs on, its watchdog
-    # trips); after vanish_for it comes back on a new pty (same --link), or never if None
+    stall_for: float | None = None
+    # vanish: the pty is closed at vanish_at (an unplugged cable). With vanish_for the rig runs
+    # on meanwhile (its watchdog trips) and comes back on a new pty (same link path) after
+    # vanish_for seconds; without, it is gone for good and RigServer.run() returns
     vanish_at: float | None = None
     vanish_for: float | None = None
     seed: int = 0
@@ -57,21 +59,36 @@ class FaultSpec:
         for name in ("drop", "corrupt"):
             p = getattr(self, name)
             if not 0.0 <= p <= 1.0:
-                raise ValueError(f"fault probability {name} = {p} is outside [0, 1]")
-        if self.stall_for < 0 or (self.vanish_for is not None and self.vanish_for < 0):
-            raise ValueError("fault durations must not be negative")
+                raise ValueError(f"{name} is a probability between 0 and 1, not {p:g}")
+        if (self.stall_at is None) != (self.stall_for is None):
+            raise ValueError("stall_at and stall_for go together")
+        if self.vanish_for is not None and self.vanish_at is None:
+            raise ValueError("vanish_for needs vanish_at")
+        for name in ("stall_at", "stall_for", "vanish_at", "vanish_for"):
+            v = getattr(self, name)
+            if v is not None and not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"{name} must be a non-negative number of seconds, not {v:g}")
 
 
 @dataclass(frozen=True)
 class ServerOptions:
     rate: float = 1000.0  # Hz
     jitter_us: float = 20.0  # standard deviation of the tick times around the nominal grid
-    watchdog_ms: float = 50.0  # host silence (no COMMAND/HEARTBEAT/START) that centres the valve
+    watchdog_ms: float = 50.0  # host silence (no COMMAND, HEARTBEAT or starting START) that centres the valve
     end_zone: float = 0.03  # soft stroke limits: this fraction of the stroke at each end
     spin_us: float = 200.0  # sleep until this long before a deadline, then spin
     status_period_s: float = 0.1  # STATUS frames while not streaming
     tx_limit: int = 1 << 16  # bytes the rig buffers when the host reads too slowly
     realtime: bool = True  # ask for SCHED_FIFO (root or CAP_SYS_NICE): a rig's loop is not preempted
+
+    def __post_init__(self) -> None:
+        if not 10 <= self.rate <= 100_000:
+            raise ValueError(f"rate must lie between 10 and 100000 Hz, not {self.rate:g}")
+        if not 0 <= self.jitter_us <= 0.25e6 / self.rate:
+            raise ValueError(f"jitter_us must lie between 0 and a quarter period ({0.25e6 / self.rate:g} us), "
+                             f"not {self.jitter_us:g}")
+        if not self.watchdog_ms > 0:
+            raise ValueError(f"watchdog_ms must be positive, not {self.watchdog_ms:g}")
 
 
 @dataclass
@@ -109,13 +126,47 @@ class ServerStats:
 # ------------------------------------------------------------------ rig logic
 
 
+class ErrorGate:
+    """Error frames at the onset of a fault, then at most one per code per second.
+
+    A counting code (BAD_COMMAND, TX_OVERFLOW, RX_CORRUPT) sums what the gate holds back
+    into its next report, sent by `flush` once the second is over; for the others the
+    held-back occurrences are only visible in the samples' status bits."""
+
+    COUNTED = frozenset({ErrorCode.BAD_COMMAND, ErrorCode.TX_OVERFLOW, ErrorCode.RX_CORRUPT})
+
+    def __init__(self, interval_us: int = 1_000_000):
+        self.interval_us = interval_us
+        self._sent_us: dict[int, int] = {}  # code -> time of its last report
+        self._held: dict[int, int] = {}  # counting code -> occurrences not reported yet
+
+    def report(self, code: ErrorCode, t_us: int, value: int, out: list[Frame]) -> None:
+        """A fault of `code` (value: its detail, or the number of occurrences for a counting code)."""
+        if code in self.COUNTED:
+            value += self._held.pop(code, 0)
+        last = self._sent_us.get(code)
+        if last is None or t_us - last >= self.interval_us:
+            self._sent_us[code] = t_us
+            out.append(ErrorFrame(code, t_us, value))
+        elif code in self.COUNTED:
+            self._held[code] = value
+
+    def flush(self, t_us: int, out: list[Frame]) -> None:
+        """Report the counts held back whose second is over."""
+        if self._held:
+            for code in [c for c in self._held if t_us - self._sent_us[c] >= self.interval_us]:
+                self.report(code, t_us, 0, out)
+
+
 class RigCore:
     """The rig's firmware logic, without I/O or clock: host frames in, samples out."""
 
-    def __init__(self, rig: VirtualRig, options: ServerOptions, log: Log):
+    def __init__(self, rig: VirtualRig, options: ServerOptions, log: Log, stats: ServerStats | None = None):
         self.rig = rig
         self.opts = options
         self.log = log
+        self.stats = stats if stats is not None else ServerStats()
+        self.errors = ErrorGate()  # every error frame of the rig goes through it
         L = rig.cyl.geometry.stroke
         self.zone = (options.end_zone * L, (1.0 - options.end_zone) * L)
         self.running = False
@@ -127,10 +178,6 @@ class RigCore:
         self.last_host_us = 0
         self.watchdog = False
         self.in_zone = False
-        self.x = rig.true_state["x"]  # last measured position, for the soft limits
-        self.stats_watchdog = 0
-        self.bad_commands = 0  # since the last BAD_COMMAND error frame
-        self._bad_reported_us = -(10**12)
 
     def host_frame(self, frame: HostFrame, t_us: int) -> list[Frame]:
         """Take a frame from the host; returns frames to send back (errors)."""
@@ -139,19 +186,18 @@ class RigCore:
             case Command(seq, u):
                 self.last_host_us = t_us
                 self.cmd_u = bounded(u)  # never trust the wire
-                self.cmd_clipped = not (math.isfinite(u) and abs(u) <= 1.0)
+                self.cmd_clipped = self.cmd_u != u  # NaN != anything
                 if self.cmd_clipped:
-                    self.bad_commands += 1
-                    if t_us - self._bad_reported_us >= 1_000_000:  # one error frame per second at most
-                        out.append(ErrorFrame(ErrorCode.BAD_COMMAND, t_us, self.bad_commands))
-                        self.bad_commands, self._bad_reported_us = 0, t_us
+                    self.errors.report(ErrorCode.BAD_COMMAND, t_us, 1, out)
                 self.cmd_seq = seq
                 self.watchdog = False  # only a new command re-arms a tripped watchdog
             case Heartbeat():
                 self.last_host_us = t_us
             case Start():
-                self.last_host_us = t_us
+                # only a START that starts streaming feeds the watchdog: a host re-sends START
+                # while it sees no samples, which must not keep a stale command alive
                 if not self.running:
+                    self.last_host_us = t_us
                     self.running = True
                     self.log("streaming started by the host")
             case Stop():
@@ -161,41 +207,40 @@ class RigCore:
                 self.cmd_u, self.cmd_clipped = 0.0, False
         return out
 
-    def tick(self, t_us: int, overrun: bool = False) -> tuple[SampleFrame, list[Frame]]:
-        """Advance the plant to the tick at t_us, latch the command, take the sample."""
+    def tick(self, t_us: int, flags: Status = Status(0)) -> tuple[SampleFrame, list[Frame]]:
+        """The tick at t_us: advance the plant to it and sample, check the command against the
+        sample, latch it. `flags`: status bits only the I/O side knows (OVERRUN, TX_OVERFLOW)."""
         out: list[Frame] = []
-        status = Status(0)
+        status = flags
+        dt = 1.0 / self.opts.rate if self.t_us is None else (t_us - self.t_us) * 1e-6
+        _, x, p1, p2 = self.rig.integrate(dt)  # with the command latched at the previous tick
+        self.t_us = t_us
+        self.seq += 1
         silence_ms = (t_us - self.last_host_us) / 1000.0
         if self.running and not self.watchdog and silence_ms > self.opts.watchdog_ms:
             self.watchdog = True
-            self.stats_watchdog += 1
-            out.append(ErrorFrame(ErrorCode.WATCHDOG, t_us, int(round(silence_ms))))
+            self.stats.watchdog_trips += 1
+            self.errors.report(ErrorCode.WATCHDOG, t_us, int(round(silence_ms)), out)
             self.log(f"watchdog: no command for {silence_ms:.0f} ms; valve centred")
         u = self.cmd_u if self.running and not self.watchdog else 0.0
         if self.watchdog:
             status |= Status.WATCHDOG
         if self.cmd_clipped and u == self.cmd_u:
             status |= Status.CMD_CLIPPED
-        # soft stroke limits on the last measurement: never drive further into an end zone
+        # soft stroke limits on the position just measured: never drive further into an end zone
         lo, hi = self.zone
-        into = (self.x < lo and u < 0) or (self.x > hi and u > 0)
+        into = (x < lo and u < 0) or (x > hi and u > 0)
         if into:
             u = 0.0
             status |= Status.SOFT_LIMIT
             if not self.in_zone:
-                out.append(ErrorFrame(ErrorCode.SOFT_LIMIT, t_us, int(round(self.x * 1e6))))
+                self.errors.report(ErrorCode.SOFT_LIMIT, t_us, int(round(x * 1e6)), out)
         self.in_zone = into
-        dt = 1.0 / self.opts.rate if self.t_us is None else (t_us - self.t_us) * 1e-6
-        self.rig.send(u)
-        s = self.rig.advance(dt)  # integrates with the previous latch, then latches u
-        self.t_us = t_us
-        self.x = s.x
-        self.seq += 1
+        self.rig.latch(u)
         if self.running:
             status |= Status.RUNNING
-        if overrun:
-            status |= Status.OVERRUN
-        return SampleFrame(seq=self.seq, t_us=t_us, x=s.x, p1=s.p1, p2=s.p2, ps=s.ps, u_applied=u,
+        self.errors.flush(t_us, out)
+        return SampleFrame(seq=self.seq, t_us=t_us, x=x, p1=p1, p2=p2, ps=None, u_applied=u,
                            status=int(status), cmd_seq=self.cmd_seq), out
 
 
@@ -206,12 +251,7 @@ class Link:
     """Rig side of a transport: host frames in, rig frames out through fault injection and a
     transmit buffer. Subclasses turn frames into wire units and move bytes/messages."""
 
-    can_corrupt = True
-
     def __init__(self, faults: FaultSpec, rng: np.random.Generator, stats: ServerStats, tx_limit: int):
-        if faults.corrupt > 0 and not self.can_corrupt:
-            raise ValueError(f"{type(self).__name__} cannot corrupt bytes (CAN frames carry a hardware CRC; "
-                             "use drop)")
         self.faults = faults
         self.rng = rng
         self.stats = stats
@@ -247,6 +287,9 @@ class Link:
         pass
 
     def send(self, frame: Frame) -> None:
+        # error frames (a few per second at most: ErrorGate) never wait for room, or a full
+        # buffer would swallow its own TX_OVERFLOW report
+        limited = not isinstance(frame, ErrorFrame)
         for unit in self._units(frame):
             if self.faults.drop and self.rng.random() < self.faults.drop:
                 self.stats.frames_dropped += 1
@@ -254,7 +297,7 @@ class Link:
             if self.faults.corrupt and self.rng.random() < self.faults.corrupt:
                 unit = self._corrupt(unit)
                 self.stats.frames_corrupted += 1
-            if not self.stalled and self._pending_size > self.tx_limit:
+            if limited and not self.stalled and self._pending_size > self.tx_limit:
                 self.stats.tx_overflow += 1
                 self.overflowed += 1
                 continue
@@ -375,8 +418,6 @@ class SerialPtyLink(PtyLink):
 class CanBusLink(Link):
     """The rig as a node on a python-can bus (virtual in tests; socketcan vcan/can works too)."""
 
-    can_corrupt = False
-
     def __init__(self, bus, *args, **kw):
         super().__init__(*args, **kw)
         from .can_mapping import CanCodec
@@ -419,8 +460,15 @@ class RigServer:
             raise ValueError(f"unknown transport {transport!r} (serial, slcan, can-bus)")
         if transport == "can-bus" and can_bus is None:
             raise ValueError("transport 'can-bus' needs a python-can bus")
-        if not 10 <= options.rate <= 100_000:
-            raise ValueError(f"rate {options.rate} Hz is outside 10 to 100000 Hz")
+        if faults.corrupt and transport != "serial":
+            raise ValueError("corrupt applies to the serial transport only: CAN frames carry a hardware CRC, "
+                             "so use drop")
+        if link_path and transport != "can-bus":
+            link = Path(link_path)
+            if not link.parent.is_dir():
+                raise ValueError(f"link_path {link_path}: the folder {link.parent} does not exist")
+            if link.exists() and not link.is_symlink():
+                raise ValueError(f"link_path {link_path} exists and is not a symbolic link; refusing to replace it")
         self.opts = options
         self.faults = faults
         self.transport = transport
@@ -433,7 +481,7 @@ class RigServer:
         self._rng = np.random.default_rng(faults.seed)  # jitter and faults; the plant's noise has its own
         self.rig = VirtualRig(cyl, effects, rate=options.rate, seed=seed, noise=noise, progress=progress)
         self.rig.start()
-        self.core = RigCore(self.rig, options, self.log)
+        self.core = RigCore(self.rig, options, self.log, self.stats)
         self._stop = False
         self.failure: str | None = None  # why the rig stopped by itself (the plant diverged)
         self._last_status_us = -(10**12)
@@ -442,10 +490,8 @@ class RigServer:
         self._vanished_at_us: int | None = None
         self._done_faults: set[str] = set()
         self._realtime_ok = False
-        self._rx_corrupt_reported = 0
-        self._rx_corrupt_us = -(10**12)
+        self._rx_corrupt_seen = 0  # damaged host frames of the current link already reported
         self._overrun_us = 0  # how late the last missed deadline was
-        self._overrun_reported_us = -(10**12)
         self.link: Link | None = self._new_link()
 
     # ---------------------------------------------------------------- public
@@ -561,13 +607,25 @@ class RigServer:
         self.stats.ticks += 1
         if not self._faults_at(t_us):
             return False
-        link = self.link
+        link, core = self.link, self.core
         frames: list[Frame] = []
+        flags = Status.OVERRUN if overrun else Status(0)
         if link is not None:
             for f in link.poll():
-                frames += self.core.host_frame(f, t_us)
+                frames += core.host_frame(f, t_us)
+            if link.rx_corrupt > self._rx_corrupt_seen:
+                core.errors.report(ErrorCode.RX_CORRUPT, t_us, link.rx_corrupt - self._rx_corrupt_seen, frames)
+                self._rx_corrupt_seen = link.rx_corrupt
+            if link.overflowed:  # frames dropped since the last tick
+                flags |= Status.TX_OVERFLOW
+                core.errors.report(ErrorCode.TX_OVERFLOW, t_us, link.overflowed, frames)
+                self._events.count("overflow", link.overflowed, "virtual rig: {n} frame{s} dropped in the last "
+                                                                 "second: the host does not read fast enough")
+                link.overflowed = 0
+        if overrun and core.running:
+            core.errors.report(ErrorCode.OVERRUN, t_us, self._overrun_us, frames)
         try:
-            sample, errors = self.core.tick(t_us, overrun)
+            sample, errors = core.tick(t_us, flags)
         except RuntimeError as e:  # the plant diverged: tell the host, then stop like firmware would
             self.failure = str(e)
             self.log(f"internal fault: {e}; stopping")
@@ -576,24 +634,10 @@ class RigServer:
                 link.flush()
             return False
         frames += errors
-        if overrun and self.core.running and t_us - self._overrun_reported_us >= 1_000_000:
-            frames.append(ErrorFrame(ErrorCode.OVERRUN, t_us, self._overrun_us))  # once a second at most
-            self._overrun_reported_us = t_us
-        if link is not None and link.rx_corrupt > self._rx_corrupt_reported \
-                and t_us - self._rx_corrupt_us >= 1_000_000:
-            frames.append(ErrorFrame(ErrorCode.RX_CORRUPT, t_us, link.rx_corrupt - self._rx_corrupt_reported))
-            self._rx_corrupt_reported, self._rx_corrupt_us = link.rx_corrupt, t_us
-        self.stats.watchdog_trips = self.core.stats_watchdog
         if link is not None:
-            if link.overflowed:
-                frames.append(ErrorFrame(ErrorCode.TX_OVERFLOW, t_us, link.overflowed))
-                self._events.count("overflow", link.overflowed, "virtual rig: {n} frame{s} dropped in the last "
-                                                                 "second: the host does not read fast enough")
-                sample = _with_status(sample, Status.TX_OVERFLOW)
-                link.overflowed = 0
             for f in frames:
                 link.send(f)
-            if self.core.running:
+            if core.running:
                 link.send(sample)
                 self.stats.samples_sent += 1
                 if self._last_tx_us is not None:
@@ -635,6 +679,7 @@ class RigServer:
                 and t_us - self._vanished_at_us >= f.vanish_for * 1e6:
             self._vanished_at_us = None
             self.link = self._new_link()
+            self._rx_corrupt_seen = 0
             self._realtime_helpers()
             self.log(f"back on {self.link.path}")
             if self.on_path:
@@ -655,10 +700,6 @@ class RigServer:
         self._events.flush(force=True)
         for line in self._events.pop_lines():
             self._log(line)
-
-
-def _with_status(sample: SampleFrame, bit: Status) -> SampleFrame:
-    return replace(sample, status=sample.status | int(bit))
 
 
 def _replace_symlink(link: str, target: str) -> None:

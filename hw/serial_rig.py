@@ -51,18 +51,14 @@ class SerialRig(LinkRig):
             ser.close()
 
     def _receive(self, timeout: float) -> None:
+        # only the reader thread calls this, and only while the port is open
         ser = self._ser
-        if ser is None:
-            raise LinkDown(f"{self.port}: not open")
         try:
             data = ser.read(max(1, ser.in_waiting))
         except (serial.SerialException, OSError) as e:
             raise LinkDown(f"{self.port}: {e}") from None
-        if data:
-            before = self._decoder.frames_corrupt
-            for frame in self._decoder.feed(data):
-                self._deliver(frame)
-            self._corrupt(self._decoder.frames_corrupt - before)
+        for frame in self._decoder.feed(data):
+            self._deliver(frame)
 
     def _transmit(self, frame: HostFrame) -> None:
         ser = self._ser

@@ -2,8 +2,9 @@
 
 Speaks what python-can's `slcan` interface sends and expects (can/interfaces/slcan.py):
 commands end with CR; "\\r" answers OK and BEL ("\\a") an error; "C" closes and "O"/"L"
-opens the channel, "S0".."S8"/"sXXYY" set the bit rate (only while closed), "V"/"N"
-return version and serial number, "Z0/Z1" turn timestamps off/on; host frames arrive as
+opens the channel, "S0".."S9"/"sXXYY" set the bit rate (only while closed), "V"/"N"/"F"
+return version, serial number and status flags, "Z0/Z1" turn timestamps off/on, "M", "m",
+"X", "Q", "W" are accepted and ignored (docs/protocol.md lists them); host frames arrive as
 "tIIILDD..." (11-bit) or "TIIIIIIIILDD..." (29-bit) and are acknowledged with "z"/"Z" + CR;
 bus frames go to the host as "tIIILDD...\\r" while the channel is open.
 """
@@ -28,7 +29,8 @@ _BITS_COMMAND = 1.2 * (47 + 32)
 
 
 class SlcanPtyLink(PtyLink):
-    can_corrupt = False  # CAN frames carry a hardware CRC: damaged ones never reach the host
+    """The adapter's side of the pty; fault injection drops frames but never corrupts them (RigServer
+    refuses `corrupt`): CAN frames carry a hardware CRC, so damaged ones never reach the host."""
 
     def __init__(self, *args, rate: float, log: Callable[[str], None], **kw):
         super().__init__(*args, **kw)

@@ -42,6 +42,8 @@ class VirtualRig:
         accel = float(self.plant.rhs(probe, 0.0, self.params)[self.plant.state_names.index("v")])
         p1 = p2 - accel * cyl.mechanics.moving_mass / cyl.geometry.area_cap
         self.state = np.array(self.plant.initial_state(cyl, x_start, p1, p2), float)
+        names = self.plant.state_names
+        self._ix, self._ip1, self._ip2 = names.index("x"), names.index("p1"), names.index("p2")
         self.k = 0  # sample counter: t = k * dt without accumulated rounding
         self.u = 0.0  # the command latched at the last tick, held until the next one
         self._u_sent = 0.0
@@ -63,6 +65,15 @@ class VirtualRig:
 
     def advance(self, dt: float) -> Sample:
         """Like read(), over a period of `dt` seconds: a real-time rig ticks with jitter."""
+        t, x, p1, p2 = self.integrate(dt)
+        # like a rig's firmware: the latest command is latched at the tick and reported with
+        # the sample, so a sample's u_applied is what the valve holds until the next tick
+        self.u = self._u_sent
+        return Sample(t=t, x=x, p1=p1, p2=p2, u_applied=self.u)
+
+    def integrate(self, dt: float) -> tuple[float, float, float, float]:
+        """Advance the plant by `dt` seconds with the latched command and sample the sensors:
+        (t, x, p1, p2). Latches nothing: firmware checks the sample, then calls latch()."""
         if self._started:
             self.state = np.asarray(self.funcs.step(self.state, self.u, self.u, self.params, dt)).ravel()
             self.k += 1
@@ -71,17 +82,18 @@ class VirtualRig:
                 raise RuntimeError(f"virtual rig: the plant diverged at t = {self.k * self.dt + self._t_shift:.3f} s")
         else:
             self._started = True
-        # like a rig's firmware: the latest command is latched at the tick and reported with
-        # the sample, so a sample's u_applied is what the valve holds until the next tick
-        self.u = self._u_sent
-        s = dict(zip(self.plant.state_names, self.state))
-        x, p1, p2 = s["x"], s["p1"], s["p2"]
+        state = self.state
+        x, p1, p2 = float(state[self._ix]), float(state[self._ip1]), float(state[self._ip2])
         if self.noise:
             sen = self.cyl.sensors
             x += sen.position_noise * self.rng.standard_normal()
             p1 += sen.pressure_noise * self.rng.standard_normal()
             p2 += sen.pressure_noise * self.rng.standard_normal()
-        return Sample(t=self.k * self.dt + self._t_shift, x=float(x), p1=float(p1), p2=float(p2), u_applied=self.u)
+        return self.k * self.dt + self._t_shift, x, p1, p2
+
+    def latch(self, u: float) -> None:
+        """Latch `u` (bounded) now: the valve holds it until the next tick."""
+        self.u = self._u_sent = bounded(u)
 
     def stop(self) -> None:
         self.u = self._u_sent = 0.0

@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -125,101 +126,115 @@ def check_stream(samples, replies, stats, quantise):
     assert len(mismatch) <= stats.commands_late <= len(mismatch) + alike + 3
 
 
-def test_serial_closed_loop_at_1khz_loses_nothing(servers, cyl_a):
-    srv = servers("--serial", "--seed", "2")
+@dataclass
+class Session:
+    """A host on a `virtual-rig` server for one closed loop: what it saw, how the server ended."""
+
+    server: Server
+    rig: SerialRig | CanRig
+    samples: list  # read in the loop
+    replies: dict  # command sent per sample seq
+    events: list  # the rig's one-line fault messages
+    tail: list  # samples that arrived after the loop, read after stop()
+    code: int  # the server's exit status
+
+    @property
+    def received(self) -> list:
+        """Every sample the host's link accounted for (its stats count gaps between all of them)."""
+        return self.samples + self.tail
+
+
+def session(servers, cyl, duration, *server_args, stop_signal=signal.SIGTERM, **loop) -> Session:
+    """`virtual-rig *server_args` (--serial or --can) and a host on it: start, closed loop, stop; then the
+    server is stopped."""
+    srv = servers(*server_args)
     events = []
-    rig = SerialRig(srv.path, on_event=events.append)
-    samples, replies = closed_loop(rig, cyl_a, 3.0)
+    if "--can" in server_args:
+        rig = CanRig(srv.path, interface="slcan", sleep_after_open=0.05, on_event=events.append)
+    else:
+        rig = SerialRig(srv.path, on_event=events.append)
+    samples, replies = closed_loop(rig, cyl, duration, **loop)
     rig.stop()
-    assert srv.stop() == 0, srv.stderr()
-    st = rig.stats
-    assert len(samples) > 2000
+    tail = []
+    while (s := rig.read(timeout=0)) is not None:
+        tail.append(s)
+    return Session(srv, rig, samples, replies, events, tail, srv.stop(stop_signal))
+
+
+def test_serial_closed_loop_at_1khz_loses_nothing(servers, cyl_a):
+    r = session(servers, cyl_a, 3.0, "--serial", "--seed", "2")
+    assert r.code == 0, r.server.stderr()
+    st = r.rig.stats
+    assert len(r.samples) > 2000
     assert st.samples_lost == 0 and st.frames_corrupt == 0 and st.bytes_discarded == 0 and st.reconnects == 0
-    check_stream(samples, replies, st, lambda u: float(np.float32(u)))
-    assert np.ptp([s.x for s in samples]) > 0.01
+    check_stream(r.samples, r.replies, st, lambda u: float(np.float32(u)))
+    assert np.ptp([s.x for s in r.samples]) > 0.01
     # the only messages a healthy link may give are about the machine's load
     assert all("missed the rig's next tick" in e or e.startswith("rig reports sampling deadline missed")
-               for e in events), events
-    assert "streaming stopped by the host" in srv.stderr()
+               for e in r.events), r.events
+    assert "streaming stopped by the host" in r.server.stderr()
 
 
 def test_slcan_closed_loop_at_1khz_loses_nothing(servers, cyl_a):
-    srv = servers("--can", "--seed", "3")
-    events = []
-    rig = CanRig(srv.path, interface="slcan", sleep_after_open=0.05, on_event=events.append)
-    samples, replies = closed_loop(rig, cyl_a, 3.0)
-    rig.stop()
-    assert srv.stop(signal.SIGINT) == 0, srv.stderr()
-    st = rig.stats
-    assert len(samples) > 2000
+    r = session(servers, cyl_a, 3.0, "--can", "--seed", "3", stop_signal=signal.SIGINT)
+    assert r.code == 0, r.server.stderr()
+    st = r.rig.stats
+    assert len(r.samples) > 2000
     assert st.samples_lost == 0 and st.frames_corrupt == 0
-    check_stream(samples, replies, st, rig.codec.quantise_u)
-    assert np.ptp([s.x for s in samples]) > 0.01
+    check_stream(r.samples, r.replies, st, r.rig.codec.quantise_u)
+    assert np.ptp([s.x for s in r.samples]) > 0.01
 
 
 def test_corrupted_bytes_are_rejected_counted_and_reported(servers, cyl_a):
-    srv = servers("--serial", "--corrupt", "0.05")
-    events = []
-    rig = SerialRig(srv.path, on_event=events.append)
-    samples, replies = closed_loop(rig, cyl_a, 2.0)
-    rig.stop()
-    assert srv.stop() == 0
-    _, corrupted = srv.injected()
-    st = rig.stats
+    r = session(servers, cyl_a, 2.0, "--serial", "--corrupt", "0.05")
+    assert r.code == 0
+    _, corrupted = r.server.injected()
+    st = r.rig.stats
     assert corrupted > 20 and st.frames_corrupt >= 0.8 * corrupted
     # a corrupted sample is a lost sample; nothing damaged gets through
     assert 0.8 * corrupted - 5 <= st.samples_lost <= corrupted
-    assert np.all(np.diff([s.seq for s in samples]) >= 1)
-    assert all(-1e-3 < s.x < 0.101 and 5e4 < s.p1 < 1e6 and 5e4 < s.p2 < 1e6 for s in samples)
-    sent = {float(np.float32(u)) for u in replies.values()} | {0.0}
-    assert all(s.u_applied in sent for s in samples)
-    lines = [e for e in events if "corrupted frame" in e]
+    assert sum(np.diff([s.seq for s in r.received]) - 1) == st.samples_lost
+    assert all(-1e-3 < s.x < 0.101 and 5e4 < s.p1 < 1e6 and 5e4 < s.p2 < 1e6 for s in r.samples)
+    sent = {float(np.float32(u)) for u in r.replies.values()} | {0.0}
+    assert all(s.u_applied in sent for s in r.samples)
+    lines = [e for e in r.events if "corrupted frame" in e]
     assert 1 <= len(lines) <= 4 and all(re.fullmatch(r"serial link: \d+ corrupted frames? rejected in the "
                                                       r"last second", e) for e in lines)
 
 
 def test_dropped_frames_show_as_sequence_gaps(servers, cyl_a):
-    srv = servers("--serial", "--drop", "0.02")
-    events = []
-    rig = SerialRig(srv.path, on_event=events.append)
-    samples, _ = closed_loop(rig, cyl_a, 2.0)
-    rig.stop()
-    assert srv.stop() == 0
-    dropped, _ = srv.injected()
-    st = rig.stats
+    r = session(servers, cyl_a, 2.0, "--serial", "--drop", "0.02")
+    assert r.code == 0
+    dropped, _ = r.server.injected()
+    st = r.rig.stats
     assert dropped > 10 and abs(st.samples_lost - dropped) <= 3
-    assert sum(np.diff([s.seq for s in samples]) - 1) == st.samples_lost
+    assert sum(np.diff([s.seq for s in r.received]) - 1) == st.samples_lost
     assert st.frames_corrupt == 0
-    assert any(re.fullmatch(r"serial link: \d+ samples? lost \(sequence gaps\) in the last second", e) for e in events)
+    assert any(re.fullmatch(r"serial link: \d+ samples? lost \(sequence gaps\) in the last second", e)
+               for e in r.events)
 
 
 def test_watchdog_centres_the_valve_within_100_ms_of_the_last_command(servers, cyl_a):
-    srv = servers("--serial", "--watchdog-ms", "50")
-    events = []
-    rig = SerialRig(srv.path, on_event=events.append)
-    samples, replies = closed_loop(rig, cyl_a, 1.0, quiet_after=0.5)
-    rig.stop()
-    assert srv.stop() == 0
-    last_answered = max(replies)
-    t_last = next(s.t for s in samples if s.seq == last_answered)
-    tripped = next(s for s in samples if s.status & Status.WATCHDOG)
+    r = session(servers, cyl_a, 1.0, "--serial", "--watchdog-ms", "50", quiet_after=0.5)
+    assert r.code == 0
+    last_answered = max(r.replies)
+    t_last = next(s.t for s in r.samples if s.seq == last_answered)
+    tripped = next(s for s in r.samples if s.status & Status.WATCHDOG)
     assert 0.05 < tripped.t - t_last <= 0.1  # measured on the rig's clock
-    after = [s for s in samples if s.seq >= tripped.seq]
+    after = [s for s in r.samples if s.seq >= tripped.seq]
     assert len(after) > 100 and all(s.u_applied == 0.0 and s.status & Status.WATCHDOG for s in after)
-    assert any(re.fullmatch(r"rig reports watchdog: valve centred after 5\d ms of host silence", e) for e in events)
-    assert rig.stats.rig_errors >= 1
+    assert any(re.fullmatch(r"rig reports watchdog: valve centred after 5\d ms of host silence", e)
+               for e in r.events)
+    assert r.rig.stats.rig_errors >= 1
 
 
 def test_a_stall_delays_samples_without_losing_them(servers, cyl_a):
-    srv = servers("--serial", "--stall-at", "0.8", "--stall-for", "0.3")
-    rig = SerialRig(srv.path)
-    samples, _ = closed_loop(rig, cyl_a, 2.0)
-    rig.stop()
-    assert srv.stop() == 0
-    assert rig.stats.samples_lost == 0 and np.all(np.diff([s.seq for s in samples]) == 1)
-    assert "fault: link stalled for 0.3 s" in srv.stderr()
+    r = session(servers, cyl_a, 2.0, "--serial", "--stall-at", "0.8", "--stall-for", "0.3")
+    assert r.code == 0
+    assert r.rig.stats.samples_lost == 0 and np.all(np.diff([s.seq for s in r.received]) == 1)
+    assert "fault: link stalled for 0.3 s" in r.server.stderr()
     # the host saw nothing for the stall, so it sent nothing, so the rig's watchdog tripped
-    assert any(s.status & Status.WATCHDOG for s in samples)
+    assert any(s.status & Status.WATCHDOG for s in r.samples)
 
 
 def test_a_vanished_rig_is_found_again_at_its_link(servers, cyl_a, tmp_path):
@@ -267,11 +282,14 @@ def test_a_rig_that_comes_back_reports_exactly_what_was_lost(servers, cyl_a, tmp
 
 
 @pytest.mark.parametrize("argv, fragment", [
-    (["--can", "--corrupt", "0.1"], "--corrupt applies to --serial only"),
+    (["--can", "--corrupt", "0.1"], "--corrupt applies to the serial transport only"),
     (["--serial", "--stall-at", "1"], "--stall-at and --stall-for go together"),
     (["--serial", "--rate", "5"], "--rate must lie between"),
     (["--serial", "--drop", "1.5"], "--drop is a probability"),
-    (["--serial", "--link", "/nonexistent/dir/rig"], "does not exist"),
+    (["--serial", "--link", "/nonexistent/dir/rig"], "--link /nonexistent/dir/rig: the folder /nonexistent/dir "
+                                                      "does not exist"),
+    (["--serial", "--vanish-for", "1"], "--vanish-for needs --vanish-at"),
+    (["--serial", "--jitter-us", "500"], "--jitter-us must lie between 0 and a quarter period (250 us)"),
     (["--serial", "--effect", "nonsense"], "unknown effect"),
 ])
 def test_virtual_rig_refuses_bad_options(capsys, argv, fragment):

@@ -14,9 +14,9 @@ import pytest
 
 from combined_reality.excitation import PositionProgram
 from hw.can_rig import CanRig
-from hw.protocol import Command, FrameDecoder, SampleFrame, Start, Stop, encode
+from hw.protocol import Command, ErrorCode, ErrorFrame, FrameDecoder, SampleFrame, Start, Stop, encode
 from hw.rig import LinkLost, Rig, RigError, Status, bounded
-from hw.rig_server import RigCore, RigServer, ServerOptions
+from hw.rig_server import ErrorGate, RigCore, RigServer, ServerOptions
 from hw.serial_rig import SerialRig
 from hw.virtual_rig import VirtualRig
 
@@ -109,7 +109,7 @@ def _core(cyl, x0):
 def test_rig_bounds_every_command_and_nan_centres(cyl_a):
     core = _core(cyl_a, 0.05)
     core.host_frame(Start(), 0)
-    core.host_frame(Command(1, math.nan), 0)
+    assert core.host_frame(Command(1, math.nan), 0) == [ErrorFrame(ErrorCode.BAD_COMMAND, 0, 1)]
     s, _ = core.tick(1000)
     assert s.u_applied == 0.0 and s.status & Status.CMD_CLIPPED
     errs = core.host_frame(Command(2, 7.0), 1000)
@@ -133,6 +133,90 @@ def test_soft_stroke_limits_only_block_moves_further_in(cyl_a, x0, u, blocked):
     s, errs = core.tick(1000)
     assert (s.u_applied == 0.0) == blocked
     assert bool(s.status & Status.SOFT_LIMIT) == blocked and len(errs) == blocked
+
+
+def test_the_soft_limit_judges_the_position_just_sampled(cyl_a):
+    core = _core(cyl_a, 0.01)  # 7 mm outside the 3 mm end zone
+    lo = core.zone[0]
+    core.host_frame(Start(), 0)
+    samples, errors = [], []
+    for k in range(1, 501):
+        core.host_frame(Command(k, -1.0), 1000 * k - 500)  # full speed into the end zone
+        s, errs = core.tick(1000 * k)
+        samples.append(s)
+        errors += errs
+    inside = [s for s in samples if s.x < lo]
+    assert inside, "the piston never reached the end zone"
+    # the sample that first lies in the zone already has the command set to 0
+    assert all(s.u_applied == 0.0 and s.status & Status.SOFT_LIMIT for s in inside)
+    assert all(s.u_applied == -1.0 and not s.status & Status.SOFT_LIMIT for s in samples if s.x >= lo)
+    first = inside[0]
+    assert errors == [ErrorFrame(ErrorCode.SOFT_LIMIT, first.t_us, round(first.x * 1e6))]  # once a second
+
+
+def test_a_start_while_streaming_does_not_feed_the_watchdog(cyl_a):
+    core = _core(cyl_a, 0.05)
+    core.host_frame(Start(), 0)
+    core.host_frame(Command(1, 0.1), 0)
+    held = []
+    for k in range(1, 101):
+        if k % 10 == 0:
+            core.host_frame(Start(), 1000 * k)  # what a host re-sends while it sees no samples
+        s, _ = core.tick(1000 * k)
+        held.append(s.u_applied)
+    assert held == [pytest.approx(0.1)] * 50 + [0.0] * 50  # tripped after 51 ms, STARTs or not
+
+
+def test_error_frames_at_the_onset_then_once_a_second_with_the_counts_held_back():
+    gate, out = ErrorGate(), []
+    gate.report(ErrorCode.TX_OVERFLOW, 0, 3, out)
+    gate.report(ErrorCode.TX_OVERFLOW, 1000, 2, out)  # held back
+    gate.report(ErrorCode.WATCHDOG, 2000, 51, out)  # each code has its own second
+    gate.report(ErrorCode.WATCHDOG, 3000, 52, out)  # not a count: only the status bits tell
+    gate.flush(999_999, out)
+    gate.report(ErrorCode.TX_OVERFLOW, 500_000, 4, out)
+    gate.flush(1_000_000, out)
+    gate.flush(2_500_000, out)  # nothing held: nothing sent
+    assert out == [ErrorFrame(ErrorCode.TX_OVERFLOW, 0, 3), ErrorFrame(ErrorCode.WATCHDOG, 2000, 51),
+                   ErrorFrame(ErrorCode.TX_OVERFLOW, 1_000_000, 6)]
+
+
+def test_a_host_that_does_not_read_gets_overflow_reports_not_a_flood(cyl_a):
+    server = RigServer(cyl_a, transport="serial", seed=1, options=ServerOptions(tx_limit=2000))
+    fd = os.open(server.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        os.write(fd, encode(Start()))
+        k, end = 0, time.monotonic() + 5
+        while not server.core.running and time.monotonic() < end:  # the pty's reader thread has it
+            k += 1
+            server.step(1000 * k)
+        n_quiet = 4000  # 4 s of rig time in which the host reads nothing (more than a pty buffers)
+        for _ in range(n_quiet):
+            k += 1
+            server.step(1000 * k)
+        dec, frames = FrameDecoder(), []
+        for _ in range(3000):  # the host reads again while the rig runs on; the backlog drains
+            k += 1
+            server.step(1000 * k)
+            try:
+                frames += dec.feed(os.read(fd, 1 << 16))
+            except BlockingIOError:
+                pass
+    finally:
+        os.close(fd)
+        server.close()
+    assert dec.frames_corrupt == 0
+    dropped = server.stats.tx_overflow
+    assert dropped > 1000
+    reports = [f for f in frames if isinstance(f, ErrorFrame) and f.code == ErrorCode.TX_OVERFLOW]
+    assert 1 <= len(reports) <= n_quiet // 1000 + 2  # the onset, then once a second at most
+    # the counts held back between reports are carried into the next one (the last second's may still wait)
+    assert dropped - 1000 <= sum(f.value for f in reports) <= dropped
+    samples = [f for f in frames if isinstance(f, SampleFrame)]
+    # a sample carries TX_OVERFLOW exactly when samples before it were dropped
+    for a, b in zip(samples, samples[1:]):
+        assert bool(b.status & Status.TX_OVERFLOW) == (b.seq - a.seq > 1), (a, b)
+    assert sum(b.seq - a.seq - 1 for a, b in zip(samples, samples[1:])) <= dropped
 
 
 # ------------------------------------------------------------------ SerialRig on a bare pty
