@@ -25,7 +25,7 @@ from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
 from sim.plant import build_plant
 
-from .identify import IdentifyOptions, _layout, _simulate_run, _velocity_estimate, identify
+from .identify import IdentifyOptions, _velocity_estimate, identify
 from .runs import Run
 
 
@@ -68,14 +68,12 @@ def validation_residuals(cyl: Cylinder, effects: Sequence[Effect], run: Run, hor
     p = np.array(plant.parameter_vector(cyl), float)
     v = _velocity_estimate(run.t, run.x)  # over the whole run: no end effects at segment starts
     seg = max(M, int(round(horizon_s / run.sample_period)))
+    out_idx = [plant.state_names.index(n) for n in ("x", "p1", "p2")]
     sim = np.empty((3, run.n))
     for a in range(0, run.n, seg):
-        piece = run.slice(a, a + seg)
+        b = min(run.n, a + seg)
         s0 = plant.initial_state(cyl, run.x[a], run.p1[a], run.p2[a], v[a])
-        if piece.n < 2:  # a last lone sample is its own start
-            sim[:, a] = run.x[a], run.p1[a], run.p2[a]
-            continue
-        sim[:, a:a + piece.n] = _simulate_run(sf, s0, p, _layout(piece, plant, cyl, M, 0), M)
+        sim[:, a:b] = sf.simulate(s0, run.u[a:b], p, np.diff(run.t[a:b]))[out_idx]
     return np.vstack([run.x, run.p1, run.p2]) - sim
 
 

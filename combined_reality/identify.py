@@ -638,14 +638,10 @@ def _simulate_run(sf: ShootingFunctions, s0: np.ndarray, p: np.ndarray, l: _RunL
     """Single-shooting simulation of a whole run from its first node state: (n_outputs, N)."""
     plant = sf.plant
     out_idx = [plant.state_names.index(n) for n in plant.output_names]
-    xs = np.empty((plant.nx, l.K * M))
-    s = np.asarray(s0, float)
-    for k in range(l.K):
-        X = np.asarray(sf.interval(s, l.W[:, k * (M + 1):(k + 1) * (M + 1)], p, l.H[:, k * M:(k + 1) * M]))
-        xs[:, k * M] = s
-        xs[:, k * M + 1:(k + 1) * M] = X[:, : M - 1]
-        s = X[:, M - 1]
-    return xs[out_idx, : l.run.n]
+    nw = l.W.shape[0]
+    # the layout holds M+1 inputs per interval (both ends of each step): back to one per sample
+    w = np.hstack([l.W.reshape(nw, l.K, M + 1)[:, :, :M].reshape(nw, l.K * M), l.W[:, -1:]])
+    return sf.simulate(s0, w, p, l.H[0])[out_idx, : l.run.n]
 
 
 def _metrics(meas: np.ndarray, sim: np.ndarray) -> tuple[float, float]:

@@ -2,8 +2,10 @@
 
 A second process, or a second cylinder of the same structure (parameters are inputs,
 never baked in), loads the shared library in milliseconds instead of rebuilding the
-symbolic graph and compiling. Without a C compiler the functions are cached in
-CasADi's own serialised form (slower to run, still no rebuild).
+symbolic graph and compiling. Without a C compiler, or when compiling fails, the
+functions are cached in CasADi's own serialised form (slower to run, still no rebuild).
+A compiler that failed on a structure is not tried on it again (delete the cache
+directory after fixing it); one installed later compiles what was stored without it.
 
 Cache directory: $COMBINED_REALITY_CACHE, else ~/.cache/combined_reality.
 Compiler: $CC, else gcc, cc or clang; CC=none uses the serialised form only.
@@ -22,6 +24,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import casadi as ca
+import numpy as np
 
 from .integrator import IntegratorOptions, StepBuilder
 from .plant import Plant
@@ -48,7 +51,6 @@ class BuildStats:
     cache_hit: bool = False
     build_s: float = 0.0
     compile_s: float = 0.0
-    load_s: float = 0.0
     path: str = ""
 
 
@@ -64,15 +66,19 @@ def load_or_build(key_parts: Sequence, build: Callable[[], list[ca.Function]], n
     if so.exists():
         try:
             fns = {n: ca.external(n, str(so)) for n in names}
-            stats.cache_hit, stats.load_s, stats.path = True, time.perf_counter() - t0, str(so)
+            stats.cache_hit, stats.path = True, str(so)
             return fns, stats
         except RuntimeError:
             pass  # stale or foreign library: rebuild below
-    if ser.exists() and _compiler() is None:
+    failed = d / f"cr_{key}.compile_failed"
+    cc = _compiler()
+    # the serialised form stands in when there is no compiler, or when this one failed on this
+    # structure before (not retried); a compiler installed later still gets its chance
+    if ser.exists() and (cc is None or failed.exists()):
         try:
             fs = ca.Function.load(str(ser))  # a single Function holding all, see below
             fns = {n: fs.find_function(n) for n in names}
-            stats.cache_hit, stats.load_s, stats.path = True, time.perf_counter() - t0, str(ser)
+            stats.cache_hit, stats.path = True, str(ser)
             return fns, stats
         except Exception:
             pass
@@ -82,7 +88,6 @@ def load_or_build(key_parts: Sequence, build: Callable[[], list[ca.Function]], n
     funcs = build()
     stats.build_s = time.perf_counter() - t0
     d.mkdir(parents=True, exist_ok=True)
-    cc = _compiler()
     if cc is not None:
         t1 = time.perf_counter()
         if progress:
@@ -90,10 +95,9 @@ def load_or_build(key_parts: Sequence, build: Callable[[], list[ca.Function]], n
         error = _compile(funcs, key, d, so, cc)
         stats.compile_s = time.perf_counter() - t1
         if error is None:
-            t2 = time.perf_counter()
-            fns = {n: ca.external(n, str(so)) for n in names}
-            stats.load_s, stats.path = time.perf_counter() - t2, str(so)
-            return fns, stats
+            stats.path = str(so)
+            return {n: ca.external(n, str(so)) for n in names}, stats
+        failed.write_text(error + "\n")
         if progress:
             progress(f"compiling failed ({error}); using CasADi's virtual machine instead (slower)")
     tmp = ser.with_suffix(f".tmp{os.getpid()}")
@@ -126,7 +130,7 @@ def _bundle(funcs: list[ca.Function]) -> ca.Function:
     for f in funcs:
         ins = [ca.MX.sym(f"{f.name()}_{i}", f.sparsity_in(i)) for i in range(f.n_in())]
         args.extend(ins)
-        outs.extend(f(*ins) if f.n_out() > 1 else [f(*ins)])
+        outs.extend(f.call(ins))
     return ca.Function("bundle", args, outs)
 
 
@@ -137,16 +141,39 @@ class ShootingFunctions:
     step      (x, w0, w1, p, h) -> x_next                          one sample
     interval  (s, W[nw x M+1], p, H[1 x M]) -> X[nx x M]           states at the M next samples
     sens      (s, W, p, H) -> (X[nx x M], S[nx x M*nz])            with d X / d (s, p[free])
+
+    A step of length h = 0 leaves the state unchanged: trajectories of any length run through
+    the fixed-length interval, the last one padded with such steps (`simulate`).
     """
 
     plant: Plant
-    opts: IntegratorOptions
     interval_len: int
     free: tuple[int, ...]
     step: ca.Function
     interval: ca.Function
     sens: ca.Function | None
     stats: BuildStats = field(default_factory=BuildStats)
+
+    def simulate(self, s0, w, p, h) -> np.ndarray:
+        """States (nx, n+1) at the samples 0..n of a trajectory from s0 (sample 0).
+
+        w: inputs at the n+1 sample instants (nw, n+1), a 1-D array for a single input
+        (a held input's last column is not used); h: the n step lengths, or one for all.
+        Runs through `interval` M samples at a time, one compiled function for every length.
+        """
+        M = self.interval_len
+        w = np.atleast_2d(np.asarray(w, float))
+        n = w.shape[1] - 1
+        K = -(-n // M)
+        pad = K * M - n
+        w = np.hstack([w, np.repeat(w[:, -1:], pad, axis=1)])
+        h = np.concatenate([np.broadcast_to(np.asarray(h, float), (n,)), np.zeros(pad)])
+        X = np.empty((self.plant.nx, K * M + 1))
+        X[:, 0] = s0
+        for k in range(K):
+            X[:, k * M + 1:(k + 1) * M + 1] = np.asarray(
+                self.interval(X[:, k * M], w[:, k * M:(k + 1) * M + 1], p, h[None, k * M:(k + 1) * M]))
+        return X[:, :n + 1]
 
 
 def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int] = (),
@@ -157,11 +184,14 @@ def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int
     nx, nw, npar = sb.nx, sb.nw, sb.npar
     nz = nx + len(free)
     tag = f"{plant.drive}_{plant.structure_key}"
+    names = [f"step_{tag}", f"interval_{tag}_{M}"]
+    if free:
+        names.append(f"sens_{tag}_{M}_{'_'.join(map(str, free))}")
 
     def build() -> list[ca.Function]:
         step = sb.step()
         ins = step.mx_in()
-        step = ca.Function(f"step_{tag}", ins, step.call(ins), ["x", "w0", "w1", "p", "h"], ["xn"])
+        step = ca.Function(names[0], ins, step.call(ins), ["x", "w0", "w1", "p", "h"], ["xn"])
         s = ca.MX.sym("s", nx)
         W = ca.MX.sym("W", nw, M + 1)
         p = ca.MX.sym("p", npar)
@@ -169,21 +199,17 @@ def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int
         P = ca.repmat(p, 1, M)
         acc = step.mapaccum("acc", M)
         X = acc(s, W[:, :M], W[:, 1:], P, H)
-        interval = ca.Function(f"interval_{tag}_{M}", [s, W, p, H], [X], ["s", "W", "p", "H"], ["X"])
+        interval = ca.Function(names[1], [s, W, p, H], [X], ["s", "W", "p", "H"], ["X"])
         funcs = [step, interval]
         if free:
             sstep = sb.sensitivity_step(free)
             acc_s = sstep.mapaccum("acc_s", M, [0, 5], [0, 1])
             S0 = ca.horzcat(ca.MX.eye(nx), ca.MX.zeros(nx, len(free)))
             Xs, Ss = acc_s(s, W[:, :M], W[:, 1:], P, H, S0)
-            funcs.append(ca.Function(f"sens_{tag}_{M}_{'_'.join(map(str, free))}", [s, W, p, H], [Xs, Ss],
+            funcs.append(ca.Function(names[2], [s, W, p, H], [Xs, Ss],
                                      ["s", "W", "p", "H"], ["X", "S"]))
         return funcs
 
-    names = [f"step_{tag}", f"interval_{tag}_{M}"]
-    if free:
-        names.append(f"sens_{tag}_{M}_{'_'.join(map(str, free))}")
     key = ("shooting", plant.structure_key, plant.drive, opts.key(), M, free)
     fns, stats = load_or_build(key, build, names, progress)
-    return ShootingFunctions(plant, opts, M, free, fns[names[0]], fns[names[1]],
-                             fns[names[2]] if free else None, stats)
+    return ShootingFunctions(plant, M, free, fns[names[0]], fns[names[1]], fns[names[2]] if free else None, stats)

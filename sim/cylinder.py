@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -137,20 +137,20 @@ ESTIMABLE = ("Fc", "Fv", "kp", "mass", "conductance", "critical_ratio",
 
 # --------------------------------------------------------------------------- loading
 
-_REQUIRED = object()
-
-# section -> key -> (default or _REQUIRED, check); checks return an error fragment or None
+# the file's tables and their keys are the sections of Cylinder and their fields (a field's
+# default, if any, is the key's; the angle's 0.0 is the same in degrees and radians)
+_SECTIONS = {"geometry": Geometry, "mechanics": Mechanics, "supply": Supply, "valve": Valve,
+             "friction": Friction, "sensors": Sensors, "identify": IdentifySettings}
 _SCHEMA: dict[str, dict[str, Any]] = {
-    "geometry": {"bore": _REQUIRED, "rod": _REQUIRED, "stroke": _REQUIRED,
-                 "dead_volume_cap": _REQUIRED, "dead_volume_rod": _REQUIRED},
-    "mechanics": {"moving_mass": _REQUIRED, "angle": 0.0},
-    "supply": {"pressure": _REQUIRED, "atmosphere": 1.013e5, "temperature": 293.15},
-    "valve": {"sonic_conductance": _REQUIRED, "critical_ratio": 0.3},
-    "friction": {"Fc": _REQUIRED, "Fv": _REQUIRED, "kp": _REQUIRED, "v_smooth": 1.0e-3},
-    "sensors": {"position_noise": 5.0e-6, "pressure_noise": 300.0},
-    "identify": {"estimate": ("Fc", "Fv", "kp"), "drive": "command"},
-}
+    section: {f.name: f.default for f in fields(cls)}  # MISSING: required
+    for section, cls in _SECTIONS.items()}
 _OPTIONAL_SECTIONS = {"sensors", "identify"}
+# why a value above (+1) or below (-1) the parameter's bounds is most likely wrong
+_HINTS = {("geometry.bore", 1): "lengths are in metres, not mm",
+          ("geometry.stroke", 1): "lengths are in metres, not mm",
+          ("supply.pressure", -1): "an absolute pressure in Pa (bar or gauge?)",
+          ("supply.atmosphere", -1): "an absolute pressure in Pa (about 1.013e5)",
+          ("supply.atmosphere", 1): "an absolute pressure in Pa (about 1.013e5)"}
 
 
 def load_cylinder(path: str | Path) -> Cylinder:
@@ -197,7 +197,7 @@ def parse_cylinder(data: Mapping[str, Any], source: str | Path | None = None) ->
         for key, default in keys.items():
             full = f"{section}.{key}"
             if key not in table:
-                if default is _REQUIRED:
+                if default is MISSING:
                     raise fail(f"missing key '{full}'.")
                 vals[key] = default
                 continue
@@ -214,20 +214,9 @@ def parse_cylinder(data: Mapping[str, Any], source: str | Path | None = None) ->
         values[section] = vals
 
     _check_physics(values, fail)
-    mech = dict(values["mechanics"])
-    mech["angle"] = math.radians(mech["angle"])
-    ident = values["identify"]
-    return Cylinder(
-        name=name,
-        geometry=Geometry(**values["geometry"]),
-        mechanics=Mechanics(**mech),
-        supply=Supply(**values["supply"]),
-        valve=Valve(**values["valve"]),
-        friction=Friction(**values["friction"]),
-        sensors=Sensors(**values["sensors"]),
-        identify=IdentifySettings(estimate=tuple(ident["estimate"]), drive=ident["drive"]),
-        source=Path(source) if source is not None else None,
-    )
+    values["mechanics"]["angle"] = math.radians(values["mechanics"]["angle"])
+    return Cylinder(name=name, source=Path(source) if source is not None else None,
+                    **{section: cls(**values[section]) for section, cls in _SECTIONS.items()})
 
 
 def _check_identify(key: str, v: Any, fail) -> Any:
@@ -246,36 +235,28 @@ def _check_identify(key: str, v: Any, fail) -> Any:
 
 
 def _check_physics(v: dict[str, dict[str, Any]], fail) -> None:
-    def positive(section: str, key: str, unit: str) -> None:
-        if v[section][key] <= 0:
-            raise fail(f"key '{section}.{key}' must be positive ({unit}), not {v[section][key]:g}.")
-
-    for key in ("bore", "stroke", "dead_volume_cap", "dead_volume_rod"):
-        positive("geometry", key, "SI units: m, m^3")
-    g = v["geometry"]
-    if not 0 <= g["rod"] < g["bore"]:
-        raise fail(f"key 'geometry.rod' must be at least 0 and smaller than the bore, not {g['rod']:g} m.")
-    if g["bore"] > 1.0 or g["stroke"] > 10.0:
-        raise fail("key 'geometry.bore' or 'geometry.stroke' is implausibly large: lengths are in metres, not mm.")
-    positive("mechanics", "moving_mass", "kg")
-    if not -90.0 <= v["mechanics"]["angle"] <= 90.0:
-        raise fail(f"key 'mechanics.angle' must lie in [-90, 90] degrees, not {v['mechanics']['angle']:g}.")
-    s = v["supply"]
-    if not 5.0e4 <= s["atmosphere"] <= 2.0e5:
-        raise fail(f"key 'supply.atmosphere' must be an absolute pressure in Pa (about 1.013e5), not {s['atmosphere']:g}.")
+    """Every model parameter within the identifier's bounds (PARAMETERS), then what relates keys."""
+    for spec in PARAMETERS.values():
+        full, x = f"{spec.section}.{spec.attr}", v[spec.section][spec.attr]
+        lo, hi, unit = spec.lower, spec.upper, spec.unit
+        if full == "mechanics.angle":  # the file gives degrees
+            lo, hi, unit = math.degrees(lo), math.degrees(hi), "degrees"
+        if not lo <= x <= hi:
+            hint = _HINTS.get((full, 1 if x > hi else -1))
+            hint = f"; {hint}" if hint else ""
+            unit = "" if unit == "1" else f" {unit}"
+            positive = "be positive and " if x <= 0 < lo else ""
+            raise fail(f"key '{full}' must {positive}lie in [{lo:g}, {hi:g}]{unit} ({spec.description}), "
+                       f"not {x:g}{hint}.")
+    g, s = v["geometry"], v["supply"]
+    if not g["rod"] < g["bore"]:
+        raise fail(f"key 'geometry.rod' must be smaller than the bore, not {g['rod']:g} m.")
     if s["pressure"] <= s["atmosphere"]:
         raise fail(f"key 'supply.pressure' must be an absolute pressure in Pa above atmosphere, not {s['pressure']:g} "
                    "(bar or gauge?).")
-    positive("supply", "temperature", "K")
-    positive("valve", "sonic_conductance", "m^3/(s Pa)")
-    if not 0.0 < v["valve"]["critical_ratio"] < 0.99:
-        raise fail(f"key 'valve.critical_ratio' must lie in (0, 0.99), not {v['valve']['critical_ratio']:g}.")
-    for key in ("Fc", "Fv", "kp"):
-        if v["friction"][key] < 0:
-            raise fail(f"key 'friction.{key}' must not be negative, not {v['friction'][key]:g}.")
-    positive("friction", "v_smooth", "m/s")
-    positive("sensors", "position_noise", "m")
-    positive("sensors", "pressure_noise", "Pa")
+    for key, unit in (("position_noise", "m"), ("pressure_noise", "Pa")):
+        if v["sensors"][key] <= 0:
+            raise fail(f"key 'sensors.{key}' must be positive ({unit}), not {v['sensors'][key]:g}.")
 
 
 def cylinder_to_toml(cyl: Cylinder) -> str:

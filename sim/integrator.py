@@ -18,7 +18,7 @@ autonomous and keeps its order.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass, fields, replace
 from typing import Sequence
 
 import casadi as ca
@@ -56,11 +56,12 @@ class IntegratorOptions:
     max_depth: int = 5  # up to 2**5 = 32 substeps in one sample
 
     def scaled(self, factor: float) -> "IntegratorOptions":
-        return IntegratorOptions(self.tol_pressure * factor, self.tol_position * factor,
-                                 self.tol_velocity * factor, self.tol_other * factor, self.max_depth)
+        """Every tolerance times factor."""
+        tols = [f.name for f in fields(self) if f.name.startswith("tol_")]
+        return replace(self, **{n: getattr(self, n) * factor for n in tols})
 
     def key(self) -> tuple:
-        return (self.tol_pressure, self.tol_position, self.tol_velocity, self.tol_other, self.max_depth)
+        return astuple(self)
 
 
 # Accurate enough to serve as truth for the identifier's own discretisation.

@@ -41,11 +41,16 @@ def flow_function(r, b):
     return ca.if_else(r <= b, 1.0, ca.if_else(r <= R_LAM, phi_turb, phi_lam))
 
 
+def choked_flow(conductance, p_up, temperature):
+    """ISO 6358 mass flow through a path at the upstream pressure p_up when choked (phi = 1)."""
+    return conductance * p_up * RHO0 * ca.sqrt(T0 / temperature)
+
+
 def mass_flow(conductance, p_from, p_to, b, temperature):
     """Signed mass flow p_from -> p_to through one valve path (negative when p_to > p_from)."""
     pu = ca.fmax(p_from, p_to)
     pd = ca.fmin(p_from, p_to)
-    m = conductance * pu * RHO0 * ca.sqrt(T0 / temperature) * flow_function(pd / pu, b)
+    m = choked_flow(conductance, pu, temperature) * flow_function(pd / pu, b)
     return ca.if_else(p_from >= p_to, m, -m)
 
 
@@ -130,7 +135,7 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
 
     param_names = list(NOMINAL_PARAMS)
     for e in effects:
-        param_names.extend(f"{e.name}.{n}" for n in e.param_names())
+        param_names.extend(e.key(n) for n in e.param_names())
     P = ca.SX.sym("P", len(param_names))
     par = dict(zip(param_names, ca.vertsplit(P)))
 
@@ -147,7 +152,7 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
         base_states = ["x", "v"]
         input_names = ["p1", "p2"]
         output_names = ["x"]
-    state_names = base_states + [f"{e.name}.{s}" for e, s in extra_states]
+    state_names = base_states + [e.key(s) for e, s in extra_states]
     X = ca.SX.sym("X", len(state_names))
     U = ca.SX.sym("U", len(input_names))
     st = dict(zip(state_names, ca.vertsplit(X)))
@@ -163,17 +168,19 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
         V2=par["dead_volume_rod"] + A2 * (L - st["x"]),
     )
 
-    def own(e: "Effect") -> tuple[dict, dict]:
-        q = {n: par[f"{e.name}.{n}"] for n in e.param_names()}
-        s = {n: st[f"{e.name}.{n}"] for n in e.state_names()}
-        return q, s
+    # each active effect's own parameter and state symbols, by their short names
+    owned = {e.name: ({n: par[e.key(n)] for n in e.param_names()}, {n: st[e.key(n)] for n in e.state_names()})
+             for e in active}
+
+    def stage(hook: str) -> None:
+        """Let every active effect act on the signals at one stage (see Signals), in order."""
+        for e in active:
+            getattr(e, hook)(sig, *owned[e.name])
 
     if drive == "command":
         sig.u = ca.fmin(ca.fmax(inp["u"], -1.0), 1.0)
-        for e in active:
-            e.on_command(sig, *own(e))
-        for e in active:
-            e.on_supply(sig, *own(e))
+        stage("on_command")
+        stage("on_supply")
         c_pos = sig.C * ca.fmax(sig.u, 0.0)
         c_neg = sig.C * ca.fmax(-sig.u, 0.0)
         # supply -> chamber paths (drawn from the supply) and chamber <- exhaust paths
@@ -182,8 +189,7 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
         sig.mdot1 = sig.mdot_s1 + mass_flow(c_neg, sig.pa, p1, sig.b, sig.T)
         sig.mdot2 = sig.mdot_s2 + mass_flow(c_pos, sig.pa, p2, sig.b, sig.T)
         sig.mdot_supply = sig.mdot_s1 + sig.mdot_s2  # net mass flow drawn from the supply
-        for e in active:
-            e.on_flows(sig, *own(e))
+        stage("on_flows")
 
     # friction: every term opposes motion. Ff = Fseal * sgn + Fvisc, with the seal (Coulomb
     # plus pressure) level Fseal >= 0, the direction function sgn in [-1, 1] and the viscous
@@ -192,24 +198,20 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
     sig.sgn = ca.tanh(v / par["v_smooth"])
     sig.Fseal = par["Fc"] + par["kp"] * ca.fabs(p1 - p2)
     sig.Fvisc = par["Fv"] * v
-    for e in active:
-        e.on_friction_terms(sig, *own(e))
+    stage("on_friction_terms")
     sig.Ff = sig.Fseal * sig.sgn + sig.Fvisc
-    for e in active:
-        e.on_friction(sig, *own(e))
-    for e in active:
-        e.on_piston(sig, *own(e))
+    stage("on_friction")
+    stage("on_piston")
     sig.dv = (p1 * A1 - p2 * A2 - sig.pa * (A1 - A2) - sig.Ff - sig.M * G * ca.sin(par["angle"])) / sig.M
 
     if drive == "command":
         sig.dp1 = KAPPA / sig.V1 * (R_AIR * sig.T * sig.mdot1 - p1 * A1 * v)
         sig.dp2 = KAPPA / sig.V2 * (R_AIR * sig.T * sig.mdot2 + p2 * A2 * v)
-        for e in active:
-            e.on_chambers(sig, *own(e))
+        stage("on_chambers")
         base_deriv = [sig.dp1, sig.dp2, v, sig.dv]
     else:
         base_deriv = [v, sig.dv]
-    deriv = base_deriv + [sig.deriv[f"{e.name}.{s}"] for e, s in extra_states]
+    deriv = base_deriv + [sig.deriv[e.key(s)] for e, s in extra_states]
 
     return Plant(
         drive=drive,

@@ -1,40 +1,48 @@
 """Compiled model functions are cached on disk and shared by structure."""
-import os
 import subprocess
 import sys
 
+import numpy as np
+
 from sim.compiled import shooting_functions
 from sim.effects import Stiction
+from sim.integrator import StepBuilder
 from sim.plant import build_plant
 
 
-def test_second_process_and_second_cylinder_reuse_compiled_code(tmp_path, cyl_a, cyl_50):
-    env = dict(os.environ, COMBINED_REALITY_CACHE=str(tmp_path))
-    os.environ["COMBINED_REALITY_CACHE"] = str(tmp_path)
-    try:
-        plant = build_plant("command", [Stiction()])
-        first = shooting_functions(plant, 50, (12, 13))
-        assert not first.stats.cache_hit
-        assert list(tmp_path.glob("cr_*.so")) or list(tmp_path.glob("cr_*.casadi"))
-        # same structure, other values (another cylinder, another stiction level): a cache hit
-        again = shooting_functions(build_plant("command", [Stiction(Fs_excess=3.0)]), 50, (12, 13))
-        assert again.stats.cache_hit
-        code = ("from sim.compiled import shooting_functions; from sim.plant import build_plant;"
-                "from sim.effects import Stiction;"
-                "sf = shooting_functions(build_plant('command', [Stiction()]), 50, (12, 13));"
-                "print(sf.stats.cache_hit)")
-        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-        assert out.stdout.strip() == "True"
-        # another structure (other free parameters) is another entry
-        other = shooting_functions(plant, 50, (12,))
-        assert not other.stats.cache_hit
-    finally:
-        os.environ.pop("COMBINED_REALITY_CACHE", None)
+def test_second_process_and_second_cylinder_reuse_compiled_code(tmp_path, cyl_a, cyl_50, monkeypatch):
+    monkeypatch.setenv("COMBINED_REALITY_CACHE", str(tmp_path))
+    plant = build_plant("command", [Stiction()])
+    first = shooting_functions(plant, 50, (12, 13))
+    assert not first.stats.cache_hit
+    assert list(tmp_path.glob("cr_*.so")) or list(tmp_path.glob("cr_*.casadi"))
+    # same structure, other values (another cylinder, another stiction level): a cache hit
+    other_plant = build_plant("command", [Stiction(Fs_excess=3.0)])
+    again = shooting_functions(other_plant, 50, (12, 13))
+    assert again.stats.cache_hit
+    # ... whose code computes the second cylinder's trajectory (parameters are inputs, not baked in)
+    s, W, H = [4.0e5, 3.0e5, 0.05, 0.0], np.full((1, 51), 0.3), np.full((1, 50), 1e-3)
+    p50 = other_plant.parameter_vector(cyl_50)
+    x50 = np.asarray(again.interval(s, W, p50, H))[:, -1]
+    step = StepBuilder(other_plant).step()  # not compiled, not cached
+    x = s
+    for _ in range(50):
+        x = step(x, 0.3, 0.3, p50, 1e-3)
+    np.testing.assert_allclose(x50, np.asarray(x).ravel(), rtol=1e-9, atol=1e-12)
+    xa = np.asarray(first.interval(s, W, plant.parameter_vector(cyl_a), H))[:, -1]
+    assert abs(xa[2] - x50[2]) > 1e-4  # and the first cylinder's is another one
+    code = ("from sim.compiled import shooting_functions; from sim.plant import build_plant;"
+            "from sim.effects import Stiction;"
+            "sf = shooting_functions(build_plant('command', [Stiction()]), 50, (12, 13));"
+            "print(sf.stats.cache_hit)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)  # same env
+    assert out.stdout.strip() == "True"
+    # another structure (other free parameters) is another entry
+    other = shooting_functions(plant, 50, (12,))
+    assert not other.stats.cache_hit
 
 
 def test_without_a_compiler_the_serialised_functions_give_the_same_numbers(tmp_path, cyl_a, monkeypatch):
-    import numpy as np
-
     plant = build_plant("command")
     p = plant.parameter_vector(cyl_a)
     s = [4.0e5, 3.0e5, 0.05, 0.1]
@@ -52,3 +60,29 @@ def test_without_a_compiler_the_serialised_functions_give_the_same_numbers(tmp_p
         X0, S0 = compiled.sens(s, W, p, H)
         np.testing.assert_allclose(np.asarray(X), np.asarray(X0), rtol=1e-12, atol=1e-9)
         np.testing.assert_allclose(np.asarray(S), np.asarray(S0), rtol=1e-9, atol=1e-12)
+
+
+def test_a_failing_compiler_is_tried_once(tmp_path, monkeypatch):
+    """When compiling fails the serialised form is stored, and later calls load it instead of
+    building and failing again."""
+    monkeypatch.setenv("COMBINED_REALITY_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "false")  # a "compiler" that always fails
+    plant = build_plant("command")
+    said = []
+    built = shooting_functions(plant, 5, (), progress=said.append)
+    assert not built.stats.cache_hit and built.stats.path.endswith(".casadi")
+    assert any("compiling failed" in s for s in said)
+    said.clear()
+    again = shooting_functions(plant, 5, (), progress=said.append)
+    assert again.stats.cache_hit and again.stats.path.endswith(".casadi") and not said
+
+
+def test_a_compiler_installed_later_compiles_what_was_stored_without_one(tmp_path, cyl_a, monkeypatch):
+    from sim.compiled import shooting_functions
+    from sim.plant import build_plant
+
+    monkeypatch.setenv("COMBINED_REALITY_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "none")
+    assert shooting_functions(build_plant("command"), 7, ()).stats.path.endswith(".casadi")
+    monkeypatch.delenv("CC")
+    assert shooting_functions(build_plant("command"), 7, ()).stats.path.endswith(".so")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -111,8 +112,8 @@ def test_formats_example_loads(tmp_path: Path) -> None:
     assert (cyl.valve.sonic_conductance, cyl.valve.critical_ratio) == (6.0e-9, 0.3)
     f = cyl.friction
     assert (f.Fc, f.Fv, f.kp, f.v_smooth) == (10.0, 50.0, 1.0e-6, 1.0e-3)
-    assert g.area_cap == pytest.approx(math.pi * 0.032**2 / 4)
-    assert g.area_rod == pytest.approx(math.pi * (0.032**2 - 0.012**2) / 4)
+    assert g.area_cap == pytest.approx(804.25e-6, rel=1e-5)  # 32 mm bore: 256 pi mm^2
+    assert g.area_rod == pytest.approx(691.15e-6, rel=1e-5)  # minus the 12 mm rod: 220 pi mm^2
 
 
 def test_angle_is_converted_from_degrees_to_radians(tmp_path: Path) -> None:
@@ -200,8 +201,9 @@ def test_value_and_with_values(tmp_path: Path) -> None:
 
 def test_every_parameter_is_reachable(tmp_path: Path) -> None:
     cyl = load_cylinder(write(tmp_path, EXAMPLE))
-    for name in PARAMETERS:
-        assert isinstance(cyl.value(name), float)
+    for name, spec in PARAMETERS.items():
+        inside = 0.5 * (spec.lower + spec.upper)  # differs from every value of the example
+        assert cyl.value(name) != inside and cyl.with_values({name: inside}).value(name) == inside
     assert set(ESTIMABLE) <= set(PARAMETERS)
 
 
@@ -310,3 +312,16 @@ def test_bad_drive(tmp_path: Path) -> None:
 ])
 def test_implausible_values(tmp_path: Path, old: str, new: str, key: str) -> None:
     refused(tmp_path, edit(EXAMPLE, old, new), f"'{key}'")
+
+
+@pytest.mark.parametrize("name", list(PARAMETERS))
+def test_loader_refuses_what_the_identifier_bounds_exclude(name: str) -> None:
+    """A file loads only if every model parameter starts inside the bounds the identifier keeps."""
+    spec = PARAMETERS[name]
+    scale = 180.0 / math.pi if name == "angle" else 1.0  # the file gives degrees
+    span = spec.upper - spec.lower
+    for v in (spec.upper + 0.01 * span, spec.lower - 0.01 * span):
+        data = tomllib.loads(EXAMPLE)
+        data[spec.section][spec.attr] = v * scale
+        with pytest.raises(ConfigError, match=rf"'{spec.section}\.{spec.attr}' must (be positive and )?lie in \[.*\]"):
+            parse_cylinder(data, "cyl.toml")

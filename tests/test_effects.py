@@ -4,6 +4,7 @@ Each effect builds for the drives it applies to, composes with others, vanishes 
 at its neutral value, changes the trajectory in the physically expected direction, keeps
 friction dissipative, and is recovered by the identifier when it is the truth.
 """
+import dataclasses
 import math
 import time
 
@@ -20,8 +21,8 @@ from sim.plant import R_AIR, build_plant
 VOCABULARY = ("stiction", "friction_asymmetry", "friction_position", "friction_dynamics", "mass",
               "valve_deadzone", "valve_delay", "leakage", "heat_transfer", "supply_droop")
 MECHANICAL = {"stiction", "friction_asymmetry", "friction_position", "friction_dynamics", "mass"}
-NEUTRAL = [n for n in VOCABULARY if EFFECTS[n].NEUTRAL is not None]
 OPTS = IntegratorOptions()  # the identifier's integrator
+REPLAY_M = 100  # replays of every length run through one compiled interval of this many samples
 
 
 # ------------------------------------------------------------------ helpers
@@ -37,17 +38,14 @@ def replay(cyl, effects, w, state0=None, drive="command", x0=None, p1=4.0e5, p2=
     the valve command (command drive, held) or measured (p1, p2) rows (pressure drive)."""
     plant = build_plant(drive, effects)
     w = np.atleast_2d(np.asarray(w, float))
-    n = w.shape[1] - (1 if drive == "pressure" else 0)
-    sf = shooting_functions(plant, n, (), OPTS)
+    sf = shooting_functions(plant, REPLAY_M, (), OPTS)
     p = np.array(plant.parameter_vector(cyl))
     if state0 is None:
         x0 = 0.5 * cyl.geometry.stroke if x0 is None else x0
         p2 = _balanced_p2(cyl, p1) if p2 is None else p2
         state0 = plant.initial_state(cyl, x0, p1, p2, v0)
-    W = np.hstack([w, w[:, -1:]]) if drive == "command" else w
-    X = np.asarray(sf.interval(state0, W, p, np.full((1, n), dt)))
-    X = np.hstack([np.asarray(state0, float)[:, None], X])
-    return dict(zip(plant.state_names, X))
+    W = np.hstack([w, w[:, -1:]]) if drive == "command" else w  # a held command: one per step
+    return dict(zip(plant.state_names, sf.simulate(state0, W, p, dt)))
 
 
 @pytest.fixture(scope="module")
@@ -80,19 +78,20 @@ def test_every_vocabulary_word_is_an_effect():
         assert cls.subsystem == ("mechanical" if name in MECHANICAL else "pneumatic")
         assert cls.description
         e = cls()
+        # every field is a parameter (an input of the compiled functions): structure() relies on it
+        assert [f.name for f in dataclasses.fields(cls)] == list(cls.PARAMS), name
         for pname, info in cls.PARAMS.items():
             assert info.lower < info.upper and info.unit and info.description
             assert info.lower <= getattr(e, pname) <= info.upper, (name, pname)
         # strengths: every parameter, ordered, inside the bounds
         assert set(cls.STRENGTH) == set(cls.PARAMS), name
         assert cls.SHAPE <= set(cls.PARAMS) and cls.SIGNED <= set(cls.PARAMS) and set(cls.SCALED) <= set(cls.PARAMS)
-        if cls.NEUTRAL is not None:
-            assert set(cls.NEUTRAL) <= set(cls.PARAMS)
-            for pname, v in cls.NEUTRAL.items():
-                if name == "heat_transfer":  # just below the identification bound, on purpose
-                    assert v == 0.0 < cls.PARAMS[pname].lower <= 0.01
-                else:
-                    assert cls.PARAMS[pname].lower <= v <= cls.PARAMS[pname].upper
+        assert cls.NEUTRAL and set(cls.NEUTRAL) <= set(cls.PARAMS), name
+        for pname, v in cls.NEUTRAL.items():
+            if name == "heat_transfer":  # just below the identification bound, on purpose
+                assert v == 0.0 < cls.PARAMS[pname].lower <= 0.01
+            else:
+                assert cls.PARAMS[pname].lower <= v <= cls.PARAMS[pname].upper
 
 
 @pytest.mark.parametrize("which", ["cyl_a", "cyl_50"])
@@ -102,8 +101,6 @@ def test_strength_ranges_and_random_effects_are_realistic(which, request):
     for name, cls in EFFECTS.items():
         ranges = cls.strength(cyl)
         for pname, (weak, strong) in ranges.items():
-            info = cls.PARAMS[pname]
-            assert info.lower <= weak <= info.upper and info.lower <= strong <= info.upper, (name, pname)
             if pname not in cls.SHAPE:
                 assert 0 < weak < strong, (name, pname)
         weak, strong = cls.typical(cyl, 0.0), cls.typical(cyl, 1.0)
@@ -116,13 +113,8 @@ def test_strength_ranges_and_random_effects_are_realistic(which, request):
             e = cls.random(rng, cyl)
             assert isinstance(e, cls)
             for pname, v in e.as_dict().items():
-                lo, hi = ranges[pname]
-                info = cls.PARAMS[pname]
-                assert info.lower <= v <= info.upper
-                if pname in cls.SHAPE:
-                    assert lo <= v <= hi
-                else:
-                    assert lo * (1 - 1e-12) <= abs(v) <= hi * (1 + 1e-12), (name, pname, v)
+                lo, hi = ranges[pname]  # realistic: between weak and strong (shapes are positive)
+                assert lo * (1 - 1e-12) <= abs(v) <= hi * (1 + 1e-12), (name, pname, v)
                 if pname in cls.SIGNED:
                     signs.add((pname, v > 0))
         for pname in cls.SIGNED - cls.SHAPE:
@@ -190,7 +182,7 @@ def test_all_effects_compose(cyl_a, command_a):
 
 # ------------------------------------------------------------------ neutral = nominal
 
-@pytest.mark.parametrize("name", NEUTRAL)
+@pytest.mark.parametrize("name", VOCABULARY)
 def test_neutral_value_reproduces_the_nominal_trajectory(name, cyl_a, command_a):
     u = command_a[:600]
     nominal = replay(cyl_a, [], u)

@@ -6,19 +6,10 @@ from sim.integrator import IntegratorOptions
 from sim.plant import build_plant
 
 
-def _open_loop(plant, opts, run, p, M=100):
-    sf = shooting_functions(plant, M, (), opts)
-    N = run.n
-    K = -(-N // M)
-    u = np.concatenate([run.u, np.full(K * M + 1 - N, run.u[-1])])
-    H = np.concatenate([np.diff(run.t), np.zeros(K * M - N + 1)])
+def _open_loop(plant, opts, run, p):
+    sf = shooting_functions(plant, 100, (), opts)
     s = np.array([run.p1[0], run.p2[0], run.x[0], 0.0])
-    out = [s[:, None]]
-    for k in range(K):
-        X = np.asarray(sf.interval(s, u[None, k * M:k * M + M + 1], p, H[None, k * M:(k + 1) * M]))
-        out.append(X)
-        s = X[:, -1]
-    return np.hstack(out)[:, :N]
+    return sf.simulate(s, run.u, p, np.diff(run.t))  # (nx, run.n)
 
 
 def test_refining_the_step_changes_a_20s_trajectory_less_than_the_noise(cyl_a, run_a):
@@ -51,3 +42,20 @@ def test_zero_length_steps_are_identity(cyl_a):
     s = np.array([4e5, 3e5, 0.05, 0.1])
     out = np.asarray(sf.step(s, 0.7, 0.7, plant.parameter_vector(cyl_a), 0.0)).ravel()
     np.testing.assert_array_equal(out, s)
+
+
+def test_simulate_runs_any_length_through_one_interval(cyl_a, run_a):
+    """simulate pads the last interval with zero-length steps: the same states as stepping
+    sample by sample, for a length that is not a multiple of the interval."""
+    plant = build_plant("command")
+    p = np.array(plant.parameter_vector(cyl_a))
+    n = 234
+    s = np.array([run_a.p1[0], run_a.p2[0], run_a.x[0], 0.0])
+    X = shooting_functions(plant, 100).simulate(s, run_a.u[:n + 1], p, 1e-3)
+    assert X.shape == (4, n + 1)
+    step = shooting_functions(plant, 1).step
+    ref = [s]
+    for k in range(n):
+        ref.append(np.asarray(step(ref[-1], run_a.u[k], run_a.u[k + 1], p, 1e-3)).ravel())
+    np.testing.assert_allclose(X, np.array(ref).T, rtol=1e-12, atol=0)
+    assert np.ptp(X[2]) > 1e-3  # it moved
