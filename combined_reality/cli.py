@@ -321,20 +321,44 @@ def cmd_diagnose(args) -> int:
         raise UsageError(f"--candidates: unknown effect {', '.join(unknown)} (known: {', '.join(EFFECTS)}).")
     if not (args.horizon > 0 and math.isfinite(args.horizon)):
         raise UsageError(f"--horizon must be a positive number of seconds, not {args.horizon}.")
+    rerun_mode, rerun_target = _rerun_mode(args)
+    if args.report and not args.report.lower().endswith((".html", ".htm")):
+        raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers))
-    result = diagnose(cyl, train, valid, opts, progress=_progress(args.quiet))
-    base = result["baseline"]["rmse_x_validation"]
-    print(f"validation position RMSE of the nominal model: {base * 1e6:.1f} um ({args.horizon:g} s horizon)")
+    diagnosis = diagnose(cyl, train, valid, opts, progress=_progress(args.quiet))
+    result = diagnosis.to_json()
+    base = result["baseline"]
+    print(f"validation position RMSE of the nominal model: {base['rmse_x_validation'] * 1e6:.1f} um "
+          f"(segments of {args.horizon:g} s, all outputs {base['normalized_rms']:.2f} x the sensor noise)")
     print(f"verdict: {result['verdict']}")
-    print(f"{'effect':20s} {'shrink':>8s} {'rmse_x [um]':>12s}  parameters")
+    print(f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'t':>6s} {'rmse_x [um]':>12s}  parameters")
     for c in result["ranking"]:
         pars = ", ".join(f"{k}={v:.4g}±{c['std'][k]:.2g}" for k, v in c["params"].items())
-        print(f"{c['effect']:20s} {c['shrink']:8.1%} {c['rmse_x_validation'] * 1e6:12.1f}  {pars or c.get('error', '')}")
+        mark = "*" if c["significant"] else " "
+        print(f"{c['effect']:20s} {c['shrink']:8.1%} {c['shrink_all']:8.1%} {c['t_stat']:6.1f}{mark}"
+              f"{c['rmse_x_validation'] * 1e6:12.1f}  {pars or c.get('error', '')}")
+    if result["pair"] is not None:
+        c = result["pair"]
+        print(f"best pair {c['effect']}: shrink {c['shrink']:.1%}"
+              + ("" if c["significant"] else " (no significant gain over the verdict alone)"))
     print("where the gap lies (share of the squared error / share of the samples):")
     for r in result["regions"][:5]:
         print(f"  {r['where']:34s} {r['share_of_error']:6.1%} / {r['fraction_of_samples']:6.1%}")
+    for r in result["subsystems"]:
+        print(f"  {r['subsystem']:62s} {r['share_of_error']:6.1%} of the excess error")
     if args.json:
         _write_json_atomic(args.json, _clean_json(result))
+    if args.report:
+        from .diagnose_report import write_report
+
+        write_report(diagnosis, args.report)
+        if not args.quiet:
+            _eprint(f"wrote the report {args.report}")
+    if rerun_mode != "off":
+        from .diagnose_rerun import log_diagnosis
+        from .visual import open_recording
+
+        log_diagnosis(diagnosis, open_recording(rerun_mode, rerun_target))
     return 0
 
 
@@ -355,7 +379,7 @@ def _online_options(args, cyl: Cylinder):
     return OnlineOptions(window_s=args.window, update_s=args.update, memory_s=args.memory, estimate=names)
 
 
-def _rerun_sink(args, cyl, window_s: float):
+def _rerun_mode(args) -> tuple[str, str | None]:
     mode, *rest = args.rerun
     if mode not in ("spawn", "connect", "save", "off"):
         raise UsageError(f"--rerun {mode}: use spawn, connect ADDR, save FILE or off.")
@@ -363,11 +387,16 @@ def _rerun_sink(args, cyl, window_s: float):
         raise UsageError("--rerun save needs exactly one file name (--rerun save session.rrd).")
     if mode in ("spawn", "off") and rest or len(rest) > 1:
         raise UsageError(f"--rerun {' '.join(args.rerun)}: too many arguments.")
+    return mode, (rest[0] if rest else None)
+
+
+def _rerun_sink(args, cyl, window_s: float):
+    mode, target = _rerun_mode(args)
     if mode == "off":
         return None
     from .visual import RerunSink, open_recording
 
-    return RerunSink(open_recording(mode, rest[0] if rest else None), cyl, window_s)
+    return RerunSink(open_recording(mode, target), cyl, window_s)
 
 
 def _stream_json(result, options, wall_s: float) -> dict:
@@ -447,6 +476,34 @@ def _run_stream(args, cyl, rig, program, duration, record: str | None, sample_pe
     return 1 if result.stop_reason.startswith("no samples") else 0
 
 
+def open_rig(args, cyl: Cylinder, effects=(), *, rate: float = 1000.0, paced: bool = True, seed: int | None = None):
+    """The rig named by --serial PORT, --can CH [--interface], else the virtual rig in this
+    process (paced to real time, or as fast as the CPU allows)."""
+    from hw.rig import RigError
+
+    try:
+        if args.serial:
+            from hw.serial_rig import SerialRig
+
+            return SerialRig(args.serial, on_event=_eprint)
+        if args.can:
+            from hw.can_rig import CanRig
+
+            # python-can's slcan waits 2 s after opening unless told otherwise
+            extra = {"sleep_after_open": 0.1} if args.interface == "slcan" else {}
+            return CanRig(args.can, interface=args.interface, on_event=_eprint, **extra)
+    except RigError as e:
+        raise UsageError(f"{e}.") from None
+    from hw.virtual_rig import VirtualRig
+
+    rig = VirtualRig(cyl, effects, rate=rate, seed=args.seed if seed is None else seed)
+    if paced:
+        from .stream import PacedRig
+
+        return PacedRig(rig)
+    return rig
+
+
 def cmd_live(args) -> int:
     from .excitation import make_program
 
@@ -465,27 +522,7 @@ def cmd_live(args) -> int:
     effects = _parse_effects(args.effect)
     if effects and not args.virtual:
         raise UsageError("--effect switches effects on in the virtual rig; it needs --virtual.")
-    from hw.rig import RigError
-
-    try:
-        if args.serial:
-            from hw.serial_rig import SerialRig
-
-            rig = SerialRig(args.serial, on_event=_eprint)
-        elif args.can:
-            from hw.can_rig import CanRig
-
-            # python-can's slcan waits 2 s after opening unless told otherwise
-            extra = {"sleep_after_open": 0.1} if args.interface == "slcan" else {}
-            rig = CanRig(args.can, interface=args.interface, on_event=_eprint, **extra)
-    except RigError as e:
-        raise UsageError(f"{e}.") from None
-    if not (args.serial or args.can):
-        from hw.virtual_rig import VirtualRig
-
-        from .stream import PacedRig
-
-        rig = PacedRig(VirtualRig(cyl, effects, rate=args.rate, seed=args.seed))
+    rig = open_rig(args, cyl, effects, rate=args.rate, paced=True)
     return _run_stream(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, inline=False)
 
 
@@ -632,6 +669,9 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--validate", required=True, help="run CSV the models are scored on (never fitted)")
     dg.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
     dg.add_argument("--json", help="write the diagnosis (FORMATS.md)")
+    dg.add_argument("--report", metavar="REPORT.html", help="write a self-contained HTML report with plots")
+    dg.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
+                    help="show the diagnosis in Rerun: spawn | connect ADDR | save FILE.rrd | off (default)")
     dg.add_argument("--candidates", help="comma-separated effects to try (default: the whole vocabulary)")
     dg.add_argument("--horizon", type=float, default=1.0, help="validation simulation horizon, s (default 1)")
     dg.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="parallel processes for the candidates")
@@ -643,6 +683,11 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--speed", default="1", help="1 = real time, 2 = twice as fast, max = as fast as possible")
     _add_online_arguments(rp)
     rp.set_defaults(func=cmd_replay)
+
+    from . import cli_friction, cli_procedure
+
+    cli_friction.add_parser(sub)
+    cli_procedure.add_parser(sub)
     return p
 
 

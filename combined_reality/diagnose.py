@@ -3,87 +3,139 @@ far it shrinks once that effect is added.
 
 The nominal model is identified on TRAIN and scored on VALID, a run the fit never saw.
 The score is the simulation error over a fixed horizon: VALID is cut into segments of
-`horizon_s`, each simulated open loop from the measured state at its start (velocity
-from a central Savitzky-Golay derivative) with the recorded command. Each candidate
-effect extends the one plant, is re-identified on TRAIN (friction and the effect's own
-parameters) and scored the same way; candidates are ranked by the shrink of the
-validation position RMSE, less a penalty per added parameter. The verdict is `none` when
-no candidate shrinks the gap by a significant amount.
+about `horizon_s` (cut where the piston moves, so that its state is well determined),
+and each segment is simulated open loop with the recorded command from an initial state
+fitted to that segment alone (the model's parameters stay fixed: nothing of VALID enters
+the model). A correct model then leaves the sensor noise, whatever the horizon.
+
+Each candidate effect extends the one plant, is re-identified on TRAIN (friction and the
+effect's own parameters, from the nominal fit and from the effect's alternative starts;
+the start with the lowest TRAIN cost is kept) and scored the same way. Candidates are
+ranked by the improvement of the noise-weighted validation error of all outputs (x, p1,
+p2), less a penalty per added parameter; `shrink` is the position RMSE's, as FORMATS.md
+defines it. An improvement is significant when the per-segment gains, paired with the
+baseline's, give a t statistic above `min_t` and the all-output error shrinks by
+`min_shrink` at least; the verdict is `none` when no candidate's is.
 """
 from __future__ import annotations
 
 import math
 import os
+import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
 
-from sim.compiled import shooting_functions
 from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
-from sim.plant import build_plant
 
-from .identify import IdentifyOptions, _velocity_estimate, identify
-from .runs import Run
+from .identify import IdentificationError, IdentifyOptions, IdentifyResult, _velocity_estimate, identify
+from .runs import Run, split_at_gaps
+
+OUTPUTS = ("x", "p1", "p2")
 
 
 @dataclass(frozen=True)
 class DiagnoseOptions:
     candidates: tuple[str, ...] = tuple(EFFECTS)
     horizon_s: float = 1.0  # validation simulation horizon
-    min_shrink: float = 0.10  # below this no candidate explains the gap
+    min_t: float = 3.0  # paired t statistic of the per-segment gain a verdict needs
+    min_shrink: float = 0.02  # ... and this shrink of the all-output validation error
     penalty_per_param: float = 0.01  # shrink charged per added parameter when ranking
+    pair: bool = True  # try the best pair when one effect leaves a significant gap
+    max_iter: int = 20  # Gauss-Newton iterations of a candidate fit
+    fit_time_limit_s: float = 15.0  # ... and its wall time at most (a fit that slow is lost anyway)
+    closed_gap: float = 1.2  # a candidate leaving at most this x the noise has closed the gap
     workers: int = max(1, os.cpu_count() or 1)
 
 
+# ------------------------------------------------------------------ validation
+
+def validation_segments(run: Run, horizon_s: float) -> list[tuple[int, int]]:
+    """(start, stop) sample ranges of about `horizon_s`, cut where the piston moves fastest
+    within a quarter horizon of the nominal cut (a piston at rest hides its friction state,
+    so an initial state fitted there is ill-determined); never across a gap."""
+    out = []
+    offset = 0
+    for piece in split_at_gaps(run):
+        n = max(10, int(round(horizon_s / piece.sample_period)))
+        v = np.abs(_velocity_estimate(piece.t, piece.x)) if piece.n > 30 else np.zeros(piece.n)
+        cuts = [0]
+        for c in range(n, piece.n - n // 2, n):
+            lo, hi = c - n // 4, min(piece.n - 1, c + n // 4)
+            cuts.append(lo + int(np.argmax(v[lo:hi])))
+        cuts.append(piece.n)
+        out.extend((offset + a, offset + b) for a, b in zip(cuts[:-1], cuts[1:]) if b - a >= 10)
+        offset += piece.n
+    return out
+
+
 @dataclass
-class Candidate:
-    effect: str
-    shrink: float
-    rmse_x_validation: float
-    params: dict[str, float]
-    std: dict[str, float]
-    score: float
+class Validation:
+    """A model scored on VALID: simulated outputs, residuals and per-segment costs."""
+
+    outputs: tuple[str, ...]
+    simulated: np.ndarray  # (n_outputs, n), NaN outside the segments
+    residual: np.ndarray  # measured - simulated
+    segments: list[tuple[int, int]]
+    segment_cost: np.ndarray  # sum of (residual / noise)^2 per segment, all outputs
+    noise: np.ndarray  # sensor noise per output
     status: str
-    friction: dict[str, float] = field(default_factory=dict)
-    error: str | None = None
 
-    def to_json(self) -> dict:
-        out = {"effect": self.effect, "shrink": self.shrink, "rmse_x_validation": self.rmse_x_validation,
-               "params": self.params, "std": self.std, "score": self.score, "status": self.status,
-               "friction": self.friction}
-        if self.error:
-            out["error"] = self.error
-        return out
+    def rmse(self, output: str = "x", mask: np.ndarray | None = None) -> float:
+        r = self.residual[self.outputs.index(output)]
+        r = r[np.isfinite(r) if mask is None else (mask & np.isfinite(r))]
+        return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
+
+    def normalized_rms(self) -> float:
+        """RMS of the noise-weighted residuals of all outputs (1 = sensor noise)."""
+        n = sum(b - a for a, b in self.segments) * len(self.outputs)
+        return float(math.sqrt(self.segment_cost.sum() / max(n, 1)))
 
 
-def validation_residuals(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: float = 1.0) -> np.ndarray:
-    """Measured minus simulated (x, p1, p2), shape (3, n): `run` simulated in segments of
-    `horizon_s`, each from the measured state at its start, with the recorded command."""
-    plant = build_plant("command", effects)
-    M = max(5, int(round(0.1 / run.sample_period)))
-    sf = shooting_functions(plant, M, ())
-    p = np.array(plant.parameter_vector(cyl), float)
-    v = _velocity_estimate(run.t, run.x)  # over the whole run: no end effects at segment starts
-    seg = max(M, int(round(horizon_s / run.sample_period)))
-    out_idx = [plant.state_names.index(n) for n in ("x", "p1", "p2")]
-    sim = np.empty((3, run.n))
-    for a in range(0, run.n, seg):
-        b = min(run.n, a + seg)
-        s0 = plant.initial_state(cyl, run.x[a], run.p1[a], run.p2[a], v[a])
-        sim[:, a:b] = sf.simulate(s0, run.u[a:b], p, np.diff(run.t[a:b]))[out_idx]
-    return np.vstack([run.x, run.p1, run.p2]) - sim
+def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: float = 1.0, drive: str = "command",
+             threads: int = 1, segments: list[tuple[int, int]] | None = None) -> Validation:
+    """Score a model on `run`: every segment simulated from its own fitted initial state."""
+    segments = segments or validation_segments(run, horizon_s)
+    pieces = [run.slice(a, b) for a, b in segments]
+    res = identify(cyl, pieces, IdentifyOptions(drive=drive, estimate=(), prefit=False, max_iter=30, threads=threads),
+                   effects=effects)
+    outputs = res.output_names
+    meas = np.vstack([getattr(run, o) for o in outputs])
+    sim = np.full_like(meas, np.nan)
+    for (a, b), s in zip(segments, res.simulated):
+        sim[:, a:b] = s
+    resid = meas - sim
+    sen = cyl.sensors
+    noise = np.array([sen.position_noise if o == "x" else sen.pressure_noise for o in outputs])
+    cost = np.array([float(np.sum((resid[:, a:b] / noise[:, None]) ** 2)) for a, b in segments])
+    return Validation(outputs, sim, resid, segments, cost, noise, res.solver["status"])
 
 
 def _rmse(r: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(r * r)))
+    r = r[np.isfinite(r)]
+    return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
 
 
-def regions(cyl: Cylinder, run: Run, resid_x: np.ndarray) -> list[dict]:
-    """Where the validation position error lies: share of the squared error per operating
-    regime, and how over-represented it is (share / fraction of samples)."""
+def paired_gain(base: Validation, cand: Validation) -> tuple[float, float]:
+    """(shrink of the all-output normalised RMS, paired t statistic of the per-segment cost
+    gain): how much better the candidate predicts VALID, and how sure that is."""
+    shrink = 1.0 - cand.normalized_rms() / base.normalized_rms()
+    d = base.segment_cost - cand.segment_cost
+    if len(d) < 3:
+        return shrink, 0.0
+    sd = float(np.std(d, ddof=1))
+    t = float(np.mean(d)) / (sd / math.sqrt(len(d))) if sd > 0 else (math.inf if np.mean(d) > 0 else 0.0)
+    return shrink, t
+
+
+# ------------------------------------------------------------------ where
+
+def operating_regions(cyl: Cylinder, run: Run) -> dict[str, np.ndarray]:
+    """Boolean masks of the operating regimes of a run: direction, speed bands, reversals,
+    stroke zones, valve near centre, high flow, time spans."""
     v = _velocity_estimate(run.t, run.x)
     L = cyl.geometry.stroke
     moving = np.abs(v) > 0.005
@@ -110,78 +162,455 @@ def regions(cyl: Cylinder, run: Run, resid_x: np.ndarray) -> list[dict]:
         "high flow (|u| > 0.5)": np.abs(run.u) > 0.5,
     }
     for q in range(4):
-        masks[f"time: quarter {q + 1}"] = (t_rel >= q / 4) & (t_rel < (q + 1) / 4 if q < 3 else t_rel <= 1)
-    e2 = resid_x ** 2
+        masks[f"time: quarter {q + 1}"] = (t_rel >= q / 4) & ((t_rel < (q + 1) / 4) if q < 3 else (t_rel <= 1))
+    return masks
+
+
+def regions(cyl: Cylinder, run: Run, base: Validation, best: Validation | None = None) -> list[dict]:
+    """Where the validation position error lies: share of the squared error per operating
+    regime, how over-represented it is (share / fraction of samples), and the position RMSE
+    there before and (with the verdict's effect) after."""
+    r = base.residual[base.outputs.index("x")]
+    ok = np.isfinite(r)
+    e2 = np.where(ok, r, 0.0) ** 2
     total = float(e2.sum()) or 1.0
     out = []
-    for where, m in masks.items():
-        frac = float(m.mean())
+    for where, m in operating_regions(cyl, run).items():
+        m = m & ok
+        frac = float(m.sum()) / max(int(ok.sum()), 1)
         if frac == 0:
             continue
         share = float(e2[m].sum()) / total
-        out.append({"where": where, "share_of_error": share, "fraction_of_samples": frac,
-                    "concentration": share / frac, "rmse_x": float(np.sqrt(e2[m].mean()))})
+        row = {"where": where, "share_of_error": share, "fraction_of_samples": frac,
+               "concentration": share / frac, "rmse_x": float(np.sqrt(e2[m].mean()))}
+        if best is not None:
+            row["rmse_x_after"] = best.rmse("x", m)
+        out.append(row)
     return sorted(out, key=lambda r: -r["concentration"])
 
 
-def whiteness(resid: np.ndarray, lags: int = 20) -> dict:
-    """Ljung-Box statistic of the position residual (decimated to 10 ms, where sensor noise
-    no longer dominates) and its first autocorrelations."""
-    r = resid[::10] - resid[::10].mean()
+def whiteness(resid: np.ndarray, lags: int = 20, decimate: int = 10) -> dict:
+    """Ljung-Box statistic of a residual (decimated, to 10 ms at 1 kHz, where sensor noise no
+    longer dominates) and its first autocorrelation; `white` at the 0.1 % level."""
+    from scipy.stats import chi2
+
+    r = resid[np.isfinite(resid)][::decimate]
+    r = r - r.mean()
     n = len(r)
     den = float(r @ r) or 1.0
     acf = np.array([float(r[:-k] @ r[k:]) / den for k in range(1, min(lags, n - 1) + 1)])
     q = n * (n + 2) * float(np.sum(acf ** 2 / (n - np.arange(1, len(acf) + 1))))
-    return {"ljung_box_q": q, "lags": len(acf), "acf_1": float(acf[0]) if len(acf) else 0.0,
-            "white": bool(q < len(acf) + 3 * math.sqrt(2 * len(acf)))}
+    p = float(chi2.sf(q, len(acf))) if len(acf) else 1.0
+    return {"ljung_box_q": q, "lags": len(acf), "p_value": p, "acf_1": float(acf[0]) if len(acf) else 0.0,
+            "white": bool(p > 1e-3)}
+
+
+# ------------------------------------------------------------------ which
+
+@dataclass
+class Candidate:
+    effect: str  # a vocabulary word, or "a+b" for a pair
+    shrink: float = math.nan
+    rmse_x_validation: float = math.nan
+    params: dict[str, float] = field(default_factory=dict)
+    std: dict[str, float] = field(default_factory=dict)
+    score: float = -math.inf
+    status: str = "failed"
+    shrink_all: float = math.nan
+    t_stat: float = math.nan
+    significant: bool = False
+    friction: dict[str, float] = field(default_factory=dict)
+    train_cost: float = math.nan
+    iterations: int = 0
+    start: int = 0
+    wall_s: float = 0.0
+    error: str | None = None
+    validation: Validation | None = field(default=None, repr=False)
+    effects: tuple[Effect, ...] = field(default=(), repr=False)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.params)
+
+    def to_json(self) -> dict:
+        out = {"effect": self.effect, "shrink": self.shrink, "rmse_x_validation": self.rmse_x_validation,
+               "params": self.params, "std": self.std, "score": self.score, "significant": self.significant,
+               "shrink_all": self.shrink_all, "t_stat": self.t_stat, "status": self.status,
+               "friction": self.friction, "iterations": self.iterations, "start": self.start,
+               "wall_s": round(self.wall_s, 3)}
+        if self.validation is not None:
+            out["rmse_p1_validation"] = self.validation.rmse("p1")
+            out["rmse_p2_validation"] = self.validation.rmse("p2")
+        if self.error:
+            out["error"] = self.error
+        return out
+
+
+def candidate_starts(name: str) -> list[Effect]:
+    """The identification starts of a candidate: its defaults, then its alternatives."""
+    cls = EFFECTS[name]
+    return [make_effect(name)] + [make_effect(name, s) for s in cls.STARTS]
+
+
+@dataclass
+class _Nominal:
+    """What every candidate fit starts from: the nominal fit on TRAIN."""
+
+    cylinder: Cylinder
+    train_cost: float
 
 
 def _fit_candidate(args) -> Candidate:
-    cyl, train, valid, name, opts = args
+    """Re-identify on TRAIN with the effects added (friction from the nominal fit, effects
+    from one start; node states from the measurements, which served better than the nominal
+    trajectory for mechanical effects), then score on VALID."""
+    nominal, train, valid, effects, start, opts, segments = args
+    t0 = time.perf_counter()
+    label = "+".join(e.name for e in effects)
     try:
-        eff = make_effect(name)
-        names = ("Fc", "Fv", "kp") + tuple(f"{name}.{k}" for k in eff.PARAMS)
-        res = identify(cyl, [train], IdentifyOptions(estimate=names, threads=1), effects=[eff])
-        r = validation_residuals(res.cylinder, res.effects, valid, opts.horizon_s)
-        return Candidate(effect=name, shrink=math.nan, rmse_x_validation=_rmse(r[0]),
-                         params={k: res.params[f"{name}.{k}"].value for k in eff.PARAMS},
-                         std={k: res.params[f"{name}.{k}"].std for k in eff.PARAMS}, score=math.nan,
-                         status=res.solver["status"],
-                         friction={n: res.params[n].value for n in ("Fc", "Fv", "kp")})
-    except Exception as e:  # one candidate failing must not end the diagnosis
-        return Candidate(effect=name, shrink=math.nan, rmse_x_validation=math.nan, params={}, std={},
-                         score=-math.inf, status="failed", error=f"{type(e).__name__}: {e}")
+        names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
+        res = identify(nominal.cylinder, [train],
+                       IdentifyOptions(estimate=names, threads=1, prefit=False, max_iter=opts.max_iter,
+                                       time_limit_s=opts.fit_time_limit_s),
+                       effects=effects)
+        keyed = {e.key(k): (e.name, k) for e in effects for k in e.PARAMS}
+        pname = (lambda n: keyed[n][1]) if len(effects) == 1 else (lambda n: n)
+        c = Candidate(effect=label, params={pname(n): res.params[n].value for n in keyed},
+                      std={pname(n): res.params[n].std for n in keyed},
+                      status=res.solver["status"], friction={n: res.params[n].value for n in ("Fc", "Fv", "kp")},
+                      train_cost=res.solver["cost"], iterations=res.solver["iterations"], start=start,
+                      effects=res.effects)
+        if c.train_cost > nominal.train_cost * (1 + 1e-3):
+            # the candidate contains the nominal model: ending worse on TRAIN is a failed fit
+            c.status = "worse_than_nominal"
+            c.error = (f"the fit ended worse on TRAIN than the nominal model it contains (cost {c.train_cost:.4g} "
+                       f"vs {nominal.train_cost:.4g}): a local minimum")
+        else:
+            c.validation = validate(res.cylinder, res.effects, valid, opts.horizon_s, segments=segments)
+            c.rmse_x_validation = c.validation.rmse("x")
+        c.wall_s = time.perf_counter() - t0
+        return c
+    except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
+        # one candidate failing must not end the diagnosis
+        return Candidate(effect=label, status="failed", start=start, wall_s=time.perf_counter() - t0,
+                         error=f"{type(e).__name__}: {e}")
+
+
+def _run_jobs(jobs: list, workers: int) -> list[Candidate]:
+    if workers > 1 and len(jobs) > 1:
+        with ProcessPoolExecutor(min(workers, len(jobs))) as pool:
+            return list(pool.map(_fit_candidate, jobs))
+    return [_fit_candidate(j) for j in jobs]
+
+
+def _best_starts(results: list[Candidate]) -> list[Candidate]:
+    """Per candidate, the start that fitted TRAIN best (VALID never chooses)."""
+    best: dict[str, Candidate] = {}
+    for c in results:
+        old = best.get(c.effect)
+        better = c.validation is not None and (old is None or old.validation is None
+                                               or c.train_cost < old.train_cost)
+        if old is None or better:
+            if old is not None:
+                c.wall_s += old.wall_s
+            best[c.effect] = c
+        else:
+            old.wall_s += c.wall_s
+    return list(best.values())
+
+
+def _score(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOptions) -> None:
+    if c.validation is None or not c.validation.normalized_rms() < 1e6 * base.normalized_rms():
+        if c.validation is not None:
+            c.status, c.error = "diverged", "the re-identified model's simulation of VALID is not finite"
+        return
+    c.shrink = 1.0 - c.rmse_x_validation / base_rmse_x
+    c.shrink_all, c.t_stat = paired_gain(base, c.validation)
+    c.significant = bool(c.t_stat >= opts.min_t and c.shrink_all >= opts.min_shrink)
+    c.score = c.shrink_all - opts.penalty_per_param * c.n_params
+
+
+# ------------------------------------------------------------------ the diagnosis
+
+@dataclass
+class Diagnosis:
+    """Everything a diagnosis found; `to_json()` is the FORMATS.md document, the arrays feed
+    the report and Rerun."""
+
+    cylinder: Cylinder  # with the nominal friction identified on TRAIN
+    train: Run
+    valid: Run
+    options: DiagnoseOptions
+    baseline: dict
+    verdict: str
+    ranking: list[Candidate]
+    pair: Candidate | None
+    regions: list[dict]
+    subsystems: list[dict]
+    whiteness: dict
+    correlations: list[dict]
+    base_validation: Validation
+    wall_s: float = 0.0
+
+    @property
+    def best(self) -> Candidate | None:
+        return next((c for c in self.ranking if c.effect == self.verdict), None)
+
+    @property
+    def velocity(self) -> np.ndarray:
+        return _velocity_estimate(self.valid.t, self.valid.x)
+
+    def to_json(self) -> dict:
+        return {
+            "baseline": self.baseline,
+            "verdict": self.verdict,
+            "ranking": [c.to_json() for c in self.ranking],
+            "pair": self.pair.to_json() if self.pair is not None else None,
+            "regions": self.regions,
+            "subsystems": self.subsystems,
+            "whiteness": self.whiteness,
+            "correlations": self.correlations,
+            "options": {"horizon_s": self.options.horizon_s, "min_t": self.options.min_t,
+                        "min_shrink": self.options.min_shrink, "penalty_per_param": self.options.penalty_per_param,
+                        "candidates": list(self.options.candidates)},
+            "segments": len(self.base_validation.segments),
+            "wall_s": round(self.wall_s, 3),
+        }
 
 
 def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = DiagnoseOptions(),
-             progress: Callable[[str], None] | None = None) -> dict:
+             progress: Callable[[str], None] | None = None) -> Diagnosis:
+    t_start = time.perf_counter()
     say = progress or (lambda _m: None)
+    opts = options
     say("identifying the nominal model on TRAIN ...")
     base = identify(cyl, [train], IdentifyOptions())
-    r0 = validation_residuals(base.cylinder, (), valid, options.horizon_s)
-    base_rmse = _rmse(r0[0])
-    say(f"  validation RMSE of x: {base_rmse * 1e6:.2f} um ({options.horizon_s:g} s horizon)")
-    say(f"re-identifying {len(options.candidates)} candidate effects on TRAIN ({options.workers} processes) ...")
-    jobs = [(cyl, train, valid, name, options) for name in options.candidates]
-    if options.workers > 1:
-        with ProcessPoolExecutor(options.workers) as pool:
-            cands = list(pool.map(_fit_candidate, jobs))
-    else:
-        cands = [_fit_candidate(j) for j in jobs]
+    nominal = base.cylinder
+    segments = validation_segments(valid, opts.horizon_s)
+    base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments, threads=opts.workers)
+    start = _Nominal(nominal, base.solver["cost"])
+    base_rmse = base_val.rmse("x")
+    say(f"  validation RMSE of x: {base_rmse * 1e6:.2f} um, all outputs {base_val.normalized_rms():.2f} x the "
+        f"sensor noise ({len(segments)} segments of about {opts.horizon_s:g} s)")
+
+    correlations = regressor_correlations(nominal, valid)
+    # the slowest fits first (added states, then parameters) so that the processes finish together
+    order = sorted(opts.candidates, key=lambda n: (-len(EFFECTS[n].STATES), -len(EFFECTS[n].PARAMS)))
+    say(f"re-identifying {len(order)} candidate effects on TRAIN ({min(opts.workers, len(order))} processes) ...")
+    results = _run_jobs([(start, train, valid, (make_effect(n),), 0, opts, segments) for n in order], opts.workers)
+    cands = _best_starts(results)
     for c in cands:
-        if math.isfinite(c.rmse_x_validation):
-            c.shrink = 1.0 - c.rmse_x_validation / base_rmse
-            c.score = c.shrink - options.penalty_per_param * len(c.params)
-        say(f"  {c.effect:20s} shrink {c.shrink:7.1%}" + (f"  ({c.error})" if c.error else ""))
-    ranking = sorted(cands, key=lambda c: -c.score)
-    best = ranking[0] if ranking else None
-    verdict = best.effect if best is not None and best.shrink >= options.min_shrink else "none"
-    return {
-        "baseline": {"rmse_x_validation": base_rmse, "rmse_p1_validation": _rmse(r0[1]),
-                     "rmse_p2_validation": _rmse(r0[2]), "friction": {n: e.value for n, e in base.params.items()},
-                     "rmse_x_train": base.fit["rmse_x"], "horizon_s": options.horizon_s},
-        "verdict": verdict,
-        "ranking": [c.to_json() for c in ranking],
-        "regions": regions(base.cylinder, valid, r0[0]),
-        "whiteness": whiteness(r0[0]),
+        _score(c, base_val, base_rmse, opts)
+    # alternative starts only when no candidate has closed the gap yet (to near the noise)
+    closed = any(c.significant and c.validation.normalized_rms() < opts.closed_gap for c in cands)
+    alternatives = [(start, train, valid, (eff,), k, opts, segments)
+                    for n in order for k, eff in enumerate(candidate_starts(n)) if k > 0]
+    if alternatives and not closed:
+        say(f"  trying {len(alternatives)} alternative starts of effects whose shape the defaults may miss ...")
+        cands = _best_starts(results + _run_jobs(alternatives, opts.workers))
+        for c in cands:
+            _score(c, base_val, base_rmse, opts)
+    for c in cands:
+        say(f"  {c.effect:20s} shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  t {c.t_stat:6.1f}"
+            + (f"  ({c.error})" if c.error else ""))
+    ranking = sorted(cands, key=lambda c: (not c.significant, -c.score))
+    best = ranking[0] if ranking and ranking[0].significant else None
+    verdict = best.effect if best is not None else "none"
+
+    pair = None
+    if opts.pair and best is not None:
+        pair = _best_pair(start, train, valid, ranking, base_val, base_rmse, segments, opts, say)
+
+    subsystems = subsystem_split(cyl, nominal, train, valid, base_val, opts, segments)
+    x_idx = base_val.outputs.index("x")
+    return Diagnosis(
+        cylinder=nominal, train=train, valid=valid, options=opts,
+        baseline={"rmse_x_validation": base_rmse, "rmse_p1_validation": base_val.rmse("p1"),
+                  "rmse_p2_validation": base_val.rmse("p2"), "normalized_rms": base_val.normalized_rms(),
+                  "friction": {n: e.value for n, e in base.params.items()},
+                  "friction_std": {n: e.std for n, e in base.params.items()},
+                  "rmse_x_train": base.fit["rmse_x"], "train_cost": base.solver["cost"],
+                  "horizon_s": opts.horizon_s,
+                  "noise": {"x": float(base_val.noise[0]), "p": float(cyl.sensors.pressure_noise)}},
+        verdict=verdict, ranking=ranking, pair=pair,
+        regions=regions(nominal, valid, base_val, best.validation if best is not None else None),
+        subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
+        correlations=correlations, base_validation=base_val, wall_s=time.perf_counter() - t_start)
+
+
+def _best_pair(nominal, train, valid, ranking, base_val, base_rmse, segments, opts, say) -> Candidate | None:
+    """The verdict's effect with the runner-up, when the verdict alone leaves a significant
+    gap that the runner-up also addresses."""
+    best = ranking[0]
+    second = next((c for c in ranking[1:] if c.significant), None)
+    if second is None or best.validation is None:
+        return None
+    # the remaining gap: is the best candidate itself still clearly worse than noise?
+    if best.validation.normalized_rms() < 1.05:
+        return None
+    effects = (best.effects[0], second.effects[0] if second.effects else make_effect(second.effect))
+    say(f"trying the pair {best.effect} + {second.effect} ...")
+    c = _fit_candidate((nominal, train, valid, effects, 0, opts, segments))
+    _score(c, base_val, base_rmse, opts)
+    c.significant = c.significant and _gain_over(best.validation, c.validation, opts)
+    say(f"  {c.effect}: shrink {c.shrink:.1%}, all outputs {c.shrink_all:.1%}"
+        + ("" if c.significant else " (not significantly better than the verdict alone)"))
+    return c
+
+
+def _gain_over(ref: Validation, cand: Validation | None, opts: DiagnoseOptions) -> bool:
+    if cand is None:
+        return False
+    shrink, t = paired_gain(ref, cand)
+    return t >= opts.min_t and shrink >= opts.min_shrink
+
+
+# ------------------------------------------------------------------ subsystems and regressors
+
+def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np.ndarray]:
+    """Equation errors of the nominal model at the measured signals (seed 000's method), each
+    subsystem on its own:
+
+    force  friction implied by Newton's law with the measured pressures minus the nominal
+           friction law refitted to it by linear least squares (so a dynamic fit distorted
+           by an unmodelled pneumatic effect does not blame the friction law) (N);
+    p1, p2 the measured pressure derivatives minus the nominal chamber equations (valve and
+           chambers) evaluated at the smoothed measured state and the command (Pa/s).
+    Derivatives and smoothing are Savitzky-Golay over +-`half` samples; the model's chamber
+    rates, which follow the command sample by sample, are smoothed by the same filter."""
+    from sim.plant import build_plant
+
+    from .identify import _derivative_kernels, equation_error_friction, friction_from_newton
+
+    idx, v, F = friction_from_newton(nominal, run, half)
+    if len(idx) == 0:
+        return {}
+    fitted = equation_error_friction(nominal, [run], half)
+    fr = nominal.with_values(fitted).friction if fitted else nominal.friction
+    dp = np.abs(run.p1[idx] - run.p2[idx])
+    eF = F - ((fr.Fc + fr.kp * dp) * np.tanh(v / fr.v_smooth) + fr.Fv * v)
+    k1, _ = _derivative_kernels(half)
+    k0 = np.linalg.pinv(np.vander(np.arange(-half, half + 1, dtype=float), 3, increasing=True))[0][::-1]
+    full = {n: np.convolve(getattr(run, n), k0, mode="same") for n in ("x", "p1", "p2")}
+    v_full = np.convolve(run.x, k1, mode="same") / run.sample_period
+    dt = run.sample_period
+    plant = build_plant("command")
+    p = np.array(plant.parameter_vector(nominal))
+    # the command changes every sample: smooth the model's rates with the same filter as the
+    # measured derivative, so both see the same bandwidth
+    states = np.vstack([full["p1"], full["p2"], full["x"], v_full])
+    rhs_full = np.asarray(plant.rhs.map(run.n)(states, run.u[None, :], p))
+    rhs = np.vstack([np.convolve(rhs_full[i], k0, mode="same")[idx] for i in range(2)])
+    out = {"index": idx, "v": v, "force": eF}
+    for i, name in enumerate(("p1", "p2")):
+        out[name] = np.convolve(getattr(run, name), k1, mode="same")[half:-half] / dt - rhs[i]
+    return out
+
+
+def subsystem_split(cyl: Cylinder, nominal: Cylinder, train: Run, valid: Run, base_val: Validation,
+                    opts: DiagnoseOptions, segments, seed: int = 0) -> list[dict]:
+    """Which part of the model carries the gap.
+
+    - the piston force balance (friction, mass) alone: the pressure drive, driven by the
+      MEASURED pressures, identified on TRAIN and scored on VALID like the whole model. Its
+      floor is not the sensor noise (the noisy measured pressures drive it), so the same
+      score on the nominal model's own simulation of VALID with sensor noise added (a
+      parametric bootstrap) gives it;
+    - the chamber pressures (valve and chambers) in the whole model's validation, with the
+      valve near centre (chambers: leakage, heat; a valve that should be shut) and open
+      (valve characteristic, timing, supply); their floor is the pressure sensor noise.
+    `excess` is (rmse / floor)^2 - 1, the error variance above the floor in units of it;
+    `share_of_error` divides the summed excess among the parts."""
+    rows = []
+    label = "piston force balance (friction, mass), driven by the measured pressures"
+    try:
+        mech = identify(cyl, [train], IdentifyOptions(drive="pressure", threads=opts.workers))
+        mval = validate(mech.cylinder, (), valid, opts.horizon_s, drive="pressure", segments=segments,
+                        threads=opts.workers)
+        rng = np.random.default_rng(seed)
+        sen, sim = cyl.sensors, base_val.simulated
+        fake = replace(valid, x=sim[0] + rng.normal(0, sen.position_noise, valid.n),
+                       p1=sim[1] + rng.normal(0, sen.pressure_noise, valid.n),
+                       p2=sim[2] + rng.normal(0, sen.pressure_noise, valid.n))
+        floor = validate(nominal, (), fake, opts.horizon_s, drive="pressure", segments=segments,
+                         threads=opts.workers).rmse("x")
+        rows.append({"subsystem": label, "output": "x", "rmse": mval.rmse("x"), "floor": floor, "unit": "m",
+                     "fraction_of_samples": 1.0})
+    except IdentificationError as e:
+        rows.append({"subsystem": label, "error": str(e)})
+    centre = np.abs(valid.u) < 0.05
+    for label, m in (("chamber pressures, valve near centre (chambers, leakage, heat)", centre),
+                     ("chamber pressures, valve open (valve characteristic, timing, supply)", ~centre)):
+        if m.any():
+            r = np.concatenate([base_val.residual[base_val.outputs.index(o)][m] for o in ("p1", "p2")])
+            rows.append({"subsystem": label, "output": "p1, p2", "rmse": _rmse(r),
+                         "floor": float(cyl.sensors.pressure_noise), "unit": "Pa",
+                         "fraction_of_samples": float(m.mean())})
+    for r in rows:
+        ok = "rmse" in r and math.isfinite(r["rmse"]) and r["floor"] > 0
+        r["excess"] = max(0.0, (r["rmse"] / r["floor"]) ** 2 - 1) if ok else 0.0
+        r["within_noise"] = bool(r["excess"] < 0.1)
+    total = sum(r["excess"] for r in rows)
+    for r in rows:
+        r["share_of_error"] = r["excess"] / total if total > 0 else 0.0
+    return rows
+
+
+# regressors that each candidate's physics would add to the force or pressure equations
+_REGRESSOR_EFFECTS = {
+    "stribeck (sign(v) exp(-(v/10 mm/s)^2))": "stiction",
+    "direction (sign(v))": "friction_asymmetry",
+    "position along the stroke": "friction_position",
+    "acceleration": "mass",
+    "pressure difference (p1 - p2)": "leakage",
+    "command rate (du/dt)": "valve_delay",
+    "valve near centre (u, |u| < 0.1)": "valve_deadzone",
+    "supply draw (|u| ps)": "supply_droop",
+}
+
+
+def regressor_correlations(nominal: Cylinder, run: Run) -> list[dict]:
+    """Fast screen: correlation of the nominal model's equation errors (equation_errors, with
+    the friction refitted by equation error on this run so that a distorted dynamic fit
+    does not leak into the force error) with regressors the candidates' physics would add.
+    |r| orders the candidates; it never decides."""
+    from .identify import _derivative_kernels
+
+    ee = equation_errors(nominal, run)
+    if not ee or len(ee["index"]) < 100:
+        return []
+    idx, v = ee["index"], ee["v"]
+    half = 15
+    k1, k2 = _derivative_kernels(half)
+    dt = run.sample_period
+    acc = np.convolve(run.x, k2, mode="same")[half:-half] / dt ** 2
+    g = nominal.geometry
+    V1 = g.dead_volume_cap + g.area_cap * run.x[idx]
+    V2 = g.dead_volume_rod + g.area_rod * (g.stroke - run.x[idx])
+    # chamber errors as volume-weighted rates (mass flow equivalents), net into chamber 1
+    e12 = ee["p1"] * V1 - ee["p2"] * V2
+    u = run.u[idx]
+    du = np.convolve(run.u, k1, mode="same")[half:-half] / dt
+    moving = np.abs(v) > 0.005
+    xi = run.x[idx] / g.stroke
+    eF = ee["force"]
+    regs = {
+        "stribeck (sign(v) exp(-(v/10 mm/s)^2))": (eF, np.sign(v) * np.exp(-(v / 0.01) ** 2)),
+        "direction (sign(v))": (eF, np.sign(v) * moving),
+        "position along the stroke": (eF, np.sign(v) * (xi - 0.5) * moving),
+        "acceleration": (eF, -acc),
+        "pressure difference (p1 - p2)": (e12, -(run.p1[idx] - run.p2[idx])),
+        "command rate (du/dt)": (e12, -du),
+        "valve near centre (u, |u| < 0.1)": (e12, -u * (np.abs(u) < 0.1)),
+        "supply draw (|u| ps)": (ee["p1"] * V1 + ee["p2"] * V2, -np.abs(u)),
     }
+    out = []
+    step = max(1, int(round(0.005 / dt)))  # decimate: neighbouring samples share the filter
+    for name, (e, r_) in regs.items():
+        e, r_ = e[::step], r_[::step]
+        ok = np.isfinite(e) & np.isfinite(r_)
+        e, r_ = e[ok] - e[ok].mean(), r_[ok] - r_[ok].mean()
+        den = math.sqrt(float(e @ e) * float(r_ @ r_))
+        r = float(e @ r_) / den if den > 0 else 0.0
+        out.append({"regressor": name, "hints": _REGRESSOR_EFFECTS[name], "r": r, "n": int(len(e))})
+    return sorted(out, key=lambda d: -abs(d["r"]))

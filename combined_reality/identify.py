@@ -45,6 +45,7 @@ class IdentifyOptions:
     estimate: tuple[str, ...] = ("Fc", "Fv", "kp")
     interval_s: float = 0.1  # shooting interval length
     max_iter: int = 40
+    time_limit_s: float = math.inf  # stop iterating after this long (status "time_limit")
     # start Fc, Fv, kp from a linear equation-error fit (friction from Newton's law with the
     # measured pressures, seed 000's method) unless a start is given explicitly
     prefit: bool = True
@@ -287,7 +288,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
 
     dt0 = runs[0].sample_period
     M = max(5, int(round(options.interval_s / dt0)))
-    sf = shooting_functions(plant, M, free, options.integrator, progress=progress)
+    sf = shooting_functions(plant, M, free, options.integrator, progress=progress, with_sens=True)
     nx, ny, nth = plant.nx, len(plant.output_names), len(free)
     out_idx = [plant.state_names.index(n) for n in plant.output_names]
 
@@ -329,6 +330,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     history = []
     it = 0
     for it in range(1, options.max_iter + 1):
+        if time.perf_counter() - t_start > options.time_limit_s:
+            status = "time_limit"
+            break
         E, D, X, Sens = ev
         lin_ = _linearize(ev, out_idx, wts, mask, M, nx, ny, nth)
         G, Hth = lin_[0], lin_[1]
@@ -587,7 +591,7 @@ def _condense(lin, E, Draw, layouts, has_next, nx, nth):
     for ri, l in enumerate(layouts):
         sl = slice(l.node0, l.node0 + l.K)
         js = Js[sl].reshape(-1, nx)
-        jt = Jt[sl].reshape(-1, nth)
+        jt = Jt[sl].reshape(js.shape[0], nth)  # explicit rows: nth may be 0 (states only)
         rr = r0[sl].reshape(-1)
         a = slice(ri * nx, (ri + 1) * nx)
         N[a, a] = js.T @ js

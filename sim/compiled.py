@@ -177,15 +177,19 @@ class ShootingFunctions:
 
 
 def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int] = (),
-                       opts: IntegratorOptions = IntegratorOptions(), progress=None) -> ShootingFunctions:
+                       opts: IntegratorOptions = IntegratorOptions(), progress=None,
+                       with_sens: bool | None = None) -> ShootingFunctions:
+    """`with_sens` (default: when parameters are free) builds `sens`; without free parameters
+    it gives the sensitivities to the initial state alone (fitting initial states)."""
     free = tuple(int(i) for i in free)
+    with_sens = bool(free) if with_sens is None else with_sens
     M = int(interval_len)
     sb = StepBuilder(plant, opts)
     nx, nw, npar = sb.nx, sb.nw, sb.npar
     nz = nx + len(free)
     tag = f"{plant.drive}_{plant.structure_key}"
     names = [f"step_{tag}", f"interval_{tag}_{M}"]
-    if free:
+    if with_sens:
         names.append(f"sens_{tag}_{M}_{'_'.join(map(str, free))}")
 
     def build() -> list[ca.Function]:
@@ -201,7 +205,7 @@ def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int
         X = acc(s, W[:, :M], W[:, 1:], P, H)
         interval = ca.Function(names[1], [s, W, p, H], [X], ["s", "W", "p", "H"], ["X"])
         funcs = [step, interval]
-        if free:
+        if with_sens:
             sstep = sb.sensitivity_step(free)
             acc_s = sstep.mapaccum("acc_s", M, [0, 5], [0, 1])
             S0 = ca.horzcat(ca.MX.eye(nx), ca.MX.zeros(nx, len(free)))
@@ -210,6 +214,6 @@ def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int
                                      ["s", "W", "p", "H"], ["X", "S"]))
         return funcs
 
-    key = ("shooting", plant.structure_key, plant.drive, opts.key(), M, free)
+    key = ("shooting", plant.structure_key, plant.drive, opts.key(), M, free, with_sens)
     fns, stats = load_or_build(key, build, names, progress)
-    return ShootingFunctions(plant, M, free, fns[names[0]], fns[names[1]], fns[names[2]] if free else None, stats)
+    return ShootingFunctions(plant, M, free, fns[names[0]], fns[names[1]], fns[names[2]] if with_sens else None, stats)

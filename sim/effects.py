@@ -67,6 +67,10 @@ class Effect:
     SIGNED: ClassVar[frozenset[str]] = frozenset()
     # parameter -> (reference of the weak bound, of the strong bound), None: absolute
     SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {}
+    # alternative identification starts (parameter values over the defaults) for shapes a
+    # fit from the defaults cannot reach; the diagnosis tries them all and keeps the start
+    # that fits TRAIN best
+    STARTS: ClassVar[tuple[dict[str, float], ...]] = ()
 
     def param_names(self) -> tuple[str, ...]:
         return tuple(self.PARAMS)
@@ -203,6 +207,7 @@ class Stiction(Effect):
     STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"Fs_excess": (0.45, 1.0), "v_stribeck": (0.003, 0.02)}
     SHAPE: ClassVar[frozenset[str]] = frozenset({"v_stribeck"})
     SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {"Fs_excess": (None, "seal_friction")}
+    STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"Fs_excess": 2.0, "v_stribeck": 0.004},)
     Fs_excess: float = 10.0
     v_stribeck: float = 0.01
 
@@ -279,6 +284,7 @@ class FrictionPosition(Effect):
         "slope": ("per_seal_friction", None), "bump": ("per_seal_friction", None)}
     # defaults are the identification start: a small bump; `center` is found only from a
     # start within about 0.1 of the stroke (try several centres for an unknown spot)
+    STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"center": 0.25}, {"center": 0.75})
     slope: float = 0.0
     bump: float = 0.1
     center: float = 0.5
@@ -322,6 +328,7 @@ class FrictionDynamics(Effect):
         "share": (0.85, 1.0), "x_pre": (3e-5, 5e-4), "t_damp": (5e-4, 4e-3)}
     SHAPE: ClassVar[frozenset[str]] = frozenset({"x_pre", "t_damp"})
     SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {"share": ("per_seal_friction", None)}
+    STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"share": 0.95, "x_pre": 3e-4},)
     share: float = 0.5
     x_pre: float = 1e-4
     t_damp: float = 2e-3
@@ -390,6 +397,7 @@ class ValveDeadzone(Effect):
     SMOOTH: ClassVar[float] = 0.1  # rounding half-width as a fraction of the overlap (bump REVISION with it)
     # the default is the identification start: from a start far above the truth (in effect
     # size) the multiple-shooting fit can stall in a local minimum of the first node state
+    STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"overlap": 0.03},)
     overlap: float = 1e-4
 
     def on_command(self, sig, q, s) -> None:

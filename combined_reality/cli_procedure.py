@@ -1,0 +1,237 @@
+"""`combined-reality procedure breakaway|sweep`: static friction tests on a rig (docs/procedures.md).
+
+    combined-reality procedure sweep --serial /dev/ttyACM0 --config cyl.toml --record sweep.csv \\
+        --out points.csv --json sweep.json
+
+`add_parser(sub)` registers the subcommand on the main parser's subparsers; `run(args)` runs it.
+Exit status as for every subcommand: 0 success, 2 bad input (UsageError, one sentence),
+1 the procedure failed (the rig never moved, went silent, ...), 130 interrupted.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+KINDS = ("breakaway", "sweep")
+_DIRECTIONS = {"both": (1, -1), "extension": (1,), "retraction": (-1,)}
+# option field -> command-line flag, so that the library's messages name what the user typed
+_FLAGS = {"trials": "--trials", "force_rate": "--force-rate", "speeds": "--speeds", "v_min": "--vmin",
+          "v_max": "--vmax", "u_max": "--u-max", "margin": "--margin", "start": "--start"}
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "procedure", help="automated static friction tests on a rig: breakaway force, constant-speed sweep",
+        description="Run a static friction test on a rig (live or virtual) and write the points a friction map "
+                    "is fitted to. breakaway: the net force is raised slowly from rest until the piston moves, "
+                    "--trials times per direction. sweep: strokes at --speeds constant speeds per direction under "
+                    "closed-loop velocity control, one point (mean velocity, mean friction) per stroke. Every "
+                    "sample is recorded as it arrives (--record); commands are bounded, soft stroke limits apply, "
+                    "and the valve is centred at the end, on Ctrl-C and on any error.")
+    p.add_argument("kind", choices=KINDS, help="breakaway or sweep")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--serial", metavar="PORT", help="a rig on a serial port (docs/protocol.md)")
+    src.add_argument("--can", metavar="CHANNEL", help="a rig on CAN (hw/rig_can.dbc), via python-can")
+    src.add_argument("--virtual", action="store_true",
+                     help="the virtual rig in this process, as fast as the CPU allows (--realtime: at its clock)")
+    p.add_argument("--interface", default="socketcan", help="python-can interface for --can (default socketcan)")
+    p.add_argument("--realtime", action="store_true", help="with --virtual: run at the rig's clock")
+    p.add_argument("--effect", action="append", metavar="SPEC",
+                   help="with --virtual: an unmodelled effect as truth, e.g. stiction:Fs_excess=10,v_stribeck=0.01")
+    p.add_argument("--seed", type=int, default=0, help="with --virtual: seed of the sensor noise (default 0)")
+    p.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
+    p.add_argument("--trials", type=int, help="breakaway: trials per direction (default 15)")
+    p.add_argument("--force-rate", type=float, metavar="N_PER_S",
+                   help="breakaway: slope of the net-force ramp, N/s (default 20)")
+    p.add_argument("--start", type=float, metavar="FRACTION",
+                   help="breakaway: where each trial starts, fraction of the stroke (default 0.5)")
+    p.add_argument("--speeds", type=int, help="sweep: target speeds per direction, log-spaced (default 8)")
+    p.add_argument("--vmin", type=float, metavar="V", help="sweep: slowest target speed, m/s (default vmax / 20)")
+    p.add_argument("--vmax", type=float, metavar="V",
+                   help="sweep: fastest target speed, m/s (default: the working travel in 0.4 s, at most 0.5)")
+    p.add_argument("--directions", choices=tuple(_DIRECTIONS), default="both", help="default both")
+    p.add_argument("--u-max", type=float, default=0.8, help="command bound (default 0.8)")
+    p.add_argument("--margin", type=float, default=0.1,
+                   help="soft stroke limits: keep this fraction of the stroke from each end (default 0.1)")
+    p.add_argument("--record", metavar="RUN.csv", help="run CSV written as samples arrive")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
+    p.add_argument("--out", required=True, metavar="POINTS.csv",
+                   help="points table for the friction map: header v,F,F_std,v_std,count,dp,pc (SI, signed: "
+                        "+ extension); breakaway: one row per direction")
+    p.add_argument("--json", metavar="OUT.json", help="per-trial / per-speed details")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from . import cli
+    from .procedures import ProcedureError
+
+    cyl = cli._load_config(args.config)
+    opts = _options(args, cyl)
+    effects = cli._parse_effects(args.effect)
+    if (effects or args.realtime) and not args.virtual:
+        raise cli.UsageError(f"{'--effect' if effects else '--realtime'} applies to the virtual rig; it needs "
+                             "--virtual.")
+    _check_paths(args)
+    from hw.rig import RigError
+
+    rig = _open_rig(args, cyl, effects)
+    where = f"serial {args.serial}" if args.serial else f"CAN {args.can} ({args.interface})" if args.can \
+        else "virtual rig" + (f" with {', '.join(args.effect)}" if args.effect else "")
+    comments = [f"combined-reality procedure {args.kind}: cylinder {cyl.name!r} ({cyl.source}), {where}",
+                f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
+    progress = None if args.quiet else cli._eprint
+    t_wall = time.perf_counter()
+    try:
+        result = _with_sigterm(lambda: _run_procedure(args.kind, rig, cyl, opts, args.record, comments, progress))
+    except (ProcedureError, RigError) as e:  # the procedure has centred the valve already
+        cli._eprint(f"combined-reality procedure: {e}" + (f" (recorded so far: {args.record})" if args.record else ""))
+        return 1
+    except KeyboardInterrupt:
+        cli._eprint("combined-reality procedure: interrupted: valve centred"
+                    + (f", recording {args.record} closed." if args.record else "."))
+        return 130
+    wall = time.perf_counter() - t_wall
+    _write_outputs(args, cyl, result, comments, where, wall)
+    print(_summary(args.kind, result))
+    if args.kind == "sweep" and not result.table():
+        cli._eprint("combined-reality procedure: no steady point: every stroke stuck, slipped or was too short "
+                    "(see the lines above; try other --vmin/--vmax).")
+        return 1
+    return 0
+
+
+# ------------------------------------------------------------------ pieces
+
+def _options(args, cyl):
+    from .cli import UsageError
+    from .procedures import BreakawayOptions, SafetyOptions, SweepOptions, target_speeds
+
+    given = {f: getattr(args, f) for f in ("trials", "force_rate", "start", "speeds", "vmin", "vmax")
+             if getattr(args, f) is not None}
+    other = {"breakaway": ("speeds", "vmin", "vmax"), "sweep": ("trials", "force_rate", "start")}[args.kind]
+    wrong = [f"--{f.replace('_', '-')}" for f in other if f in given]
+    if wrong:
+        raise UsageError(f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply to the {args.kind} "
+                         f"procedure.")
+    for name in ("force_rate", "start", "vmin", "vmax", "u_max", "margin"):
+        v = getattr(args, name)
+        if v is not None and not math.isfinite(v):
+            raise UsageError(f"--{name.replace('_', '-')} must be a finite number, not {v}.")
+    try:
+        safety = SafetyOptions(u_max=args.u_max, margin=args.margin)
+        directions = _DIRECTIONS[args.directions]
+        if args.kind == "breakaway":
+            kw = {k: v for k, v in (("trials", args.trials), ("force_rate", args.force_rate), ("start", args.start))
+                  if v is not None}
+            return BreakawayOptions(directions=directions, safety=safety, **kw)
+        kw = {k: v for k, v in (("speeds", args.speeds), ("v_min", args.vmin), ("v_max", args.vmax)) if v is not None}
+        opts = SweepOptions(directions=directions, safety=safety, **kw)
+        target_speeds(cyl, opts)  # checks --vmin against the default --vmax of this cylinder
+        return opts
+    except ValueError as e:  # the library checks the options; its messages name them as fields
+        import re
+
+        msg = re.sub(r"(?<![\w/.-])[a-z_]+(?![\w/.-])", lambda m: _FLAGS.get(m[0], m[0]), str(e))
+        raise UsageError(f"{msg}.") from None
+
+
+def _check_paths(args) -> None:
+    from .cli import UsageError
+
+    if args.record:
+        record = Path(args.record)
+        if record.exists() and not args.overwrite:
+            raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
+        if not record.parent.is_dir():
+            raise UsageError(f"--record {record}: the folder {record.parent} does not exist.")
+    for flag, path in (("--out", args.out), ("--json", args.json)):
+        if path and not Path(path).parent.is_dir():
+            raise UsageError(f"{flag} {path}: the folder {Path(path).parent} does not exist.")
+        if path and Path(path).is_dir():
+            raise UsageError(f"{flag} {path} is a folder, not a file name.")
+    if args.record and Path(args.record).resolve() in {Path(p).resolve() for p in (args.out, args.json) if p}:
+        raise UsageError("--record and --out/--json must be different files.")
+
+
+def _open_rig(args, cyl, effects):
+    """The rig named on the command line (as `live` opens it)."""
+    from .cli import open_rig
+
+    return open_rig(args, cyl, effects, paced=args.realtime)
+
+
+def _with_sigterm(fn):
+    """Run fn with SIGTERM ending it like Ctrl-C (valve centred, files complete)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return fn()
+
+    def _term(*_):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, _term)
+    try:
+        return fn()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_procedure(kind, rig, cyl, opts, record, comments, progress):
+    from .procedures import breakaway_test, speed_sweep
+
+    fn = breakaway_test if kind == "breakaway" else speed_sweep
+    try:
+        return fn(rig, cyl, opts, record_to=record, record_comments=comments, progress=progress)
+    finally:
+        rig.stop()  # the procedure stops the rig itself; this covers a failure before it started (idempotent)
+
+
+def _write_outputs(args, cyl, result, comments, where: str, wall: float) -> None:
+    from .cli import _clean_json, _eprint, _write_json_atomic
+    from .procedures import DIRECTION_NAMES, write_points
+
+    if args.kind == "breakaway":
+        what = [f"breakaway (static) friction, one row per direction, mean of {result.options.trials} trial(s): "
+                "F = peak net pneumatic force (p1 A1 - p2 A2 - pa (A1 - A2) - weight) of a slow force ramp before "
+                "motion was detected (N, + extension); v = velocity at that peak (creep or pre-sliding, m/s), its "
+                "sign the direction"]
+    else:
+        n_unsteady = sum(not p.steady for p in result.points)
+        what = ["v: mean velocity (m/s, + extension), F: mean friction (N, sign of v) over the steady part of a "
+                "constant-speed stroke, from Newton's law with the measured pressures",
+                f"{len(result.table())} steady points; {n_unsteady} unsteady (stick-slip) and {len(result.skipped)} "
+                "strokes without a point left out"]
+    what.append("F_std, v_std: spreads (N, m/s); count: samples (sweep) or trials (breakaway) averaged; "
+                "dp: mean |p1 - p2| (Pa); pc: counter pressure (Pa gauge: p2 - pa extending, p1 - pa retracting)")
+    details = f"details: {args.json}" if args.json else "details: run with --json"
+    write_points(args.out, result.table(), comments + what + [details])
+    out = {**result.to_json(), "config": str(cyl.source), "rig": where, "record": args.record, "out": args.out,
+           "wall_s": round(wall, 3)}
+    if args.json:
+        _write_json_atomic(args.json, _clean_json(out))
+    if not args.quiet:
+        c = result.counters
+        _eprint(f"{c['samples']} samples in {wall:.1f} s, longest host pause {1e3 * c['longest_host_pause_s']:.0f} ms"
+                + (f"; recorded to {args.record}" if args.record else "") + f"; points in {args.out}")
+
+
+def _summary(kind: str, result) -> str:
+    from .procedures import DIRECTION_NAMES
+
+    if kind == "breakaway":
+        lines = [f"breakaway force, mean ± std of {result.options.trials} trial(s):"]
+        lines += [f"  {DIRECTION_NAMES[s.direction]:10s} {s.mean:+9.3f} ± {s.std:.3f} N  (at {1e3 * s.v:+.2f} mm/s, "
+                  f"|p1 - p2| = {s.dp / 1e5:.2f} bar)" for s in result.summary]
+        return "\n".join(lines)
+    lines = ["direction   target m/s   v m/s                 F N                  samples  steady"]
+    for p in sorted(result.points, key=lambda p: p.v):
+        lines.append(f"{DIRECTION_NAMES[p.direction]:10s}  {p.target:+9.4f}  {p.v:+9.4f} ± {p.v_std:<8.2g}  "
+                     f"{p.F:+9.3f} ± {p.F_sem:<8.2g}  {p.n:7d}  {'yes' if p.steady else 'no'}")
+    for s in result.skipped:
+        lines.append(f"{DIRECTION_NAMES[s['direction']]:10s}  {s['target']:+9.4f}  no point: {s['reason']}")
+    return "\n".join(lines)

@@ -1,0 +1,206 @@
+"""The human report of a diagnosis (one self-contained HTML file) and its Rerun logging, on a
+small hand-made Diagnosis (synthetic arrays, no model runs: fast)."""
+import base64
+import math
+import re
+
+import numpy as np
+import pytest
+
+from combined_reality.diagnose import (Candidate, DiagnoseOptions, Diagnosis, Validation, regions,
+                                       whiteness)
+from combined_reality.diagnose_report import format_value, headline, render_report, write_report
+from combined_reality.runs import Run
+
+N, DT = 4000, 1e-3
+SEGMENTS = [(0, 1000), (1000, 2100), (2100, 3000), (3000, N)]
+NOISE = np.array([5e-6, 300.0, 300.0])
+
+
+def _validation(valid: Run, resid_x: np.ndarray, resid_p: float, rng) -> Validation:
+    meas = np.vstack([valid.x, valid.p1, valid.p2])
+    resid = np.vstack([resid_x, rng.normal(0, resid_p, N), rng.normal(0, resid_p, N)])
+    cost = np.array([float(np.sum((resid[:, a:b] / NOISE[:, None]) ** 2)) for a, b in SEGMENTS])
+    return Validation(("x", "p1", "p2"), meas - resid, resid, list(SEGMENTS), cost, NOISE.copy(), "converged")
+
+
+def _diagnosis(cyl, verdict: str = "valve_delay", gap: bool = True) -> Diagnosis:
+    rng = np.random.default_rng(0)
+    t = np.arange(N) * DT
+    x = 0.05 + 0.03 * np.sin(2 * np.pi * 0.7 * t)
+    p1 = 4e5 + 5e4 * np.sin(2 * np.pi * 0.7 * t + 0.3)
+    p2 = 4.5e5 - 3e4 * np.sin(2 * np.pi * 0.7 * t)
+    u = 0.3 * np.cos(2 * np.pi * 0.7 * t)
+    valid = Run(t=t, u=u, x=x + rng.normal(0, 5e-6, N), p1=p1, p2=p2)
+    train = Run(t=t, u=u, x=x, p1=p1, p2=p2)
+    v = np.gradient(x, t)
+    base_x = (3e-4 * np.sign(v) * np.abs(np.sin(8 * t)) if gap else 0) + rng.normal(0, 5e-6, N)
+    base = _validation(valid, base_x, 3000.0 if gap else 300.0, rng)
+    good = _validation(valid, rng.normal(0, 5.1e-6, N), 310.0, rng)
+    leak = _validation(valid, base_x * 0.98, 2900.0, rng)
+    best = Candidate("valve_delay", shrink=1 - good.rmse("x") / base.rmse("x"), rmse_x_validation=good.rmse("x"),
+                     params={"tau": 1.4159e-3, "share": 0.9988}, std={"tau": 1.9e-7, "share": 6.5e-4},
+                     score=0.97, status="converged", shrink_all=0.98, t_stat=5.4, significant=True,
+                     friction={"Fc": 24.8, "Fv": 13.45, "kp": 2.89e-5}, wall_s=4.3, validation=good)
+    other = Candidate("leakage", shrink=0.02, rmse_x_validation=leak.rmse("x"), params={"conductance": 0.0},
+                      std={"conductance": 7e-12}, score=0.0, status="max_iterations", shrink_all=0.01, t_stat=1.2,
+                      significant=False, friction={"Fc": 22.3, "Fv": 0.0, "kp": 0.0}, wall_s=7.7, validation=leak)
+    failed = Candidate("stiction", status="failed", wall_s=0.5,
+                       error="IdentificationError: the line search failed <at iteration 3>")
+    pair = Candidate("valve_delay+leakage", shrink=best.shrink, rmse_x_validation=good.rmse("x"),
+                     params={"valve_delay.tau": 1.4e-3, "valve_delay.share": 1.0, "leakage.conductance": 1e-13},
+                     std={"valve_delay.tau": 2e-7, "valve_delay.share": 1e-3, "leakage.conductance": 1e-14},
+                     status="converged", shrink_all=0.98, t_stat=0.4, significant=False, validation=good)
+    if verdict == "none":
+        best.significant, best.t_stat, pair = False, 1.0, None
+    ranking = [best, other, failed]
+    nrms = base.normalized_rms()
+    baseline = {"rmse_x_validation": base.rmse("x"), "rmse_p1_validation": base.rmse("p1"),
+                "rmse_p2_validation": base.rmse("p2"), "normalized_rms": nrms,
+                "friction": {"Fc": 22.45, "Fv": 0.0, "kp": 0.0}, "friction_std": {"Fc": 10.3, "Fv": 24.9, "kp": 1.2e-4},
+                "rmse_x_train": 2.8e-3, "horizon_s": 1.0, "noise": {"x": 5e-6, "p": 300.0}}
+    subsystems = [
+        {"subsystem": "piston force balance (friction, mass), driven by the measured pressures", "output": "x",
+         "rmse": 1.36e-4, "floor": 1.65e-4, "unit": "m", "excess": 0.0, "within_noise": True, "share_of_error": 0.0},
+        {"subsystem": "chamber pressures, valve near centre (chambers, leakage, heat)", "output": "p1, p2",
+         "rmse": 7700.0, "floor": 300.0, "unit": "Pa", "excess": 660.0, "within_noise": False, "share_of_error": 0.5},
+        {"subsystem": "chamber pressures, valve open (valve characteristic, timing, supply)", "error": "no samples",
+         "excess": 0.0, "within_noise": False, "share_of_error": 0.0},
+    ]
+    correlations = [{"regressor": "command rate (du/dt)", "hints": "valve_delay", "r": 0.6, "n": 700},
+                    {"regressor": "pressure difference (p1 - p2)", "hints": "leakage", "r": -0.1, "n": 700}]
+    d = Diagnosis(cylinder=cyl, train=train, valid=valid,
+                  options=DiagnoseOptions(candidates=("valve_delay", "leakage", "stiction"), workers=1),
+                  baseline=baseline, verdict=verdict, ranking=ranking, pair=pair,
+                  regions=regions(cyl, valid, base, good if verdict != "none" else None), subsystems=subsystems,
+                  whiteness=whiteness(base.residual[0]), correlations=correlations, base_validation=base, wall_s=12.0)
+    return d
+
+
+@pytest.fixture(scope="module")
+def diag(cyl_a):
+    return _diagnosis(cyl_a)
+
+
+def _images(text: str) -> list[bytes]:
+    return [base64.b64decode(m) for m in re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)]
+
+
+def test_the_report_is_one_self_contained_file_with_the_verdict_and_every_candidate(diag, tmp_path):
+    path, png = tmp_path / "out" / "report.html", tmp_path / "png"
+    write_report(diag, path, png_dir=png)
+    text = path.read_text(encoding="utf-8")
+    assert text.startswith("<!DOCTYPE html>") and text.rstrip().endswith("</html>")
+    # nothing outside the file: no remote or relative resources, no scripts or stylesheets to fetch
+    assert not re.search(r'(?:src|href)\s*=\s*(?!["\']?(?:data:|#))', text, re.I)
+    assert not re.search(r"https?://|<link|<script|@import|url\(", text, re.I)
+    imgs = _images(text)
+    assert len(imgs) == text.count("<img") == 6
+    assert all(i.startswith(b"\x89PNG\r\n\x1a\n") for i in imgs)
+    # the verdict in one sentence, with the shrink, the errors in um and the parameter in ms
+    assert re.search(r"The gap is best explained by <b>valve_delay</b> .*shrinks by \d+ % "
+                     r"\([\d.]+ um → [\d.]+ um\); tau = 1\.41590 ms ± 0\.00019 ms", text)
+    rows = re.findall(r"<tr[^>]*>.*?</tr>", text, re.S)
+    for effect in ("valve_delay", "leakage", "stiction", "valve_delay+leakage"):
+        assert any(f"<b>{effect}</b>" in r for r in rows), effect
+    # a failed candidate shows its error (escaped), a parameter left at its bound is marked
+    assert "IdentificationError: the line search failed &lt;at iteration 3&gt;" in text
+    assert "conductance = 0 m³/(s·Pa) ± 7.0e-12 m³/(s·Pa) (at its bound)" in text
+    assert "leakage.conductance = 1.00e-13" in text  # pair parameters with their effect's unit
+    for section in ("Inputs", "Where the error lies", "Which subsystem carries it", "regressor screen"):
+        assert section in text
+    # the PNGs, and no temporary file left behind
+    assert sorted(p.name for p in png.iterdir()) == sorted(
+        ["a_residual_time.png", "b_residual_velocity.png", "c_residual_position.png", "d_traces.png",
+         "e_regions.png", "f_subsystems.png"])
+    assert [p.name for p in path.parent.iterdir()] == ["report.html"]
+
+
+def test_none_verdict_says_so_in_plain_words(cyl_a):
+    clean = _diagnosis(cyl_a, verdict="none", gap=False)
+    text = render_report(clean, title="clean rig")
+    assert "<title>clean rig</title>" in text
+    assert "The nominal model already fits VALID to within the sensor noise" in text
+    assert "Candidates tried: valve_delay, leakage, stiction." in text
+    assert len(_images(text)) == 6
+    # a gap that no candidate explains is not "within the noise"
+    unexplained = _diagnosis(cyl_a, verdict="none", gap=True)
+    first = headline(unexplained)[0]
+    assert first.startswith("No candidate effect explains the gap") and "none" in first
+
+
+def test_write_is_atomic(diag, tmp_path, monkeypatch):
+    import combined_reality.diagnose_report as rep
+
+    monkeypatch.setattr(rep, "_make_plots", lambda d: {})  # the plots are not the point here
+    path = tmp_path / "r.html"
+    path.write_text("old report")
+    monkeypatch.setattr(rep, "render_report", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
+    with pytest.raises(RuntimeError):
+        write_report(diag, path)
+    assert path.read_text() == "old report"
+    monkeypatch.setattr(rep, "render_report", render_report)
+    write_report(diag, path, title="new")
+    assert "<title>new</title>" in path.read_text(encoding="utf-8")
+    assert [p.name for p in tmp_path.iterdir()] == ["r.html"]
+
+
+@pytest.mark.parametrize("value, std, unit, text", [
+    (1.4159e-3, 1.9e-7, "s", "1.41590 ms ± 0.00019 ms"),
+    (7.734e-3, 2e-5, "m/s", "7.734 mm/s ± 0.020 mm/s"),
+    (2.89e-5, 6.6e-9, "N/Pa", "2.89000 N/bar ± 0.00066 N/bar"),
+    (5.1447e-12, 6.3e-16, "m^3/(s Pa)", "5.14470e-12 m³/(s·Pa) ± 6.3e-16 m³/(s·Pa)"),
+    (0.5, math.nan, "1", "0.5000"),
+    (math.nan, 1.0, "N", "n/a"),
+])
+def test_values_are_shown_in_units_for_people(value, std, unit, text):
+    assert format_value(value, std, unit) == text
+
+
+def _read_rrd(path):
+    from rerun.chunk import RrdReader
+
+    data: dict[str, dict[str, list]] = {}
+    for chunk in RrdReader(path).stream():
+        rb = chunk.to_record_batch()
+        cols = data.setdefault(chunk.entity_path, {})
+        for name in rb.schema.names:
+            if ":" in name:
+                cols.setdefault(name.split(":", 1)[1], []).extend(rb.column(name).to_pylist())
+    return data
+
+
+@pytest.mark.parametrize("verdict", ["valve_delay", "none"])
+def test_rerun_recording_holds_the_diagnosis(cyl_a, tmp_path, verdict):
+    from combined_reality.diagnose_rerun import log_diagnosis
+    from combined_reality.visual import open_recording
+
+    d = _diagnosis(cyl_a, verdict=verdict)
+    rrd = tmp_path / "d.rrd"
+    rec = open_recording("save", str(rrd))
+    log_diagnosis(d, rec)
+    rec.flush()
+    rec.disconnect()
+    data = _read_rrd(rrd)
+    paths = ["/diagnosis/position/measured", "/diagnosis/position/nominal", "/diagnosis/pressure/p1/measured",
+             "/diagnosis/pressure/p2/nominal", "/diagnosis/residual/x/nominal", "/diagnosis/residual/p1/nominal",
+             "/diagnosis/command/u", "/diagnosis/velocity", "/diagnosis/segment", "/diagnosis/summary",
+             "/diagnosis/regions/share_of_error", "/diagnosis/regions/fraction_of_samples",
+             "/diagnosis/regions/labels"]
+    after = ["/diagnosis/position/verdict", "/diagnosis/pressure/p1/verdict", "/diagnosis/residual/x/verdict"]
+    for p in paths + (after if verdict != "none" else []):
+        assert p in data, p
+    if verdict == "none":
+        assert not any(p.endswith("/verdict") for p in data)
+    x = [v[0] for v in data["/diagnosis/position/measured"]["scalars"]]
+    np.testing.assert_allclose(sorted(x), sorted(d.valid.x))
+    r = np.array([v[0] for v in data["/diagnosis/residual/x/nominal"]["scalars"]])
+    assert len(r) == N and np.all(np.isfinite(r))
+    bars = data["/diagnosis/regions/share_of_error"]["values"][-1][0]  # a tensor
+    np.testing.assert_allclose(bars["buffer"], [r_["share_of_error"] for r_ in d.regions])
+    summary = data["/diagnosis/summary"]["text"][-1][0]
+    for effect in ("valve\\_delay", "leakage", "stiction"):
+        assert effect in summary
+    assert "line search failed" in summary
+    labels = data["/diagnosis/regions/labels"]["text"][-1][0]
+    assert all(r_["where"].replace("|", "\\|") in labels for r_ in d.regions)
