@@ -75,7 +75,7 @@ def run_case(c: dict, duration: float, workers: int) -> dict:
     true = next((r for r in res["ranking"] if r["effect"] == c["effect"]), None)
     verdict_row = next((r for r in res["ranking"] if r["effect"] == res["verdict"]), None)
     return {**c, "seed": seed, "truth": effects[0].as_dict() if effects else {},
-            "verdict": res["verdict"], "ranking": [(r["effect"], r["shrink"], r["shrink_all"], r["t_stat"],
+            "verdict": res["verdict"], "ranking": [(r["effect"], r["shrink"], r["shrink_all"], r["z"],
                                                     r["significant"]) for r in res["ranking"]],
             "true_shrink": true["shrink"] if true else None,
             "true_params": true["params"] if true else None,

@@ -18,7 +18,7 @@ from typing import Sequence
 
 from sim.cylinder import ESTIMABLE, ConfigError, Cylinder, load_cylinder
 
-from .runs import Run, RunFormatError, read_run, write_run
+from .runs import Run, RunFormatError, cylinder_identity, cylinder_tag, read_run, recorded_cylinder, write_run
 
 
 class UsageError(ValueError):
@@ -138,6 +138,7 @@ def cmd_simulate(args) -> int:
     eff = "; ".join(f"{e.name}(" + ", ".join(f"{k}={v:g}" for k, v in zip(e.param_names(), e.values())) + ")"
                     for e in effects) or "none"
     write_run(args.output, run, comments=[
+        cylinder_tag(cyl),
         f"combined-reality virtual rig: cylinder {cyl.name!r} ({cyl.source}), seed {args.seed}, {args.rate:g} Hz",
         f"truth: {truth}; effects: {eff}; noise: {'off' if args.no_noise else 'on'}",
     ])
@@ -244,7 +245,7 @@ def cmd_demo(args) -> int:
     _eprint(f"1/2 simulating a {args.duration:g} s run of '{cyl.name}' on the virtual rig (seed {args.seed}) ...")
     run = simulate_run(cyl, args.duration, args.seed, progress=prog)
     run_path = out / "demo_run.csv"
-    write_run(run_path, run, comments=[f"combined-reality demo: {cyl.name}, seed {args.seed}"])
+    write_run(run_path, run, comments=[cylinder_tag(cyl), f"combined-reality demo: {cyl.name}, seed {args.seed}"])
     run = read_run(run_path)
     start = cyl.with_values({"Fc": cyl.friction.Fc * 0.4, "Fv": cyl.friction.Fv * 3.0 + 10.0,
                              "kp": cyl.friction.kp * 0.2})
@@ -312,6 +313,16 @@ def cmd_diagnose(args) -> int:
         _check_run_against_cylinder(r, cyl)
         if r.n < 1000:
             raise UsageError(f"{r.source}: {r.n} samples are too few to diagnose (at least 1 s at 1 kHz).")
+    mine = cylinder_identity(cyl)
+    for r, what in ((train, args.train), (valid, args.validate)):
+        theirs = recorded_cylinder(r)
+        if theirs is not None and theirs != mine:
+            raise UsageError(f"{what} was recorded on the cylinder '{theirs}', but the cylinder file "
+                             f"{cyl.source or ''} describes '{mine}'; diagnose runs of the cylinder they were recorded on.")
+    t_cyl, v_cyl = recorded_cylinder(train), recorded_cylinder(valid)
+    if t_cyl is not None and v_cyl is not None and t_cyl != v_cyl:
+        raise UsageError(f"{args.validate} was recorded on '{v_cyl}' but {args.train} on '{t_cyl}'; "
+                         "validate with a run of the same cylinder.")
     if abs(valid.sample_period / train.sample_period - 1) > 0.01:
         raise UsageError(f"{args.validate} is sampled every {valid.sample_period * 1e3:.3g} ms but {args.train} every "
                          f"{train.sample_period * 1e3:.3g} ms; validate with a run of the same rig and rate.")
@@ -331,11 +342,11 @@ def cmd_diagnose(args) -> int:
     print(f"validation position RMSE of the nominal model: {base['rmse_x_validation'] * 1e6:.1f} um "
           f"(segments of {args.horizon:g} s, all outputs {base['normalized_rms']:.2f} x the sensor noise)")
     print(f"verdict: {result['verdict']}")
-    print(f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'t':>6s} {'rmse_x [um]':>12s}  parameters")
+    print(f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'z':>6s} {'rmse_x [um]':>12s}  parameters")
     for c in result["ranking"]:
         pars = ", ".join(f"{k}={v:.4g}±{c['std'][k]:.2g}" for k, v in c["params"].items())
         mark = "*" if c["significant"] else " "
-        print(f"{c['effect']:20s} {c['shrink']:8.1%} {c['shrink_all']:8.1%} {c['t_stat']:6.1f}{mark}"
+        print(f"{c['effect']:20s} {c['shrink']:8.1%} {c['shrink_all']:8.1%} {c['z']:6.1f}{mark}"
               f"{c['rmse_x_validation'] * 1e6:12.1f}  {pars or c.get('error', '')}")
     if result["pair"] is not None:
         c = result["pair"]
@@ -438,7 +449,7 @@ def _run_stream(args, cyl, rig, program, duration, record: str | None, sample_pe
         _eprint("preparing the model (compiled once, then cached) ...")
     simulator = LockstepSimulator(cyl)
     estimator = (InlineEstimator if inline else ProcessEstimator)(cyl, sample_period, options)
-    comments = [f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
+    comments = [cylinder_tag(cyl), f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
                 f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
     # SIGTERM ends a session like Ctrl-C: valve centred, files complete
     def _term(*_):

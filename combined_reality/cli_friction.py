@@ -14,9 +14,14 @@ from pathlib import Path
 
 from .friction_map import FIT_SPECS, FrictionMap, FrictionMapError, SegmentOptions
 
-_UNITS = {"Fc": "N", "Fs": "N", "FA": "N", "B": "N s/m", "vs": "m/s", "ve": "m/s", "dv": "m/s", "delta": "",
-          "mu": "", "mu_s": "", "mu_v": "s/m", "K1": "", "alpha": "", "K2": "N/Pa", "K3": "N/Pa",
-          "sigma0": "N/m", "sigma1": "N s/m"}
+
+def _unit(family: str, base: str) -> str:
+    """The unit of a parameter, from the model's own PARAMS ('' for dimensionless)."""
+    from sim.friction_models import FRICTION_MODELS
+
+    params = FRICTION_MODELS[family].PARAMS
+    info = params.get(f"{base}_pos") or params.get(base)
+    return "" if info is None or info.unit == "1" else info.unit
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -28,7 +33,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                     "points tables (CSV with columns v,F in m/s and N, the sign of v giving the direction), "
                     "and fit the friction models per direction with uncertainties and identifiability flags.")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
-                   help="recorded run CSV (t,u,x,p1,p2) or points table CSV (v,F[,F_std,count,dp,pc,load])")
+                   help="recorded run CSV (t,u,x,p1,p2) or points table CSV (v,F[,F_std,count,dp,pc,load,breakaway]); "
+                        "rows with breakaway = 1 (procedure breakaway) are breakaway forces, not sliding points")
     p.add_argument("--model", action="append", metavar="NAME",
                    help=f"model to fit, repeatable or comma-separated (default: every model that the points "
                         f"allow; known: {', '.join(FIT_SPECS)})")
@@ -89,7 +95,8 @@ def run(args) -> int:
             if table:
                 pts = read_points(path)
                 points.extend(pts)
-                say(f"{path}: points table, {len(pts)} points")
+                nb = sum(p.breakaway for p in pts)
+                say(f"{path}: points table, {len(pts) - nb} sliding points" + (f", {nb} breakaway rows" if nb else ""))
                 continue
         except FrictionMapError as e:
             raise UsageError(str(e)) from None
@@ -111,6 +118,9 @@ def run(args) -> int:
             f"({sum(p.v > 0 for p in rp.points)} extending, {sum(p.v < 0 for p in rp.points)} retracting), "
             f"{len(rp.breakaways)} breakaways")
     inputs = ", ".join(str(p) for p in args.inputs)
+    if points and all(p.breakaway for p in points):
+        raise UsageError(f"{inputs}: only breakaway rows, no sliding points; give the map a sweep's points table "
+                         f"or a recorded run beside the breakaway table.")
     if not points:
         raise UsageError(f"{inputs}: no constant-velocity stretch found (at least {options.min_duration:g} s above "
                          f"{options.min_speed:g} m/s within {options.spread:.0%} velocity spread); record moves at "
@@ -121,8 +131,9 @@ def run(args) -> int:
     except FrictionMapError as e:
         raise UsageError(f"{inputs}: {e}") from None
     if not any(d.fits for d in fmap.directions.values()):
-        reasons = "; ".join(dict.fromkeys(r for d in fmap.directions.values() for r in d.skipped.values()))
-        raise UsageError(f"{inputs}: no model could be fitted ({reasons.rstrip('.')}).")
+        # one reason per direction (they differ only in the model's name)
+        reasons = "; ".join(next(iter(d.skipped.values())).rstrip(".") for d in fmap.directions.values() if d.skipped)
+        raise UsageError(f"{inputs}: no model could be fitted ({reasons}).")
 
     print(format_table(fmap))
     out = fmap.to_json()
@@ -137,9 +148,14 @@ def run(args) -> int:
     say(f"wrote {args.json}")
     if args.plot:
         try:
+            Path(args.plot).parent.mkdir(parents=True, exist_ok=True)  # as the JSON writer does
             plot_map(fmap, args.plot, title=f"friction map: {inputs}")
         except FrictionMapError as e:
             _eprint(f"combined-reality friction-map: {e}")
+            return 1
+        except OSError as e:
+            _eprint(f"combined-reality friction-map: --plot {args.plot}: cannot be written ({e.strerror or e}); "
+                    f"the JSON is written.")
             return 1
         say(f"wrote {args.plot}")
     return 0
@@ -158,15 +174,16 @@ def format_table(fmap: FrictionMap) -> str:
     lines = []
     for direction, d in fmap.directions.items():
         band = d.stick_band
-        if d.points:
-            speeds = sorted(abs(p.v) for p in d.points)
-            head = (f"{direction}: {len(d.points)} points, {speeds[0] * 1e3:.3g} .. {speeds[-1] * 1e3:.3g} mm/s; "
+        speeds = sorted(abs(p.v) for p in d.points if not p.breakaway)
+        if speeds:
+            head = (f"{direction}: {len(speeds)} sliding points, {speeds[0] * 1e3:.3g} .. {speeds[-1] * 1e3:.3g} mm/s; "
                     f"stick band: no steady sliding below {band.dv * 1e3:.3g} mm/s"
                     + (" (the detector's min speed)" if band.at_detector_limit else ""))
         else:
-            head = f"{direction}: no points"
-        if band.breakaway:
-            head += f"; {len(band.breakaway)} breakaways, mean {band.breakaway_mean:.4g} N"
+            head = f"{direction}: no sliding points"
+        if band.breakaway_count:
+            std = f" ± {band.breakaway_std:.2g}" if band.breakaway_std is not None else ""
+            head += f"; {band.breakaway_count} breakaways, mean {band.breakaway_mean:.4g}{std} N"
         lines.append(head)
         rows = [("model", "RMSE [N]", "R2", "MAE [N]", "AICc", "parameters (value±std)", "flags")]
         scores = {n: f.aicc for n, f in d.fits.items() if f.aicc is not None}
@@ -176,7 +193,7 @@ def format_table(fmap: FrictionMap) -> str:
             pars = f"Fc={_value(lin.Fc, lin.std['Fc'])} N, B={_value(lin.B, lin.std['B'])} N s/m"
             rows.append(("linear", f"{lin.rmse:.3g}", f"{lin.r2:.5f}", f"{lin.mae:.3g}", "", pars, ""))
         for name, f in d.fits.items():
-            pars = ", ".join(f"{k}={_value(v, f.std.get(k))}" + (f" {_UNITS[k]}" if _UNITS.get(k) else "")
+            pars = ", ".join(f"{k}={_value(v, f.std.get(k))}" + (f" {_unit(f.family, k)}" if _unit(f.family, k) else "")
                              for k, v in f.params.items() if v is not None)
             flagged = ", ".join(dict.fromkeys(fl["param"] for fl in f.flags))
             aicc = "" if f.aicc is None else f"{f.aicc:.1f}" + (" *" if name == best else "")

@@ -57,8 +57,9 @@ def add_parser(sub) -> None:
     p.add_argument("--record", metavar="RUN.csv", help="run CSV written as samples arrive")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
     p.add_argument("--out", required=True, metavar="POINTS.csv",
-                   help="points table for the friction map: header v,F,F_std,v_std,count,dp,pc (SI, signed: "
-                        "+ extension); breakaway: one row per direction")
+                   help="points table for the friction map: header v,F,F_std,v_std,count,dp,pc,breakaway (SI, "
+                        "signed: + extension); breakaway: one row per direction, marked breakaway = 1 so that the "
+                        "map does not fit it as a sliding point")
     p.add_argument("--json", metavar="OUT.json", help="per-trial / per-speed details")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
@@ -80,7 +81,9 @@ def run(args) -> int:
     rig = _open_rig(args, cyl, effects)
     where = f"serial {args.serial}" if args.serial else f"CAN {args.can} ({args.interface})" if args.can \
         else "virtual rig" + (f" with {', '.join(args.effect)}" if args.effect else "")
-    comments = [f"combined-reality procedure {args.kind}: cylinder {cyl.name!r} ({cyl.source}), {where}",
+    from .runs import cylinder_tag
+
+    comments = [cylinder_tag(cyl), f"combined-reality procedure {args.kind}: cylinder {cyl.name!r} ({cyl.source}), {where}",
                 f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
     progress = None if args.quiet else cli._eprint
     t_wall = time.perf_counter()
@@ -207,7 +210,8 @@ def _write_outputs(args, cyl, result, comments, where: str, wall: float) -> None
                 f"{len(result.table())} steady points; {n_unsteady} unsteady (stick-slip) and {len(result.skipped)} "
                 "strokes without a point left out"]
     what.append("F_std, v_std: spreads (N, m/s); count: samples (sweep) or trials (breakaway) averaged; "
-                "dp: mean |p1 - p2| (Pa); pc: counter pressure (Pa gauge: p2 - pa extending, p1 - pa retracting)")
+                "dp: mean |p1 - p2| (Pa); pc: counter pressure (Pa gauge: p2 - pa extending, p1 - pa retracting); "
+                "breakaway: 1 a breakaway force, 0 a sliding point")
     details = f"details: {args.json}" if args.json else "details: run with --json"
     write_points(args.out, result.table(), comments + what + [details])
     out = {**result.to_json(), "config": str(cyl.source), "rig": where, "record": args.record, "out": args.out,

@@ -13,9 +13,10 @@ effect's own parameters, from the nominal fit and from the effect's alternative 
 the start with the lowest TRAIN cost is kept) and scored the same way. Candidates are
 ranked by the improvement of the noise-weighted validation error of all outputs (x, p1,
 p2), less a penalty per added parameter; `shrink` is the position RMSE's, as FORMATS.md
-defines it. An improvement is significant when the per-segment gains, paired with the
-baseline's, give a t statistic above `min_t` and the all-output error shrinks by
-`min_shrink` at least; the verdict is `none` when no candidate's is.
+defines it. An improvement is significant when no sensor noise could make the nominal
+model look that much worse than the candidate (z above `min_z`, see validation_gain) and
+the all-output error shrinks by `min_shrink` at least; the verdict is `none` when no
+candidate's is.
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ OUTPUTS = ("x", "p1", "p2")
 class DiagnoseOptions:
     candidates: tuple[str, ...] = tuple(EFFECTS)
     horizon_s: float = 1.0  # validation simulation horizon
-    min_t: float = 3.0  # paired t statistic of the per-segment gain a verdict needs
+    min_z: float = 3.0  # z statistic of the validation gain a verdict needs (validation_gain)
     min_shrink: float = 0.02  # ... and this shrink of the all-output validation error
     penalty_per_param: float = 0.01  # shrink charged per added parameter when ranking
     pair: bool = True  # try the best pair when one effect leaves a significant gap
@@ -82,7 +83,8 @@ class Validation:
     segments: list[tuple[int, int]]
     segment_cost: np.ndarray  # sum of (residual / noise)^2 per segment, all outputs
     noise: np.ndarray  # sensor noise per output
-    status: str
+    status: str  # the worst of the segments' fits
+    nodes: list = field(default_factory=list, repr=False)  # per segment: the fitted node states
 
     def rmse(self, output: str = "x", mask: np.ndarray | None = None) -> float:
         r = self.residual[self.outputs.index(output)]
@@ -96,22 +98,56 @@ class Validation:
 
 
 def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: float = 1.0, drive: str = "command",
-             threads: int = 1, segments: list[tuple[int, int]] | None = None) -> Validation:
-    """Score a model on `run`: every segment simulated from its own fitted initial state."""
+             segments: list[tuple[int, int]] | None = None, fallback: "Validation | None" = None) -> Validation:
+    """Score a model on `run`: every segment simulated from its own fitted initial state.
+
+    The initial-state fit starts from the measured state; a segment that stays well above
+    the noise is fitted again from `fallback`'s trajectory there (another model's validation,
+    e.g. the nominal one), and the better fit is kept: stick-slip and friction memory give
+    the initial-state fit local minima. Only states are fitted, never parameters."""
     segments = segments or validation_segments(run, horizon_s)
-    pieces = [run.slice(a, b) for a, b in segments]
-    res = identify(cyl, pieces, IdentifyOptions(drive=drive, estimate=(), prefit=False, max_iter=30, threads=threads),
-                   effects=effects)
+    # one problem per segment: they share nothing, and one line search for all would let the
+    # hardest segment set the step of every other
+    opts = IdentifyOptions(drive=drive, estimate=(), prefit=False, max_iter=30, threads=1)
+    sen = cyl.sensors
+    noise_of = {"x": sen.position_noise, "p1": sen.pressure_noise, "p2": sen.pressure_noise}
+    sims, statuses, nodes, costs = [], [], [], []
+    for j, (a, b) in enumerate(segments):
+        piece = run.slice(a, b)
+        tries = [None]
+        if fallback is not None and fallback.nodes[j] is not None:
+            tries.append(fallback.nodes[j])
+        best = None
+        for warm in tries:
+            try:
+                res = identify(cyl, [piece], opts, effects=effects, nodes=warm)
+            except IdentificationError:
+                continue
+            noise = np.array([noise_of[o] for o in res.output_names])[:, None]
+            meas = np.vstack([getattr(piece, o) for o in res.output_names])
+            cost = float(np.sum(((meas - res.simulated[0]) / noise) ** 2))
+            if not math.isfinite(cost):
+                continue
+            if best is None or cost < best[0]:
+                best = (cost, res)
+            if cost < 1.5 * meas.size:  # near the noise: nothing to gain from another start
+                break
+        if best is None:
+            raise IdentificationError(f"the model cannot be simulated on the validation segment "
+                                      f"{run.t[a]:.2f}-{run.t[b - 1]:.2f} s")
+        cost, res = best
+        sims.append(res.simulated[0])
+        statuses.append(res.solver["status"])
+        nodes.append(res.nodes)
+        costs.append(cost)
     outputs = res.output_names
     meas = np.vstack([getattr(run, o) for o in outputs])
     sim = np.full_like(meas, np.nan)
-    for (a, b), s in zip(segments, res.simulated):
+    for (a, b), s in zip(segments, sims):
         sim[:, a:b] = s
-    resid = meas - sim
-    sen = cyl.sensors
-    noise = np.array([sen.position_noise if o == "x" else sen.pressure_noise for o in outputs])
-    cost = np.array([float(np.sum((resid[:, a:b] / noise[:, None]) ** 2)) for a, b in segments])
-    return Validation(outputs, sim, resid, segments, cost, noise, res.solver["status"])
+    noise = np.array([noise_of[o] for o in outputs])
+    worst = next((st for st in ("line_search_failed", "time_limit", "max_iterations") if st in statuses), "converged")
+    return Validation(outputs, sim, meas - sim, segments, np.array(costs), noise, worst, nodes)
 
 
 def _rmse(r: np.ndarray) -> float:
@@ -119,16 +155,21 @@ def _rmse(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
 
 
-def paired_gain(base: Validation, cand: Validation) -> tuple[float, float]:
-    """(shrink of the all-output normalised RMS, paired t statistic of the per-segment cost
-    gain): how much better the candidate predicts VALID, and how sure that is."""
+def validation_gain(base: Validation, cand: Validation) -> tuple[float, float]:
+    """(shrink of the all-output normalised RMS, z statistic of the gain): how much better the
+    candidate predicts VALID, and how sure that is.
+
+    With d the difference of the two models' predictions (in noise units) and J their
+    validation costs, were the baseline the truth with white sensor noise, the gain
+    J_base - J_cand would have mean -|d|^2 and standard deviation 2|d|. z = gain / (2|d|)
+    above 3 therefore says that no noise makes the baseline look this bad next to the
+    candidate; it does not need the gain to be spread evenly over the segments."""
     shrink = 1.0 - cand.normalized_rms() / base.normalized_rms()
-    d = base.segment_cost - cand.segment_cost
-    if len(d) < 3:
-        return shrink, 0.0
-    sd = float(np.std(d, ddof=1))
-    t = float(np.mean(d)) / (sd / math.sqrt(len(d))) if sd > 0 else (math.inf if np.mean(d) > 0 else 0.0)
-    return shrink, t
+    d = (cand.simulated - base.simulated) / base.noise[:, None]
+    d2 = float(np.nansum(d * d))
+    gain = float(base.segment_cost.sum() - cand.segment_cost.sum())
+    z = gain / (2.0 * math.sqrt(d2)) if d2 > 0 else 0.0
+    return shrink, z
 
 
 # ------------------------------------------------------------------ where
@@ -217,7 +258,7 @@ class Candidate:
     score: float = -math.inf
     status: str = "failed"
     shrink_all: float = math.nan
-    t_stat: float = math.nan
+    z: float = math.nan
     significant: bool = False
     friction: dict[str, float] = field(default_factory=dict)
     train_cost: float = math.nan
@@ -235,7 +276,7 @@ class Candidate:
     def to_json(self) -> dict:
         out = {"effect": self.effect, "shrink": self.shrink, "rmse_x_validation": self.rmse_x_validation,
                "params": self.params, "std": self.std, "score": self.score, "significant": self.significant,
-               "shrink_all": self.shrink_all, "t_stat": self.t_stat, "status": self.status,
+               "shrink_all": self.shrink_all, "z": self.z, "status": self.status,
                "friction": self.friction, "iterations": self.iterations, "start": self.start,
                "wall_s": round(self.wall_s, 3)}
         if self.validation is not None:
@@ -258,6 +299,7 @@ class _Nominal:
 
     cylinder: Cylinder
     train_cost: float
+    validation: Validation
 
 
 def _fit_candidate(args) -> Candidate:
@@ -286,7 +328,8 @@ def _fit_candidate(args) -> Candidate:
             c.error = (f"the fit ended worse on TRAIN than the nominal model it contains (cost {c.train_cost:.4g} "
                        f"vs {nominal.train_cost:.4g}): a local minimum")
         else:
-            c.validation = validate(res.cylinder, res.effects, valid, opts.horizon_s, segments=segments)
+            c.validation = validate(res.cylinder, res.effects, valid, opts.horizon_s, segments=segments,
+                                    fallback=nominal.validation)
             c.rmse_x_validation = c.validation.rmse("x")
         c.wall_s = time.perf_counter() - t0
         return c
@@ -325,8 +368,8 @@ def _score(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOpt
             c.status, c.error = "diverged", "the re-identified model's simulation of VALID is not finite"
         return
     c.shrink = 1.0 - c.rmse_x_validation / base_rmse_x
-    c.shrink_all, c.t_stat = paired_gain(base, c.validation)
-    c.significant = bool(c.t_stat >= opts.min_t and c.shrink_all >= opts.min_shrink)
+    c.shrink_all, c.z = validation_gain(base, c.validation)
+    c.significant = bool(c.z >= opts.min_z and c.shrink_all >= opts.min_shrink)
     c.score = c.shrink_all - opts.penalty_per_param * c.n_params
 
 
@@ -370,7 +413,7 @@ class Diagnosis:
             "subsystems": self.subsystems,
             "whiteness": self.whiteness,
             "correlations": self.correlations,
-            "options": {"horizon_s": self.options.horizon_s, "min_t": self.options.min_t,
+            "options": {"horizon_s": self.options.horizon_s, "min_z": self.options.min_z,
                         "min_shrink": self.options.min_shrink, "penalty_per_param": self.options.penalty_per_param,
                         "candidates": list(self.options.candidates)},
             "segments": len(self.base_validation.segments),
@@ -387,8 +430,8 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     base = identify(cyl, [train], IdentifyOptions())
     nominal = base.cylinder
     segments = validation_segments(valid, opts.horizon_s)
-    base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments, threads=opts.workers)
-    start = _Nominal(nominal, base.solver["cost"])
+    base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments)
+    start = _Nominal(nominal, base.solver["cost"], base_val)
     base_rmse = base_val.rmse("x")
     say(f"  validation RMSE of x: {base_rmse * 1e6:.2f} um, all outputs {base_val.normalized_rms():.2f} x the "
         f"sensor noise ({len(segments)} segments of about {opts.horizon_s:g} s)")
@@ -401,17 +444,20 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     cands = _best_starts(results)
     for c in cands:
         _score(c, base_val, base_rmse, opts)
-    # alternative starts only when no candidate has closed the gap yet (to near the noise)
+    # alternative starts: none once a candidate has closed the gap (to near the noise); only
+    # of the significant candidates when some are; of all when none explains anything yet
+    significant = {c.effect for c in cands if c.significant}
     closed = any(c.significant and c.validation.normalized_rms() < opts.closed_gap for c in cands)
     alternatives = [(start, train, valid, (eff,), k, opts, segments)
-                    for n in order for k, eff in enumerate(candidate_starts(n)) if k > 0]
+                    for n in order if not significant or n in significant
+                    for k, eff in enumerate(candidate_starts(n)) if k > 0]
     if alternatives and not closed:
         say(f"  trying {len(alternatives)} alternative starts of effects whose shape the defaults may miss ...")
         cands = _best_starts(results + _run_jobs(alternatives, opts.workers))
         for c in cands:
             _score(c, base_val, base_rmse, opts)
     for c in cands:
-        say(f"  {c.effect:20s} shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  t {c.t_stat:6.1f}"
+        say(f"  {c.effect:20s} shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  z {c.z:6.1f}"
             + (f"  ({c.error})" if c.error else ""))
     ranking = sorted(cands, key=lambda c: (not c.significant, -c.score))
     best = ranking[0] if ranking and ranking[0].significant else None
@@ -461,8 +507,8 @@ def _best_pair(nominal, train, valid, ranking, base_val, base_rmse, segments, op
 def _gain_over(ref: Validation, cand: Validation | None, opts: DiagnoseOptions) -> bool:
     if cand is None:
         return False
-    shrink, t = paired_gain(ref, cand)
-    return t >= opts.min_t and shrink >= opts.min_shrink
+    shrink, z = validation_gain(ref, cand)
+    return z >= opts.min_z and shrink >= opts.min_shrink
 
 
 # ------------------------------------------------------------------ subsystems and regressors
@@ -525,15 +571,13 @@ def subsystem_split(cyl: Cylinder, nominal: Cylinder, train: Run, valid: Run, ba
     label = "piston force balance (friction, mass), driven by the measured pressures"
     try:
         mech = identify(cyl, [train], IdentifyOptions(drive="pressure", threads=opts.workers))
-        mval = validate(mech.cylinder, (), valid, opts.horizon_s, drive="pressure", segments=segments,
-                        threads=opts.workers)
+        mval = validate(mech.cylinder, (), valid, opts.horizon_s, drive="pressure", segments=segments)
         rng = np.random.default_rng(seed)
         sen, sim = cyl.sensors, base_val.simulated
         fake = replace(valid, x=sim[0] + rng.normal(0, sen.position_noise, valid.n),
                        p1=sim[1] + rng.normal(0, sen.pressure_noise, valid.n),
                        p2=sim[2] + rng.normal(0, sen.pressure_noise, valid.n))
-        floor = validate(nominal, (), fake, opts.horizon_s, drive="pressure", segments=segments,
-                         threads=opts.workers).rmse("x")
+        floor = validate(nominal, (), fake, opts.horizon_s, drive="pressure", segments=segments).rmse("x")
         rows.append({"subsystem": label, "output": "x", "rmse": mval.rmse("x"), "floor": floor, "unit": "m",
                      "fraction_of_samples": 1.0})
     except IdentificationError as e:

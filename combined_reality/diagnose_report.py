@@ -557,8 +557,8 @@ open loop with the recorded command from its own fitted start (nothing of VALID 
 position error of the fit on TRAIN {_um(b.get('rmse_x_train'))}; on VALID {_um(b.get('rmse_x_validation'))} in position,
 {_sig(b.get('rmse_p1_validation', math.nan) / 1e3)} kPa in p1, {_sig(b.get('rmse_p2_validation', math.nan) / 1e3)} kPa
 in p2: {_sig(b.get('normalized_rms'))} × the sensor noise over all outputs (1 = a perfect model)</td></tr>
-<tr><th>verdict rule</th><td colspan="2">a candidate is significant when its per-segment gain gives t ≥
-{_sig(o.min_t, 2)} and the all-output error shrinks by {_pct(o.min_shrink)} or more; ranked by that shrink less
+<tr><th>verdict rule</th><td colspan="2">a candidate is significant when its gain on VALID is beyond what sensor
+noise could produce (z ≥ {_sig(o.min_z, 2)}) and the all-output error shrinks by {_pct(o.min_shrink)} or more; ranked by that shrink less
 {_pct(o.penalty_per_param)} per added parameter</td></tr>
 </table>"""
 
@@ -582,7 +582,7 @@ def _candidate_row(c, rank, verdict: str, ncols: int) -> str:
     out = (f'<tr class="{cls}"><td class="num">{rank}</td><td><b>{_e(c.effect)}</b><br>'
            f'<span class="small">{_e(_effect_description(c.effect))}</span></td>'
            f'<td class="num">{_pct(c.shrink)}</td><td class="num">{_pct(c.shrink_all)}</td>'
-           f'<td class="num">{_t_text(c.t_stat)}</td><td>{sig}</td>'
+           f'<td class="num">{_t_text(c.z)}</td><td>{sig}</td>'
            f'<td class="num">{_um(c.rmse_x_validation)}</td>'
            f'<td>{params}</td><td class="small">{fr}</td>'
            f'<td>{_e(c.status)}{vnote}<br><span class="small">{c.wall_s:.1f} s</span></td></tr>')
@@ -591,7 +591,7 @@ def _candidate_row(c, rank, verdict: str, ncols: int) -> str:
     return out
 
 
-_RANK_HEAD = ("#", "effect", "shrink of x", "shrink, all outputs", "t", "significant", "x error on VALID",
+_RANK_HEAD = ("#", "effect", "shrink of x", "shrink, all outputs", "z", "significant", "x error on VALID",
               "identified parameters (± std)", "friction re-identified", "fit")
 
 
@@ -608,8 +608,8 @@ def _ranking_html(d) -> str:
 <table><tr>{head}</tr>{rows}</table>
 <p class="explain"><b>shrink of x</b>: the share of the position error on VALID that disappears once the effect is added
 and re-identified on TRAIN (100 % = all of it, negative = worse). <b>shrink, all outputs</b>: the same for position and
-both pressures together, each in units of its sensor noise. <b>t</b>: how consistently the effect helps across the
-validation segments (above about 3: not luck). <b>friction re-identified</b>: Fc, Fv, kp refitted with the effect.
+both pressures together, each in units of its sensor noise. <b>z</b>: how far the gain lies beyond what sensor noise
+could produce (above 3: not luck). <b>friction re-identified</b>: Fc, Fv, kp refitted with the effect.
 <b>fit</b>: how the identification on TRAIN ended.</p>{pair}"""
 
 

@@ -57,12 +57,12 @@ def summary_markdown(d) -> str:
         f"- nominal model on VALID: x {_um(b.get('rmse_x_validation'))}, "
         f"all outputs {_sig(b.get('normalized_rms'))} x the sensor noise",
         "", "## Ranking", "",
-        "| # | effect | shrink x | shrink all | t | significant | x error | parameters | fit |",
+        "| # | effect | shrink x | shrink all | z | significant | x error | parameters | fit |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
 
     def row(c, rank) -> str:
-        t = _t_text(c.t_stat)
+        t = _t_text(c.z)
         fit = _md(c.status) + (f": {_md(c.error)}" if c.error else "")
         name = f"**{_md(c.effect)}**" if c.effect == d.verdict else _md(c.effect)
         return (f"| {rank} | {name} | {_pct(c.shrink)} | {_pct(c.shrink_all)} | {t} | "
@@ -72,7 +72,7 @@ def summary_markdown(d) -> str:
     lines += [row(c, i + 1) for i, c in enumerate(d.ranking)]
     if d.pair is not None:
         lines += ["", "Best pair (significant = better than the verdict alone):", "",
-                  "| # | effect | shrink x | shrink all | t | significant | x error | parameters | fit |",
+                  "| # | effect | shrink x | shrink all | z | significant | x error | parameters | fit |",
                   "|---|---|---|---|---|---|---|---|---|", row(d.pair, "pair")]
     if d.subsystems:
         lines += ["", "## Subsystems (nominal model)", "", "| part | RMSE | floor | share of the excess |",

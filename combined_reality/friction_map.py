@@ -10,7 +10,15 @@ Points come from recorded runs or from points tables:
   sticks (|v| below `stuck_speed` for `stuck_duration`) and then breaks away, the largest
   friction before sliding is a breakaway force.
 - A points table is a CSV with columns v,F (m/s, N; both directions in one file, the sign
-  of v gives the direction), optionally F_std, count, dp, pc, load.
+  of v gives the direction), optionally F_std, count, dp, pc, load, and `breakaway` (1 marks
+  a breakaway force, the static end of the map, as `procedure breakaway` writes it; 0 or
+  no column: a sliding point).
+
+Breakaway rows are not sliding points: every fit and the stick band's dv use the sliding
+points only (so that RMSE, R^2 and AICc of all models refer to the same points); the
+breakaway rows fix Fs of karnopp, cvs, cvs_delta and lugre (seed 004: Fs from the rest end
+of the map, then the Stribeck velocity fitted to the sliding points), with their standard
+error. Breakaways detected in runs feed the stick band and karnopp only.
 
 Per direction, the map is fitted with seed 000's linear least squares (F = Fc + B v, R^2)
 and with the static curve of every model of sim.friction_models (nonlinear least squares,
@@ -105,6 +113,7 @@ class MapPoint:
     source: str = ""
     t_start: float = math.nan  # s, segment in the run
     t_end: float = math.nan
+    breakaway: bool = False  # a breakaway force (F_std, count: spread and number of trials), not a sliding point
 
     @property
     def direction(self) -> str:
@@ -113,7 +122,7 @@ class MapPoint:
     def to_json(self) -> dict:
         out = {"v": self.v, "F": self.F, "F_std": self.F_std, "v_std": self.v_std, "count": self.count,
                "dp": self.dp, "pc": self.pc, "load": self.load, "source": self.source,
-               "t_start": self.t_start, "t_end": self.t_end}
+               "t_start": self.t_start, "t_end": self.t_end, "breakaway": self.breakaway}
         return {k: (None if isinstance(x, float) and not math.isfinite(x) else x) for k, x in out.items()}
 
 
@@ -139,12 +148,6 @@ class RunPoints:
     moving_time: float  # s with |v| >= min_speed
 
 
-def _slope_kernel(half: int) -> np.ndarray:
-    """Least-squares slope over +-half samples (per sample), for np.convolve."""
-    j = np.arange(-half, half + 1, dtype=float)
-    return (j / np.sum(j * j))[::-1]
-
-
 def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[start, end) of the runs of True in a boolean array."""
     d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
@@ -153,10 +156,12 @@ def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 def _segments(v: np.ndarray, dt: float, opts: SegmentOptions, stuck: float) -> list[tuple[int, int]]:
     """[start, end) of the constant-velocity segments (indices into v)."""
+    from .identify import _derivative_kernels  # Savitzky-Golay: its first-derivative kernel is the LS slope
+
     n_min = max(3, int(math.ceil(opts.min_duration / dt)))
     w = max(1, n_min // 2)  # trend: average over min_duration
     trend = np.convolve(v, np.full(2 * w + 1, 1.0 / (2 * w + 1)), mode="same")
-    slope = np.convolve(trend, _slope_kernel(w), mode="same") / dt
+    slope = np.convolve(trend, _derivative_kernels(w)[0], mode="same") / dt
     slope[:2 * w] = slope[len(slope) - 2 * w:] = np.inf  # no trend at the ends: never steady there
     speed = np.abs(trend)
     steady = (speed >= opts.min_speed) & (np.abs(slope) * opts.min_duration <= opts.spread * speed)
@@ -240,7 +245,7 @@ def _breakaways(t, v, F, dt, opts: SegmentOptions, stuck: float, source: str) ->
 
 # ================================================================ points tables
 
-_TABLE_OPTIONAL = ("F_std", "v_std", "count", "dp", "pc", "load")
+_TABLE_OPTIONAL = ("F_std", "v_std", "count", "dp", "pc", "load", "breakaway")
 _MAX_SPEED = 10.0  # m/s: above this, v is not in m/s
 
 
@@ -269,7 +274,8 @@ def is_points_table(path: str | os.PathLike[str]) -> bool:
 
 def read_points(path: str | os.PathLike[str]) -> list[MapPoint]:
     """Points of a CSV table with columns v,F (m/s, N), optionally F_std, v_std, count, dp,
-    pc, load; `#` lines are comments, other columns are ignored."""
+    pc, load, breakaway (1: a breakaway force, 0: a sliding point); `#` lines are comments,
+    other columns are ignored."""
     path = Path(path)
     lines = list(_lines(path))
     hline = next((n for n, line in enumerate(lines, 1) if _is_data(line)), None)
@@ -310,10 +316,14 @@ def read_points(path: str | os.PathLike[str]) -> list[MapPoint]:
         if "count" in vals and (vals["count"] < 1 or vals["count"] != int(vals["count"])):
             raise PointsFormatError(f"{path}: line {n}, column 'count': {cells[cols['count']]} is not a "
                                     f"positive whole number.")
+        if vals.get("breakaway", 0.0) not in (0.0, 1.0):
+            raise PointsFormatError(f"{path}: line {n}, column 'breakaway': {cells[cols['breakaway']]} is neither "
+                                    f"1 (a breakaway force) nor 0 (a sliding point).")
         points.append(MapPoint(v=vals["v"], F=vals["F"], F_std=vals.get("F_std", math.nan),
                                v_std=vals.get("v_std", math.nan), count=int(vals.get("count", 1)),
                                dp=vals.get("dp", math.nan), pc=vals.get("pc", math.nan),
-                               load=vals.get("load", math.nan), source=str(path)))
+                               load=vals.get("load", math.nan), source=str(path),
+                               breakaway=vals.get("breakaway", 0.0) == 1.0))
     if not points:
         raise PointsFormatError(f"{path}: no points after the header (a points table needs rows v,F).")
     return points
@@ -343,6 +353,8 @@ FIT_SPECS: dict[str, FitSpec] = {s.name: s for s in (
     FitSpec("belforte", "belforte", {}, "pressure-dependent (Belforte, seed 004 Eq. 2)"),
 )}
 
+# families whose Fs is the breakaway force itself (no load or pressure terms): breakaway rows fix it
+_FS_FROM_BREAKAWAY_ROWS = frozenset({"cvs", "lugre"})
 _CONDITION_HELP = {"dp": "dp (|p1 - p2|, Pa)", "pc": "pc (counter pressure, Pa gauge)", "load": "load (N)"}
 _STRONG_CORRELATION = 0.999
 
@@ -422,13 +434,15 @@ def _direction_of(points: Sequence[MapPoint]) -> str:
 
 
 def linear_fit(points: Sequence[MapPoint]) -> LinearFit:
-    """Seed 000's least squares, Eq. (8): Theta = (X^T X)^-1 X^T Y with X = [sign v, v]."""
+    """Seed 000's least squares, Eq. (8): Theta = (X^T X)^-1 X^T Y with X = [sign v, v], on the
+    sliding points (breakaway rows are left out)."""
     direction = _direction_of(points)
+    points = [p for p in points if not p.breakaway]
     v = np.array([p.v for p in points])
     F = np.array([p.F for p in points])
     n = len(v)
     if n < 3:
-        raise TooFewPointsError(f"the {direction} direction has {n} points, too few for the linear fit "
+        raise TooFewPointsError(f"the {direction} direction has {n} sliding points, too few for the linear fit "
                                 f"(2 parameters, at least 3 points).")
     X = np.column_stack([np.sign(v), v])
     theta, *_ = np.linalg.lstsq(X, F, rcond=None)
@@ -523,7 +537,8 @@ def _flags(cls, free, values, std, ci, lower, upper, corr, v, J_full, suffix) ->
             continue
         if n in cls.SCALES and x < slowest:
             flags.append({"param": n, "reason": f"{n} = {x:.3g} m/s lies below the slowest tested speed "
-                                                 f"{slowest:.3g} m/s: the curve changes where there are no points"})
+                                                 f"{slowest:.3g} m/s: the curve changes where there are no points "
+                                                 f"(its shape there is the model's assumption)"})
         elif n in cls.SCALES and x > fastest:
             flags.append({"param": n, "reason": f"{n} = {x:.3g} m/s lies above the fastest tested speed "
                                                  f"{fastest:.3g} m/s: the curve is still changing at the last point"})
@@ -554,13 +569,15 @@ def fit_model(points: Sequence[MapPoint], spec: FitSpec | str, fixed: Mapping[st
     (scipy.optimize.least_squares, bounds from the model's PARAMS, exact Jacobian from the
     model's CasADi expression, a few starts). `fixed` holds base parameters at values (a
     NaN value: not determined, reported as None). Standard deviations as scipy's curve_fit
-    (unweighted: the residual variance scales (J^T J)^-1), 95 % intervals with Student's t."""
+    (unweighted: the residual variance scales (J^T J)^-1), 95 % intervals with Student's t.
+    Breakaway rows are left out: the fit is of the sliding points (build_map fixes Fs from them)."""
     from scipy.optimize import least_squares
     from scipy.stats import t as student_t
 
     spec = FIT_SPECS[spec] if isinstance(spec, str) else spec
     cls = FRICTION_MODELS[spec.family]
     direction = _direction_of(points)
+    points = [p for p in points if not p.breakaway]
     suffix = DIRECTIONS[direction][0]
     fixed_all = {**spec.fixed, **(fixed or {})}
     reasons = {n: "held fixed by the fit" for n in spec.fixed}
@@ -664,29 +681,48 @@ def _covariance(J: np.ndarray, ssr: float, dof: int) -> tuple[np.ndarray, np.nda
 @dataclass(frozen=True)
 class StickBand:
     """Where one direction sticks: no steady sliding below dv (Karnopp's band, seed 000's
-    minimum speed), and the breakaway forces seen in runs."""
+    minimum speed), and the breakaway forces: single ones seen in runs, and the rows of
+    breakaway tables (each the mean of `count` trials with their standard deviation F_std)."""
 
     direction: str
     dv: float | None  # m/s: slowest steady sliding speed
     at_detector_limit: bool  # dv is the detector's min_speed: the true band may be narrower
-    breakaway: tuple[float, ...]  # N, magnitudes
+    breakaway: tuple[float, ...]  # N, magnitudes (runs)
     stuck_speed: float | None  # m/s (runs)
     stuck_time: float | None  # s in all runs, either direction
+    breakaway_rows: tuple[tuple[float, float, int], ...] = ()  # (mean |F| N, std N or NaN, trials) of tables
+
+    def _groups(self) -> list[tuple[float, float, int]]:
+        """(mean, std, count) of every source; a row without its spread counts as one value."""
+        return [(f, 0.0, 1) for f in self.breakaway] + \
+            [(m, s, n) if math.isfinite(s) else (m, 0.0, 1) for m, s, n in self.breakaway_rows]
+
+    @property
+    def breakaway_count(self) -> int:
+        return sum(n for *_, n in self._groups())
 
     @property
     def breakaway_mean(self) -> float | None:
-        return float(np.mean(self.breakaway)) if self.breakaway else None
+        g = self._groups()
+        return sum(m * n for m, _, n in g) / self.breakaway_count if g else None
 
     @property
     def breakaway_std(self) -> float | None:
-        return float(np.std(self.breakaway, ddof=1)) if len(self.breakaway) > 1 else None
+        """Sample standard deviation of all trials, pooled exactly from the groups' means and spreads."""
+        N = self.breakaway_count
+        if N < 2:
+            return None
+        mean = self.breakaway_mean
+        ss = sum((n - 1) * s * s + n * (m - mean) ** 2 for m, s, n in self._groups())
+        return math.sqrt(ss / (N - 1))
 
     def to_json(self) -> dict:
         return {"dv": self.dv, "at_detector_limit": self.at_detector_limit, "stuck_speed": self.stuck_speed,
                 "stuck_time_s": self.stuck_time,
-                "breakaway": {"count": len(self.breakaway), "mean": self.breakaway_mean, "std": self.breakaway_std,
+                "breakaway": {"count": self.breakaway_count, "mean": self.breakaway_mean, "std": self.breakaway_std,
                               "max": max(self.breakaway) if self.breakaway else None,
-                              "forces": list(self.breakaway)}}
+                              "forces": list(self.breakaway),
+                              "rows": [{"mean": m, "std": s, "count": n} for m, s, n in self.breakaway_rows]}}
 
 
 @dataclass(frozen=True)
@@ -745,32 +781,42 @@ def build_map(points: Sequence[MapPoint], models: Sequence[str] | None = None,
     dirs = {}
     for direction in DIRECTIONS:
         pts = tuple(sorted((p for p in points if p.direction == direction), key=lambda p: abs(p.v)))
+        slide = [p for p in pts if not p.breakaway]
         forces = tuple(b.force for b in breakaways if b.direction == direction)
-        dv = abs(pts[0].v) if pts else None
+        rows = tuple((abs(p.F), p.F_std, p.count) for p in pts if p.breakaway)
+        dv = abs(slide[0].v) if slide else None
         band = StickBand(direction=direction, dv=dv,
                          at_detector_limit=bool(dv is not None and min_speed is not None and dv < 1.2 * min_speed),
-                         breakaway=forces, stuck_speed=stuck_speed, stuck_time=stuck_time)
+                         breakaway=forces, stuck_speed=stuck_speed, stuck_time=stuck_time, breakaway_rows=rows)
         fits, skipped = {}, {}
         linear = None
         try:
-            linear = linear_fit(pts) if pts else None
+            linear = linear_fit(pts) if slide else None
         except TooFewPointsError:
             pass
         for name in names:
             try:
-                if not pts:
-                    raise TooFewPointsError(f"the {direction} direction has no points, so {name} cannot be fitted.")
+                if not slide:
+                    what = "no points" if not pts else "no points but breakaway rows (no sliding points)"
+                    raise TooFewPointsError(f"the {direction} direction has {what}, so {name} cannot be fitted.")
                 fixed, why = {}, {}
                 if FIT_SPECS[name].family == "karnopp":
                     # the band is where no steady sliding was seen; every point lies on the sliding branch
                     fixed["dv"] = float(np.nextafter(dv, 0.0))
                     why["dv"] = "the stick band: slowest steady sliding speed (not fitted)"
-                    fixed["Fs"] = band.breakaway_mean if forces else math.nan
-                    why["Fs"] = (f"mean of {len(forces)} breakaway forces (not fitted)" if forces
+                    fixed["Fs"] = band.breakaway_mean if band.breakaway_count else math.nan
+                    why["Fs"] = (f"mean of {band.breakaway_count} breakaway forces (not fitted)" if band.breakaway_count
                                  else "no breakaway observed: not determined")
+                rows_only = replace(band, breakaway=())  # the breakaway table's rows
+                if FIT_SPECS[name].family in _FS_FROM_BREAKAWAY_ROWS and rows_only.breakaway_count:
+                    fixed["Fs"] = rows_only.breakaway_mean
+                    why["Fs"] = (f"mean of {rows_only.breakaway_count} breakaway forces of the breakaway table "
+                                 f"(not fitted)")
                 fit = fit_model(pts, name, fixed, why)
                 if FIT_SPECS[name].family == "karnopp":
-                    fit = _karnopp_breakaway(fit, band)
+                    fit = _fs_from_breakaways(fit, band)
+                elif "Fs" in fixed:
+                    fit = _fs_from_breakaways(fit, rows_only)
                 fits[name] = fit
             except FrictionMapError as e:
                 if strict:
@@ -781,11 +827,11 @@ def build_map(points: Sequence[MapPoint], models: Sequence[str] | None = None,
     return FrictionMap(directions=dirs)
 
 
-def _karnopp_breakaway(fit: ModelFit, band: StickBand) -> ModelFit:
-    """Karnopp's Fs comes from the breakaway forces: their standard error, or a flag."""
+def _fs_from_breakaways(fit: ModelFit, band: StickBand) -> ModelFit:
+    """An Fs fixed at the mean breakaway force: its standard error and interval, or a flag."""
     std, ci, flags = dict(fit.std), dict(fit.ci95), list(fit.flags)
-    if band.breakaway:
-        m = len(band.breakaway)
+    if band.breakaway_count:
+        m = band.breakaway_count
         se = band.breakaway_std / math.sqrt(m) if band.breakaway_std is not None else None
         std["Fs"] = se
         if se is not None:
@@ -794,9 +840,10 @@ def _karnopp_breakaway(fit: ModelFit, band: StickBand) -> ModelFit:
             h = float(student_t.ppf(0.975, m - 1)) * se
             ci["Fs"] = (band.breakaway_mean - h, band.breakaway_mean + h)
             if band.breakaway_std > 0.3 * band.breakaway_mean:
-                flags.append({"param": "Fs", "reason": f"the {m} breakaway forces scatter widely "
-                                                       f"({min(band.breakaway):.3g} to {max(band.breakaway):.3g} N): "
-                                                       f"the piston hardly sticks, or is driven too fast to show it"})
+                flags.append({"param": "Fs", "reason": f"the {m} breakaway forces scatter widely (standard "
+                                                       f"deviation {band.breakaway_std:.3g} N about "
+                                                       f"{band.breakaway_mean:.3g} N): the piston hardly sticks, or "
+                                                       f"is driven too fast to show it"})
         else:
             flags.append({"param": "Fs", "reason": "a single breakaway: no spread to judge it by"})
         Fc = fit.params.get("Fc")
@@ -813,7 +860,8 @@ def _karnopp_breakaway(fit: ModelFit, band: StickBand) -> ModelFit:
 # ================================================================ plot
 
 def plot_map(fmap: FrictionMap, path: str | os.PathLike[str], title: str = "") -> None:
-    """The map (points with their friction spread) and every fitted curve, both directions."""
+    """The map (points with their friction spread, breakaway rows apart) and every fitted curve, both
+    directions; the friction axis spans the points (a curve that runs off beyond them is cut)."""
     try:
         import matplotlib
 
@@ -823,23 +871,32 @@ def plot_map(fmap: FrictionMap, path: str | os.PathLike[str], title: str = "") -
         raise FrictionMapError("--plot needs matplotlib, which is not installed (pip install matplotlib).") from None
     fig, ax = plt.subplots(figsize=(9, 6))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    F_all, labelled = [0.0], set()
     for direction, d in fmap.directions.items():
-        if d.points:
-            v = np.array([p.v for p in d.points])
-            F = np.array([p.F for p in d.points])
-            err = np.array([p.F_std for p in d.points])
-            ax.errorbar(v * 1e3, F, yerr=np.where(np.isfinite(err), err, 0.0), fmt="o", color="k", ms=4,
-                        capsize=2, label="points" if direction == "extension" else None)
+        for static, marker, label in ((False, "o", "points"), (True, "^", "breakaway")):
+            pts = [p for p in d.points if p.breakaway == static]
+            if not pts:
+                continue
+            v = np.array([p.v for p in pts])
+            F = np.array([p.F for p in pts])
+            err = np.array([p.F_std for p in pts])
+            F_all.extend((F - np.nan_to_num(err)).tolist() + (F + np.nan_to_num(err)).tolist())
+            ax.errorbar(v * 1e3, F, yerr=np.where(np.isfinite(err), err, 0.0), fmt=marker, color="k", ms=4,
+                        capsize=2, label=None if label in labelled else label)
+            labelled.add(label)
         if d.stick_band.dv is not None:
             s = DIRECTIONS[direction][1]
             ax.axvspan(0, s * d.stick_band.dv * 1e3, color="0.9", zorder=0,
                        label="stick band" if direction == "extension" else None)
-        for i, (name, fit) in enumerate(d.fits.items()):
+        for name, fit in d.fits.items():
             curve = _fit_curve(fit, d.points)
             if curve is None:
                 continue
             vv, FF = curve
+            i = list(FIT_SPECS).index(name)  # one colour per model in both directions
             ax.plot(vv * 1e3, FF, color=colours[i % len(colours)], label=name if direction == "extension" else None)
+    lo, hi = min(F_all), max(F_all)
+    ax.set_ylim(lo - 0.15 * (hi - lo), hi + 0.15 * (hi - lo))
     ax.axhline(0, color="0.5", lw=0.5)
     ax.axvline(0, color="0.5", lw=0.5)
     ax.set_xlabel("velocity v [mm/s]")

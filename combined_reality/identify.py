@@ -75,6 +75,7 @@ class IdentifyResult:
     simulated: list[np.ndarray] = field(repr=False, default_factory=list)  # per run: (n_outputs, N)
     output_names: tuple[str, ...] = ()
     correlation: np.ndarray | None = field(repr=False, default=None)
+    nodes: np.ndarray | None = field(repr=False, default=None)  # final node states (nx, intervals)
 
     def to_json(self) -> dict:
         return {
@@ -254,6 +255,7 @@ class ShootingProblem:
 
 def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = IdentifyOptions(),
              effects: Sequence[Effect] = (), initial: Mapping[str, float] | None = None,
+             nodes: np.ndarray | None = None,
              progress: Callable[[str], None] | None = None) -> IdentifyResult:
     t_start = time.perf_counter()
     if not runs:
@@ -306,6 +308,8 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     Y = np.concatenate([l.Y for l in layouts])  # (Ktot, M, ny)
     mask = np.concatenate([l.mask for l in layouts])  # (Ktot, M)
     S = np.hstack([l.S0 for l in layouts])  # (nx, Ktot)
+    if nodes is not None:
+        S = _warm_nodes(plant, cyl, S, np.asarray(nodes, float))
     wts, sscale = residual_scales(plant, cyl, dt0)
     # node k is followed by node k+1 within the same run
     has_next = np.ones(Ktot, bool)
@@ -445,7 +449,27 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
               "history": history}
     return IdentifyResult(params=params, fit=fit, fit_per_run=fit_runs, solver=solver,
                           cylinder=cyl.with_values(values), effects=new_effects, drive=plant.drive,
-                          simulated=sims, output_names=plant.output_names, correlation=corr)
+                          simulated=sims, output_names=plant.output_names, correlation=corr, nodes=S)
+
+
+def _warm_nodes(plant: Plant, cyl: Cylinder, S: np.ndarray, warm: np.ndarray) -> np.ndarray:
+    """Node states of an earlier solution on the same runs and intervals (a warm start, e.g.
+    another model's): its drive states are taken, the states this plant adds start from
+    their initial values at those nodes."""
+    nb = 4 if plant.drive == "command" else 2
+    if warm.ndim != 2 or warm.shape[1] != S.shape[1] or warm.shape[0] < nb:
+        raise ValueError(f"warm-start nodes of shape {warm.shape} do not fit {S.shape[1]} intervals")
+    out = S.copy()
+    out[:nb] = warm[:nb]
+    if plant.nx > nb:
+        names = plant.state_names
+        ix, iv = names.index("x"), names.index("v")
+        ip1 = names.index("p1") if "p1" in names else None
+        for k in range(S.shape[1]):
+            p1 = out[ip1, k] if ip1 is not None else 0.0
+            p2 = out[ip1 + 1, k] if ip1 is not None else 0.0
+            out[nb:, k] = plant.initial_state(cyl, out[ix, k], p1, p2, out[iv, k])[nb:]
+    return out
 
 
 def _replace_effect(e: Effect, values: Mapping[str, float]) -> Effect:

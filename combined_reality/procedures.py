@@ -47,8 +47,9 @@ __all__ = ["ProcedureError", "SafetyOptions", "BreakawayOptions", "SweepOptions"
 Progress = Callable[[str], None]
 DIRECTION_NAMES = {1: "extension", -1: "retraction"}
 # the points table of the friction-map command: v,F required (SI, signed: v > 0 extension, F the
-# sign of v), then the spreads, the samples averaged and the pressure conditions
-TABLE_COLUMNS = ("v", "F", "F_std", "v_std", "count", "dp", "pc")
+# sign of v), then the spreads, the samples averaged, the pressure conditions, and breakaway
+# (1: a breakaway force, which the map must not fit as a sliding point; 0: a sliding point)
+TABLE_COLUMNS = ("v", "F", "F_std", "v_std", "count", "dp", "pc", "breakaway")
 _HALF = 15  # half-window of friction_from_newton's Savitzky-Golay derivatives (its default)
 
 
@@ -190,7 +191,7 @@ class BreakawayResult:
     def table(self) -> list[dict[str, float]]:
         """Rows of the points table, one per direction: the static end of the map (TABLE_COLUMNS)."""
         return [{"v": s.v, "F": s.mean, "F_std": s.std, "v_std": s.v_std, "count": len(s.values), "dp": s.dp,
-                 "pc": s.pc} for s in sorted(self.summary, key=lambda s: s.v)]
+                 "pc": s.pc, "breakaway": 1} for s in sorted(self.summary, key=lambda s: s.v)]
 
     def to_json(self) -> dict:
         return {"procedure": "breakaway", "options": asdict(self.options),
@@ -230,8 +231,8 @@ class SweepResult:
 
     def table(self) -> list[dict[str, float]]:
         """Rows of the points table (TABLE_COLUMNS): the steady points, in order of v."""
-        return [{"v": p.v, "F": p.F, "F_std": p.F_std, "v_std": p.v_std, "count": p.n, "dp": p.dp, "pc": p.pc}
-                for p in sorted(self.points, key=lambda p: p.v) if p.steady]
+        return [{"v": p.v, "F": p.F, "F_std": p.F_std, "v_std": p.v_std, "count": p.n, "dp": p.dp, "pc": p.pc,
+                 "breakaway": 0} for p in sorted(self.points, key=lambda p: p.v) if p.steady]
 
     def to_json(self) -> dict:
         return {"procedure": "sweep", "options": asdict(self.options), "points": [asdict(p) for p in self.points],
@@ -245,7 +246,8 @@ def write_points(path, rows: Sequence[Mapping[str, float]], comments: Sequence[s
         raise ValueError(f"a points table starts with the columns v,F, not {','.join(columns[:2])}")
     lines = [f"# {line}".rstrip() for text in comments for line in (text.splitlines() or [""])]
     lines.append(",".join(columns))
-    lines += [",".join(str(int(r[c])) if c == "count" else repr(float(r[c])) for c in columns) for r in rows]
+    lines += [",".join(str(int(r[c])) if c in ("count", "breakaway") else repr(float(r[c])) for c in columns)
+              for r in rows]
     _atomic_write(Path(path), ("\n".join(lines) + "\n").encode("utf-8"))
 
 
@@ -398,6 +400,11 @@ class _Driver:
         if self.watchdog_samples:
             self.say(f"warning: the rig's watchdog centred the valve for {self.watchdog_samples} samples (the host "
                      f"answered too late, longest pause {self.longest_pause * 1e3:.0f} ms): check the {what}")
+        stats = getattr(self.rig, "stats", None)
+        late, sent = getattr(stats, "commands_late", 0), getattr(stats, "commands_sent", 0)
+        if sent and late > 0.01 * sent:  # the loops then act a sample later than designed
+            self.say(f"warning: {late} of {sent} commands reached the rig after its next sample (a busy host or "
+                     f"link): check the {what}")
 
     def say(self, msg: str) -> None:
         if self.progress:
@@ -745,7 +752,8 @@ def _stroke(d: _Driver, direction: int, v_target: float, F_ff: float, opts: Swee
                 break
         if direction * (d.x - x0) < -0.02 * d.L:
             raise _wrong_way(direction)
-        if d.t - t0 > 2.0 and direction * (d.x - x0) < 1e-3:
+        # blocked: after 2 s less than 1 mm, or for a slow target a quarter of the reference's travel
+        if d.t - t0 > 2.0 and direction * (d.x - x0) < min(1e-3, 0.25 * v_target * (d.t - t0)):
             raise ProcedureError(f"the piston did not move in {DIRECTION_NAMES[direction]} within 2 s "
                                  f"(command {d.s.u_applied:+.2f}): is it blocked, or the supply off?")
         if d.t > t_limit:

@@ -48,6 +48,7 @@ class Run:
     # Further columns in file order: float64 if numeric, else numpy str arrays (kept verbatim).
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     source: Path | None = None
+    comments: tuple[str, ...] = ()  # the file's comment lines, without '# '
 
     def __post_init__(self) -> None:
         n = None
@@ -201,6 +202,7 @@ def read_run(path: str | os.PathLike[str]) -> Run:
         ps=columns.get("ps"),
         extra={k: v for k, v in columns.items() if k not in standard},
         source=path,
+        comments=tuple(ln.lstrip()[1:].strip() for ln in lines if _is_comment(ln)),
     )
 
 
@@ -324,6 +326,29 @@ def _to_float(s: str) -> float:
 
 
 # --------------------------------------------------------------------------- writing
+
+
+CYLINDER_TAG = "cylinder:"
+
+
+def cylinder_identity(cyl) -> str:
+    """What makes a cylinder that cylinder: its name and geometry (friction may be
+    re-identified into a new file; the identity stays)."""
+    g, m = cyl.geometry, cyl.mechanics
+    return f"{cyl.name}; bore {g.bore:g} m, rod {g.rod:g} m, stroke {g.stroke:g} m, mass {m.moving_mass:g} kg"
+
+
+def cylinder_tag(cyl) -> str:
+    """The comment line that says which cylinder a run was recorded on."""
+    return f"{CYLINDER_TAG} {cylinder_identity(cyl)}; file {cyl.source or '-'}"
+
+
+def recorded_cylinder(run: Run) -> str | None:
+    """The recorded cylinder's identity (the tag without its file), or None if not recorded."""
+    for c in run.comments:
+        if c.startswith(CYLINDER_TAG):
+            return c[len(CYLINDER_TAG):].split("; file ")[0].strip()
+    return None
 
 
 def write_run(path: str | os.PathLike[str], run: Run, comments: Sequence[str] | None = None) -> None:

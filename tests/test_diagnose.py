@@ -1,35 +1,45 @@
-"""Diagnosis (first version): a withheld effect is named, a clean rig gets `none`."""
+"""Diagnosis: a withheld effect is named, a clean rig gets `none`, bad pairs of runs are refused."""
 import json
 
+import numpy as np
 import pytest
 
 from combined_reality.cli import main, simulate_run
-from combined_reality.runs import write_run
+from combined_reality.diagnose import Validation, validate, validation_gain, validation_segments
+from combined_reality.runs import cylinder_tag, read_run, write_run
 from sim.effects import parse_effect_spec
 
-pytestmark = pytest.mark.slow
 CANDIDATES = "stiction,valve_delay,leakage"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec, verdict", [("leakage:conductance=2e-10", "leakage"), (None, "none")])
 def test_diagnose_names_the_withheld_effect_or_none(cyl_a, tmp_path, capsys, spec, verdict):
     effects = [parse_effect_spec(spec)] if spec else []
     for seed, name in ((1, "train.csv"), (2, "valid.csv")):
-        write_run(tmp_path / name, simulate_run(cyl_a, 20.0, seed=seed, effects=effects))
+        write_run(tmp_path / name, simulate_run(cyl_a, 20.0, seed=seed, effects=effects), comments=[cylinder_tag(cyl_a)])
     out = tmp_path / "d.json"
+    report = tmp_path / "report.html"
     assert main(["diagnose", str(tmp_path / "train.csv"), "--validate", str(tmp_path / "valid.csv"),
-                 "--config", str(cyl_a.source), "--candidates", CANDIDATES, "--json", str(out), "-q"]) == 0
+                 "--config", str(cyl_a.source), "--candidates", CANDIDATES, "--json", str(out),
+                 "--report", str(report), "-q"]) == 0
     d = json.loads(out.read_text())
     assert d["verdict"] == verdict
-    assert not [c for c in d["ranking"] if "error" in c]  # every candidate was fitted and scored
+    assert {c["effect"] for c in d["ranking"]} == set(CANDIDATES.split(","))
+    assert not [c for c in d["ranking"] if c["status"] == "failed"]
+    assert verdict in report.read_text()
     assert {"rmse_x_validation"} <= set(d["baseline"])
     if spec:
         assert d["ranking"][0]["effect"] == verdict
         top = d["ranking"][0]
         assert top["shrink"] > 0.6
         assert top["params"]["conductance"] == pytest.approx(2e-10, rel=0.05)
+        assert top["significant"] and top["z"] >= 3
     else:
-        assert max(c["shrink"] for c in d["ranking"]) < 0.1  # nothing explains a gap that is not there
+        # nothing explains a gap that is not there: the nominal model predicts VALID to the noise
+        assert d["baseline"]["normalized_rms"] < 1.05
+        assert not any(c["significant"] for c in d["ranking"])
+        assert max(c["shrink"] for c in d["ranking"] if c["shrink"] is not None) < 0.05
     assert abs(sum(r["share_of_error"] for r in d["regions"] if r["where"].startswith("time:")) - 1) < 1e-9
 
 
@@ -39,3 +49,56 @@ def test_validation_run_of_another_rate_is_refused(cyl_a, tmp_path, capsys):
     assert main(["diagnose", str(tmp_path / "a.csv"), "--validate", str(tmp_path / "b.csv"),
                  "--config", str(cyl_a.source)]) == 2
     assert "same rig and rate" in capsys.readouterr().err
+
+
+def test_validation_run_of_another_cylinder_is_refused(cyl_a, tmp_path, capsys):
+    other = cyl_a.with_values({"stroke": 0.2})
+    write_run(tmp_path / "a.csv", simulate_run(cyl_a, 2.0, seed=1), comments=[cylinder_tag(cyl_a)])
+    write_run(tmp_path / "b.csv", simulate_run(cyl_a, 2.0, seed=2), comments=[cylinder_tag(other)])
+    assert main(["diagnose", str(tmp_path / "a.csv"), "--validate", str(tmp_path / "b.csv"),
+                 "--config", str(cyl_a.source)]) == 2
+    err = capsys.readouterr().err
+    assert "b.csv was recorded on the cylinder" in err and "stroke 0.2 m" in err
+
+
+def test_simulated_runs_carry_their_cylinder(cyl_a, tmp_path):
+    path = tmp_path / "r.csv"
+    assert main(["simulate", "--config", str(cyl_a.source), "--duration", "0.2", "-o", str(path), "-q"]) == 0
+    assert cylinder_tag(cyl_a) in read_run(path).comments
+
+
+def test_the_true_model_validates_to_the_sensor_noise(cyl_a):
+    """Segments simulated from fitted initial states: with the truth only the noise is left,
+    also for an effect with its own state (valve lag), and the nominal model is far worse."""
+    eff = parse_effect_spec("valve_delay:tau=0.003")
+    run = simulate_run(cyl_a, 6.0, seed=5, effects=[eff])
+    segs = validation_segments(run, 1.0)
+    assert segs[0][0] == 0 and segs[-1][1] == run.n and len(segs) == 6
+    assert all(b1 == a2 for (_, b1), (a2, _) in zip(segs, segs[1:]))
+    true = validate(cyl_a, [eff], run, segments=segs)
+    nominal = validate(cyl_a, [], run, segments=segs)
+    assert 0.9 < true.normalized_rms() < 1.1
+    assert true.rmse("x") == pytest.approx(cyl_a.sensors.position_noise, rel=0.15)
+    assert nominal.normalized_rms() > 5
+    shrink, z = validation_gain(nominal, true)
+    assert shrink > 0.8 and z > 10
+    assert validation_gain(true, nominal)[1] < -3  # the worse model is no gain
+
+
+def test_validation_gain_of_noise_is_not_significant():
+    """Two predictions that differ by less than the noise, scored on pure noise: z ~ N(<0, 1)."""
+    rng = np.random.default_rng(3)
+    n, zs = 2000, []
+    for _ in range(200):
+        y = rng.normal(0, 1, (3, n))
+        a = np.zeros((3, n))
+        b = a + 0.05 * np.sin(np.arange(n) / 50.0)
+
+        def val(sim):
+            r = y - sim
+            return Validation(("x", "p1", "p2"), sim, r, [(0, n)], np.array([float(np.sum(r * r))]),
+                              np.ones(3), "converged")
+        zs.append(validation_gain(val(a), val(b))[1])
+    zs = np.array(zs)
+    assert abs(np.std(zs) - 1) < 0.15 and np.mean(zs) < 0
+    assert np.mean(zs > 3) < 0.01

@@ -40,17 +40,17 @@ def _diagnosis(cyl, verdict: str = "valve_delay", gap: bool = True) -> Diagnosis
     leak = _validation(valid, base_x * 0.98, 2900.0, rng)
     best = Candidate("valve_delay", shrink=1 - good.rmse("x") / base.rmse("x"), rmse_x_validation=good.rmse("x"),
                      params={"tau": 1.4159e-3, "share": 0.9988}, std={"tau": 1.9e-7, "share": 6.5e-4},
-                     score=0.97, status="converged", shrink_all=0.98, t_stat=5.4, significant=True,
+                     score=0.97, status="converged", shrink_all=0.98, z=5.4, significant=True,
                      friction={"Fc": 24.8, "Fv": 13.45, "kp": 2.89e-5}, wall_s=4.3, validation=good)
     other = Candidate("leakage", shrink=0.02, rmse_x_validation=leak.rmse("x"), params={"conductance": 0.0},
-                      std={"conductance": 7e-12}, score=0.0, status="max_iterations", shrink_all=0.01, t_stat=1.2,
+                      std={"conductance": 7e-12}, score=0.0, status="max_iterations", shrink_all=0.01, z=1.2,
                       significant=False, friction={"Fc": 22.3, "Fv": 0.0, "kp": 0.0}, wall_s=7.7, validation=leak)
     failed = Candidate("stiction", status="failed", wall_s=0.5,
                        error="IdentificationError: the line search failed <at iteration 3>")
     pair = Candidate("valve_delay+leakage", shrink=best.shrink, rmse_x_validation=good.rmse("x"),
                      params={"valve_delay.tau": 1.4e-3, "valve_delay.share": 1.0, "leakage.conductance": 1e-13},
                      std={"valve_delay.tau": 2e-7, "valve_delay.share": 1e-3, "leakage.conductance": 1e-14},
-                     status="converged", shrink_all=0.98, t_stat=0.4, significant=False, validation=good)
+                     status="converged", shrink_all=0.98, z=0.4, significant=False, validation=good)
     if verdict == "none":
         best.significant, best.t_stat, pair = False, 1.0, None
     ranking = [best, other, failed]

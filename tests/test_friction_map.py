@@ -205,6 +205,43 @@ def test_linear_fit_is_seed_000_least_squares():
         assert cv.params["Fc"] == pytest.approx(lin.Fc, rel=1e-8) and cv.r2 == pytest.approx(lin.r2, rel=1e-10)
 
 
+def test_breakaway_rows_are_not_fitted_as_sliding_points():
+    """Rows marked breakaway (procedure breakaway) feed the stick band, karnopp's Fs and the Fs of
+    cvs/lugre; every fit is of the sliding points alone, so cv and the linear fit are those of the
+    sliding points and vs below the slowest sliding speed is flagged."""
+    truth = CVS(**{**TABLE3_N2, "vs_pos": 4e-3, "vs_neg": 4e-3})
+    sliding = _points(truth, np.geomspace(0.006, 0.3, 8), noise=0.05)  # the tail of the Stribeck drop, no more
+    trials = {1: np.array([21.9, 22.1, 22.0, 22.2]), -1: np.array([19.8, 20.1, 20.0])}
+    rows = [MapPoint(v=s * 1e-4, F=s * float(f.mean()), F_std=float(f.std(ddof=1)), count=len(f), breakaway=True)
+            for s, f in trials.items()]
+    with_rows = build_map(sliding + rows, ["cv", "karnopp", "cvs"], strict=True)
+    without = build_map(sliding, ["cv", "karnopp", "cvs"], strict=True)
+    for direction, (suffix, s) in DIRECTIONS.items():
+        d, ref = with_rows.directions[direction], without.directions[direction]
+        assert d.fits["cv"].params == ref.fits["cv"].params and d.linear.Fc == ref.linear.Fc
+        assert d.stick_band.dv == ref.stick_band.dv == pytest.approx(0.006)  # the slowest sliding point
+        band = d.stick_band
+        assert band.breakaway_count == len(trials[s])
+        assert band.breakaway_mean == pytest.approx(trials[s].mean(), rel=1e-12)
+        assert band.breakaway_std == pytest.approx(trials[s].std(ddof=1), rel=1e-12)
+        for name in ("karnopp", "cvs"):
+            fit = d.fits[name]
+            assert fit.params["Fs"] == pytest.approx(trials[s].mean(), rel=1e-12) and "Fs" in fit.fixed
+            assert fit.std["Fs"] == pytest.approx(trials[s].std(ddof=1) / math.sqrt(len(trials[s])), rel=1e-12)
+            assert fit.n_points == 8
+        cvs = d.fits["cvs"]
+        assert cvs.params["vs"] == pytest.approx(getattr(truth, f"vs_{suffix}"), rel=0.3)
+        assert "below the slowest tested speed 0.006 m/s" in {f["param"]: f["reason"] for f in cvs.flags}["vs"]
+        assert "Fs" in {f["param"] for f in ref.fits["karnopp"].flags}  # without rows: no breakaway
+        assert [p.breakaway for p in d.points] == [True] + [False] * 8
+    # pooled: rows and single breakaways of runs together, as one sample of all trials
+    from combined_reality.friction_map import StickBand
+    band = StickBand("extension", 0.01, False, (21.5, 22.4), None, None, breakaway_rows=((22.05, 0.129, 4),))
+    everything = np.concatenate([[21.5, 22.4], trials[1]])
+    assert band.breakaway_count == 6 and band.breakaway_mean == pytest.approx(everything.mean(), rel=1e-12)
+    assert band.breakaway_std == pytest.approx(everything.std(ddof=1), rel=1e-3)  # 0.129 is rounded
+
+
 def test_too_few_points_for_a_model():
     pts = _direction(_points(TRUTH["cvs"], np.geomspace(1e-3, 0.3, 4)), "extension")
     with pytest.raises(TooFewPointsError, match="extension direction has 4 points, too few to fit cvs with 4 "
@@ -223,6 +260,9 @@ def test_points_table_is_read(tmp_path):
     pts = read_points(path)
     assert [(p.v, p.F, p.F_std) for p in pts] == [(0.05, 25.1, 0.3), (-0.04, -20.2, 0.4)]
     assert [p.direction for p in pts] == ["extension", "retraction"]
+    assert not any(p.breakaway for p in pts)
+    path.write_text("v,F,count,breakaway\n0.05,25.1,1,0\n0.002,30.0,15,1\n")
+    assert [(p.breakaway, p.count) for p in read_points(path)] == [(False, 1), (True, 15)]
 
 
 @pytest.mark.parametrize("text, fragments", [
@@ -235,6 +275,7 @@ def test_points_table_is_read(tmp_path):
     ("# only a comment\n", ["empty"]),
     ("v,F\n", ["no points"]),
     ("v,F,v\n0.1,2,3\n", ["'v' appears twice"]),
+    ("v,F,breakaway\n0.1,2,2\n", ["line 2", "column 'breakaway'", "neither 1"]),
 ])
 def test_bad_points_tables_are_refused(tmp_path, text, fragments):
     path = tmp_path / "bad.csv"
@@ -255,7 +296,7 @@ def test_command_on_a_points_table(tmp_path, capsys):
     out, png = tmp_path / "map.json", tmp_path / "map.png"
     assert _cli([table, "--model", "cv,cvs", "--model", "cvs_delta", "--json", out, "--plot", png, "-q"]) == 0
     printed = capsys.readouterr().out
-    assert "extension: 15 points" in printed and "cvs_delta" in printed and "R2" in printed and "MAE" in printed
+    assert "extension: 15 sliding points" in printed and "cvs_delta" in printed and "R2" in printed and "MAE" in printed
     data = json.loads(out.read_text())
     for direction in ("extension", "retraction"):
         d = data["directions"][direction]
@@ -308,12 +349,9 @@ def test_command_refuses_bad_input_in_one_sentence(tmp_path, argv, fragments):
     assert not out.exists()
 
 
-def test_command_through_the_main_entry_point_once_wired(tmp_path):
+def test_command_through_the_main_entry_point(tmp_path):
     from combined_reality import cli
 
-    sub = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
-    if "friction-map" not in sub.choices:
-        pytest.skip("friction-map is not registered in combined_reality.cli yet")
     table = _table(tmp_path, _points(CVS(**TABLE3_N2), np.geomspace(1e-3, 0.3, 10)))
     assert cli.main(["friction-map", str(table), "--json", str(tmp_path / "m.json"), "-q"]) == 0
     assert cli.main(["friction-map", str(tmp_path / "nope.csv"), "--json", str(tmp_path / "n.json")]) == 2
