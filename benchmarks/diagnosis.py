@@ -58,7 +58,7 @@ def case_id(c: dict) -> str:
     return f"{c['cylinder']}__{c['effect']}__{c['draw']}"
 
 
-def run_case(c: dict, duration: float, workers: int) -> dict:
+def run_case(c: dict, duration: float, workers: int, reports: Path | None = None) -> dict:
     cyl = load_cylinder(ROOT / "configs" / f"{c['cylinder']}.toml")
     seed = zlib.crc32(case_id(c).encode()) % 100_000
     rng = np.random.default_rng(seed)
@@ -72,6 +72,10 @@ def run_case(c: dict, duration: float, workers: int) -> dict:
     dg = diagnose(cyl, train, valid, DiagnoseOptions(workers=workers))
     t_diag = time.perf_counter() - t0
     res = dg.to_json()
+    if reports is not None:
+        from combined_reality.diagnose_report import write_report
+
+        write_report(dg, reports / f"{case_id(c)}.html", png_dir=reports / case_id(c))
     true = next((r for r in res["ranking"] if r["effect"] == c["effect"]), None)
     verdict_row = next((r for r in res["ranking"] if r["effect"] == res["verdict"]), None)
     return {**c, "seed": seed, "truth": effects[0].as_dict() if effects else {},
@@ -132,6 +136,7 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=20.0, help="seconds of TRAIN and of VALID")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--out", help="folder for per-case results (re-running skips cases already there)")
+    ap.add_argument("--reports", help="folder for the HTML report (and its plots as PNG) of every case")
     args = ap.parse_args()
     effects = tuple(n for n in args.effects.split(",") if n)
     cylinders = args.cylinders.split(",")
@@ -139,8 +144,9 @@ def main() -> int:
         effects, cylinders, args.duration, args.clean = QUICK_EFFECTS, cylinders[:1], 10.0, 1
     cases = case_list(effects, cylinders, args.draws, args.clean)
     out = Path(args.out) if args.out else None
-    if out:
-        out.mkdir(parents=True, exist_ok=True)
+    for folder in (out, Path(args.reports) if args.reports else None):
+        if folder:
+            folder.mkdir(parents=True, exist_ok=True)
     results = []
     t_all = time.perf_counter()
     for i, c in enumerate(cases, 1):
@@ -148,7 +154,7 @@ def main() -> int:
         if path and path.exists():
             results.append(json.loads(path.read_text()))
             continue
-        r = run_case(c, args.duration, args.workers)
+        r = run_case(c, args.duration, args.workers, Path(args.reports) if args.reports else None)
         results.append(r)
         if path:
             tmp = path.with_suffix(".tmp")

@@ -49,6 +49,7 @@ class DiagnoseOptions:
     max_iter: int = 20  # Gauss-Newton iterations of a candidate fit
     fit_time_limit_s: float = 15.0  # ... and its wall time at most (a fit that slow is lost anyway)
     closed_gap: float = 1.2  # a candidate leaving at most this x the noise has closed the gap
+    min_train_gain: float = 1e-3  # a candidate must cut the TRAIN cost by this share to be validated
     workers: int = max(1, os.cpu_count() or 1)
 
 
@@ -295,24 +296,27 @@ def candidate_starts(name: str) -> list[Effect]:
 
 @dataclass
 class _Nominal:
-    """What every candidate fit starts from: the nominal fit on TRAIN."""
+    """What every candidate fit starts from and is compared with: the cylinder file (the
+    friction start comes from the equation-error prefit, as for the nominal fit: a nominal
+    fit distorted by a strong effect is a poor start), the nominal fit's TRAIN cost and
+    its validation."""
 
-    cylinder: Cylinder
+    config: Cylinder
     train_cost: float
     validation: Validation
 
 
 def _fit_candidate(args) -> Candidate:
-    """Re-identify on TRAIN with the effects added (friction from the nominal fit, effects
-    from one start; node states from the measurements, which served better than the nominal
-    trajectory for mechanical effects), then score on VALID."""
+    """Re-identify on TRAIN with the effects added (friction from the equation-error prefit,
+    effects from one start; node states from the measurements, which served better than
+    the nominal trajectory for mechanical effects), then score on VALID."""
     nominal, train, valid, effects, start, opts, segments = args
     t0 = time.perf_counter()
     label = "+".join(e.name for e in effects)
     try:
         names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
-        res = identify(nominal.cylinder, [train],
-                       IdentifyOptions(estimate=names, threads=1, prefit=False, max_iter=opts.max_iter,
+        res = identify(nominal.config, [train],
+                       IdentifyOptions(estimate=names, threads=1, max_iter=opts.max_iter,
                                        time_limit_s=opts.fit_time_limit_s),
                        effects=effects)
         keyed = {e.key(k): (e.name, k) for e in effects for k in e.PARAMS}
@@ -322,11 +326,16 @@ def _fit_candidate(args) -> Candidate:
                       status=res.solver["status"], friction={n: res.params[n].value for n in ("Fc", "Fv", "kp")},
                       train_cost=res.solver["cost"], iterations=res.solver["iterations"], start=start,
                       effects=res.effects)
-        if c.train_cost > nominal.train_cost * (1 + 1e-3):
+        gain = 1.0 - c.train_cost / nominal.train_cost
+        if gain < -1e-3:
             # the candidate contains the nominal model: ending worse on TRAIN is a failed fit
             c.status = "worse_than_nominal"
             c.error = (f"the fit ended worse on TRAIN than the nominal model it contains (cost {c.train_cost:.4g} "
                        f"vs {nominal.train_cost:.4g}): a local minimum")
+        elif gain < opts.min_train_gain:
+            # the fast screen: what does not fit TRAIN better cannot explain the gap
+            c.status = "no_gain_on_train"
+            c.error = f"fits TRAIN no better than the nominal model ({gain:+.2%} of its cost): not validated"
         else:
             c.validation = validate(res.cylinder, res.effects, valid, opts.horizon_s, segments=segments,
                                     fallback=nominal.validation)
@@ -351,9 +360,9 @@ def _best_starts(results: list[Candidate]) -> list[Candidate]:
     best: dict[str, Candidate] = {}
     for c in results:
         old = best.get(c.effect)
-        better = c.validation is not None and (old is None or old.validation is None
-                                               or c.train_cost < old.train_cost)
-        if old is None or better:
+        ok, old_ok = c.validation is not None, old is not None and old.validation is not None
+        better = old is None or (ok and not old_ok) or (ok == old_ok and c.train_cost < old.train_cost)
+        if better:
             if old is not None:
                 c.wall_s += old.wall_s
             best[c.effect] = c
@@ -427,11 +436,11 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     say = progress or (lambda _m: None)
     opts = options
     say("identifying the nominal model on TRAIN ...")
-    base = identify(cyl, [train], IdentifyOptions())
+    base = identify(cyl, [train], IdentifyOptions(time_limit_s=2 * opts.fit_time_limit_s))
     nominal = base.cylinder
     segments = validation_segments(valid, opts.horizon_s)
     base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments)
-    start = _Nominal(nominal, base.solver["cost"], base_val)
+    start = _Nominal(cyl, base.solver["cost"], base_val)
     base_rmse = base_val.rmse("x")
     say(f"  validation RMSE of x: {base_rmse * 1e6:.2f} um, all outputs {base_val.normalized_rms():.2f} x the "
         f"sensor noise ({len(segments)} segments of about {opts.horizon_s:g} s)")

@@ -349,6 +349,8 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         accepted = converged_here = False
         predicted = math.inf
         for _attempt in range(8):
+            if _attempt and time.perf_counter() - t_start > options.time_limit_s:
+                break  # a struggling line search is where the time goes
             step = _solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam)
             if step is None:
                 lam = max(1e-6, lam * 10)
@@ -380,7 +382,8 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         if not accepted:
             # at the numerical noise floor of the cost nothing can be gained any more
             noise_floor = step is not None and predicted < 1.0 and viol < 1e-2 * max(1, Ktot)
-            status = "converged" if noise_floor else "line_search_failed"
+            timed_out = time.perf_counter() - t_start > options.time_limit_s
+            status = "converged" if noise_floor else "time_limit" if timed_out else "line_search_failed"
             break
         lam = lam / 10 if lam > 1e-6 else 0.0
         S, theta, p = S_try, th_try, p_try
