@@ -314,38 +314,43 @@ def _fit_candidate(args) -> Candidate:
     t0 = time.perf_counter()
     label = "+".join(e.name for e in effects)
     try:
-        names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
-        res = identify(nominal.config, [train],
-                       IdentifyOptions(estimate=names, threads=1, max_iter=opts.max_iter,
-                                       time_limit_s=opts.fit_time_limit_s),
-                       effects=effects)
-        keyed = {e.key(k): (e.name, k) for e in effects for k in e.PARAMS}
-        pname = (lambda n: keyed[n][1]) if len(effects) == 1 else (lambda n: n)
-        c = Candidate(effect=label, params={pname(n): res.params[n].value for n in keyed},
-                      std={pname(n): res.params[n].std for n in keyed},
-                      status=res.solver["status"], friction={n: res.params[n].value for n in ("Fc", "Fv", "kp")},
-                      train_cost=res.solver["cost"], iterations=res.solver["iterations"], start=start,
-                      effects=res.effects)
-        gain = 1.0 - c.train_cost / nominal.train_cost
-        if gain < -1e-3:
-            # the candidate contains the nominal model: ending worse on TRAIN is a failed fit
-            c.status = "worse_than_nominal"
-            c.error = (f"the fit ended worse on TRAIN than the nominal model it contains (cost {c.train_cost:.4g} "
-                       f"vs {nominal.train_cost:.4g}): a local minimum")
-        elif gain < opts.min_train_gain:
-            # the fast screen: what does not fit TRAIN better cannot explain the gap
-            c.status = "no_gain_on_train"
-            c.error = f"fits TRAIN no better than the nominal model ({gain:+.2%} of its cost): not validated"
-        else:
-            c.validation = validate(res.cylinder, res.effects, valid, opts.horizon_s, segments=segments,
-                                    fallback=nominal.validation)
-            c.rmse_x_validation = c.validation.rmse("x")
-        c.wall_s = time.perf_counter() - t0
-        return c
+        with np.errstate(all="ignore"):  # a diverging candidate is caught by its costs, not by warnings
+            return _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0, label)
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         # one candidate failing must not end the diagnosis
         return Candidate(effect=label, status="failed", start=start, wall_s=time.perf_counter() - t0,
                          error=f"{type(e).__name__}: {e}")
+
+
+def _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0, label) -> Candidate:
+    names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
+    res = identify(nominal.config, [train],
+                   IdentifyOptions(estimate=names, threads=1, max_iter=opts.max_iter,
+                                   time_limit_s=opts.fit_time_limit_s),
+                   effects=effects)
+    keyed = {e.key(k): (e.name, k) for e in effects for k in e.PARAMS}
+    pname = (lambda n: keyed[n][1]) if len(effects) == 1 else (lambda n: n)
+    c = Candidate(effect=label, params={pname(n): res.params[n].value for n in keyed},
+                  std={pname(n): res.params[n].std for n in keyed},
+                  status=res.solver["status"], friction={n: res.params[n].value for n in ("Fc", "Fv", "kp")},
+                  train_cost=res.solver["cost"], iterations=res.solver["iterations"], start=start,
+                  effects=res.effects)
+    gain = 1.0 - c.train_cost / nominal.train_cost
+    if gain < -1e-3:
+        # the candidate contains the nominal model: ending worse on TRAIN is a failed fit
+        c.status = "worse_than_nominal"
+        c.error = (f"the fit ended worse on TRAIN than the nominal model it contains (cost {c.train_cost:.4g} "
+                   f"vs {nominal.train_cost:.4g}): a local minimum")
+    elif gain < opts.min_train_gain:
+        # the fast screen: what does not fit TRAIN better cannot explain the gap
+        c.status = "no_gain_on_train"
+        c.error = f"fits TRAIN no better than the nominal model ({gain:+.2%} of its cost): not validated"
+    else:
+        c.validation = validate(res.cylinder, res.effects, valid, opts.horizon_s, segments=segments,
+                                fallback=nominal.validation)
+        c.rmse_x_validation = c.validation.rmse("x")
+    c.wall_s = time.perf_counter() - t0
+    return c
 
 
 def _run_jobs(jobs: list, workers: int) -> list[Candidate]:
