@@ -107,7 +107,7 @@ def test_simulate_then_identify_end_to_end(tmp_path):
                           "--effect", "valve_delay:tau=0.004"], capture_output=True, text=True)
     assert sim.returncode == 0, sim.stderr
     text = run.read_text()
-    assert text.startswith("# combined-reality virtual rig") and "valve_delay(tau=0.004" in text
+    assert text.startswith("# cylinder: ") and "# combined-reality virtual rig" in text and "valve_delay(tau=0.004" in text
     ident = subprocess.run([exe, "identify", "--config", str(CFG), str(run),
                             "--json", str(out), "--effect", "valve_delay", "--estimate", "Fc,Fv,kp,valve_delay.tau",
                             "--write-config", str(tmp_path / "identified.toml")],
