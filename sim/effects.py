@@ -573,36 +573,47 @@ EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
     ValveDeadzone, ValveDelay, Leakage, HeatTransfer, SupplyDroop)}
 
 
-def make_effect(name: str, values: Mapping[str, Any] | None = None) -> Effect:
-    """An effect by its vocabulary word, with parameter values (others default)."""
+def make_from(registry: Mapping[str, type[Effect]], kind: str, name: str,
+              values: Mapping[str, Any] | None = None) -> Effect:
+    """An effect (or friction model: `kind` names it in messages) of `registry` by name,
+    with parameter values (others default), checked against the bounds."""
     try:
-        cls = EFFECTS[name]
+        cls = registry[name]
     except KeyError:
-        raise ValueError(f"unknown effect '{name}' (available: {', '.join(EFFECTS)})") from None
+        raise ValueError(f"unknown {kind} '{name}' (available: {', '.join(registry)})") from None
     values = dict(values or {})
     unknown = set(values) - set(cls.PARAMS)
     if unknown:
-        raise ValueError(f"effect '{name}' has no parameter {', '.join(sorted(unknown))} "
+        raise ValueError(f"{kind} '{name}' has no parameter {', '.join(sorted(unknown))} "
                          f"(parameters: {', '.join(cls.PARAMS)})")
     for k, v in values.items():
         info = cls.PARAMS[k]
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and info.lower <= v <= info.upper):
-            raise ValueError(f"effect parameter {name}.{k} = {v!r} is outside [{info.lower:g}, {info.upper:g}] {info.unit}"
+            raise ValueError(f"{kind} parameter {name}.{k} = {v!r} is outside [{info.lower:g}, {info.upper:g}] {info.unit}"
                              f" ({info.description})")
     return cls(**{k: float(v) for k, v in values.items()})
 
 
-def parse_effect_spec(spec: str) -> Effect:
-    """'stiction:Fs_excess=8,v_stribeck=0.01' -> Stiction(8, 0.01) (command-line form)."""
+def make_effect(name: str, values: Mapping[str, Any] | None = None) -> Effect:
+    """An effect by its vocabulary word, with parameter values (others default)."""
+    return make_from(EFFECTS, "effect", name, values)
+
+
+def parse_spec(spec: str, make, kind: str = "effect") -> Effect:
+    """'name:k=v,k=v' (command-line form) -> make(name, {k: v})."""
     name, _, rest = spec.partition(":")
     values: dict[str, float] = {}
     for item in filter(None, rest.split(",")):
         k, eq, v = item.partition("=")
         if not eq:
-            raise ValueError(f"effect parameter '{item}' must be written name=value")
+            raise ValueError(f"{kind} parameter '{item}' must be written name=value")
         try:
             values[k.strip()] = float(v)
         except ValueError:
-            raise ValueError(f"effect parameter {k.strip()} = '{v}' is not a number") from None
-    return make_effect(name.strip(), values)
+            raise ValueError(f"{kind} parameter {k.strip()} = '{v}' is not a number") from None
+    return make(name.strip(), values)
 
+
+def parse_effect_spec(spec: str) -> Effect:
+    """'stiction:Fs_excess=8,v_stribeck=0.01' -> Stiction(8, 0.01)."""
+    return parse_spec(spec, make_effect)

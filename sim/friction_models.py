@@ -39,14 +39,13 @@ alternatives to the nominal friction, not words of the diagnosis vocabulary.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass, fields
 from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 import casadi as ca
 import numpy as np
 
-from .effects import Effect, ParamInfo
+from .effects import Effect, ParamInfo, make_from, parse_spec
 
 __all__ = ["FrictionModel", "CV", "Karnopp", "Threlfall", "CVS", "LuGre", "CVLoad", "CVSLoad", "Belforte",
            "FRICTION_MODELS", "DIRECTIONS", "make_friction_model", "parse_friction_spec", "check_combination",
@@ -541,37 +540,12 @@ FRICTION_MODELS: dict[str, type[FrictionModel]] = {cls.name: cls for cls in (
 def make_friction_model(name: str, values: Mapping[str, Any] | None = None) -> FrictionModel:
     """A friction model by name, with parameter values (others default), checked against
     the bounds."""
-    try:
-        cls = FRICTION_MODELS[name]
-    except KeyError:
-        raise ValueError(f"unknown friction model '{name}' (available: {', '.join(FRICTION_MODELS)})") from None
-    values = dict(values or {})
-    unknown = set(values) - set(cls.PARAMS)
-    if unknown:
-        raise ValueError(f"friction model '{name}' has no parameter {', '.join(sorted(unknown))} "
-                         f"(parameters: {', '.join(cls.PARAMS)})")
-    for k, v in values.items():
-        info = cls.PARAMS[k]
-        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v)
-                                       and info.lower <= v <= info.upper):
-            raise ValueError(f"friction model parameter {name}.{k} = {v!r} is outside "
-                             f"[{info.lower:g}, {info.upper:g}] {info.unit} ({info.description})")
-    return cls(**{k: float(v) for k, v in values.items()})
+    return make_from(FRICTION_MODELS, "friction model", name, values)
 
 
 def parse_friction_spec(spec: str) -> FrictionModel:
     """'cvs:Fc_pos=16.9,Fc_neg=13.5' -> CVS(...) (command-line form)."""
-    name, _, rest = spec.partition(":")
-    values: dict[str, float] = {}
-    for item in filter(None, rest.split(",")):
-        k, eq, v = item.partition("=")
-        if not eq:
-            raise ValueError(f"friction model parameter '{item}' must be written name=value")
-        try:
-            values[k.strip()] = float(v)
-        except ValueError:
-            raise ValueError(f"friction model parameter {k.strip()} = '{v}' is not a number") from None
-    return make_friction_model(name.strip(), values)
+    return parse_spec(spec, make_friction_model, "friction model")
 
 
 def check_combination(effects: Sequence[Effect]) -> None:
