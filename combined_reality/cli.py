@@ -319,10 +319,6 @@ def cmd_diagnose(args) -> int:
         if theirs is not None and theirs != mine:
             raise UsageError(f"{what} was recorded on the cylinder '{theirs}', but the cylinder file "
                              f"{cyl.source or ''} describes '{mine}'; diagnose runs of the cylinder they were recorded on.")
-    t_cyl, v_cyl = recorded_cylinder(train), recorded_cylinder(valid)
-    if t_cyl is not None and v_cyl is not None and t_cyl != v_cyl:
-        raise UsageError(f"{args.validate} was recorded on '{v_cyl}' but {args.train} on '{t_cyl}'; "
-                         "validate with a run of the same cylinder.")
     if abs(valid.sample_period / train.sample_period - 1) > 0.01:
         raise UsageError(f"{args.validate} is sampled every {valid.sample_period * 1e3:.3g} ms but {args.train} every "
                          f"{train.sample_period * 1e3:.3g} ms; validate with a run of the same rig and rate.")
@@ -487,7 +483,7 @@ def _run_stream(args, cyl, rig, program, duration, record: str | None, sample_pe
     return 1 if result.stop_reason.startswith("no samples") else 0
 
 
-def open_rig(args, cyl: Cylinder, effects=(), *, rate: float = 1000.0, paced: bool = True, seed: int | None = None):
+def open_rig(args, cyl: Cylinder, effects=(), *, rate: float = 1000.0, paced: bool = True):
     """The rig named by --serial PORT, --can CH [--interface], else the virtual rig in this
     process (paced to real time, or as fast as the CPU allows)."""
     from hw.rig import RigError
@@ -507,7 +503,7 @@ def open_rig(args, cyl: Cylinder, effects=(), *, rate: float = 1000.0, paced: bo
         raise UsageError(f"{e}.") from None
     from hw.virtual_rig import VirtualRig
 
-    rig = VirtualRig(cyl, effects, rate=rate, seed=args.seed if seed is None else seed)
+    rig = VirtualRig(cyl, effects, rate=rate, seed=args.seed)
     if paced:
         from .stream import PacedRig
 

@@ -32,10 +32,8 @@ import numpy as np
 from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
 
-from .identify import IdentificationError, IdentifyOptions, IdentifyResult, _velocity_estimate, identify
+from .identify import IdentificationError, IdentifyOptions, _velocity_estimate, identify, sensor_noise
 from .runs import Run, split_at_gaps
-
-OUTPUTS = ("x", "p1", "p2")
 
 
 @dataclass(frozen=True)
@@ -110,8 +108,6 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
     # one problem per segment: they share nothing, and one line search for all would let the
     # hardest segment set the step of every other
     opts = IdentifyOptions(drive=drive, estimate=(), prefit=False, max_iter=30, threads=1)
-    sen = cyl.sensors
-    noise_of = {"x": sen.position_noise, "p1": sen.pressure_noise, "p2": sen.pressure_noise}
     sims, statuses, nodes, costs = [], [], [], []
     for j, (a, b) in enumerate(segments):
         piece = run.slice(a, b)
@@ -124,9 +120,8 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
                 res = identify(cyl, [piece], opts, effects=effects, nodes=warm)
             except IdentificationError:
                 continue
-            noise = np.array([noise_of[o] for o in res.output_names])[:, None]
             meas = np.vstack([getattr(piece, o) for o in res.output_names])
-            cost = float(np.sum(((meas - res.simulated[0]) / noise) ** 2))
+            cost = float(np.sum(((meas - res.simulated[0]) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
             if not math.isfinite(cost):
                 continue
             if best is None or cost < best[0]:
@@ -146,7 +141,7 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
     sim = np.full_like(meas, np.nan)
     for (a, b), s in zip(segments, sims):
         sim[:, a:b] = s
-    noise = np.array([noise_of[o] for o in outputs])
+    noise = sensor_noise(cyl, outputs)
     worst = next((st for st in ("line_search_failed", "time_limit", "max_iterations") if st in statuses), "converged")
     return Validation(outputs, sim, meas - sim, segments, np.array(costs), noise, worst, nodes)
 
@@ -379,7 +374,8 @@ def _best_starts(results: list[Candidate]) -> list[Candidate]:
 def _score(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOptions) -> None:
     if c.validation is None or not c.validation.normalized_rms() < 1e6 * base.normalized_rms():
         if c.validation is not None:
-            c.status, c.error = "diverged", "the re-identified model's simulation of VALID is not finite"
+            c.status, c.error = "diverged", ("the re-identified model's simulation of VALID diverges (not finite, "
+                                             "or a million times the nominal model's error)")
         return
     c.shrink = 1.0 - c.rmse_x_validation / base_rmse_x
     c.shrink_all, c.z = validation_gain(base, c.validation)
@@ -540,7 +536,7 @@ def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np
     rates, which follow the command sample by sample, are smoothed by the same filter."""
     from sim.plant import build_plant
 
-    from .identify import _derivative_kernels, equation_error_friction, friction_from_newton
+    from .identify import _savgol_kernels, equation_error_friction, friction_from_newton
 
     idx, v, F = friction_from_newton(nominal, run, half)
     if len(idx) == 0:
@@ -549,8 +545,7 @@ def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np
     fr = nominal.with_values(fitted).friction if fitted else nominal.friction
     dp = np.abs(run.p1[idx] - run.p2[idx])
     eF = F - ((fr.Fc + fr.kp * dp) * np.tanh(v / fr.v_smooth) + fr.Fv * v)
-    k1, _ = _derivative_kernels(half)
-    k0 = np.linalg.pinv(np.vander(np.arange(-half, half + 1, dtype=float), 3, increasing=True))[0][::-1]
+    k0, k1, _ = _savgol_kernels(half)
     full = {n: np.convolve(getattr(run, n), k0, mode="same") for n in ("x", "p1", "p2")}
     v_full = np.convolve(run.x, k1, mode="same") / run.sample_period
     dt = run.sample_period
@@ -619,7 +614,6 @@ _REGRESSOR_EFFECTS = {
     "stribeck (sign(v) exp(-(v/10 mm/s)^2))": "stiction",
     "direction (sign(v))": "friction_asymmetry",
     "position along the stroke": "friction_position",
-    "acceleration": "mass",
     "pressure difference (p1 - p2)": "leakage",
     "command rate (du/dt)": "valve_delay",
     "valve near centre (u, |u| < 0.1)": "valve_deadzone",
@@ -631,7 +625,9 @@ def regressor_correlations(nominal: Cylinder, run: Run) -> list[dict]:
     """Fast screen: correlation of the nominal model's equation errors (equation_errors, with
     the friction refitted by equation error on this run so that a distorted dynamic fit
     does not leak into the force error) with regressors the candidates' physics would add.
-    |r| orders the candidates; it never decides."""
+    Reported, never deciding. There is no regressor for `mass` or the effects with their own
+    states: the acceleration correlated with the force error at about -0.5 on every run,
+    clean ones too (the derivative filter's lag), so it hinted at nothing."""
     from .identify import _derivative_kernels
 
     ee = equation_errors(nominal, run)
@@ -639,9 +635,8 @@ def regressor_correlations(nominal: Cylinder, run: Run) -> list[dict]:
         return []
     idx, v = ee["index"], ee["v"]
     half = 15
-    k1, k2 = _derivative_kernels(half)
+    k1, _ = _derivative_kernels(half)
     dt = run.sample_period
-    acc = np.convolve(run.x, k2, mode="same")[half:-half] / dt ** 2
     g = nominal.geometry
     V1 = g.dead_volume_cap + g.area_cap * run.x[idx]
     V2 = g.dead_volume_rod + g.area_rod * (g.stroke - run.x[idx])
@@ -656,7 +651,6 @@ def regressor_correlations(nominal: Cylinder, run: Run) -> list[dict]:
         "stribeck (sign(v) exp(-(v/10 mm/s)^2))": (eF, np.sign(v) * np.exp(-(v / 0.01) ** 2)),
         "direction (sign(v))": (eF, np.sign(v) * moving),
         "position along the stroke": (eF, np.sign(v) * (xi - 0.5) * moving),
-        "acceleration": (eF, -acc),
         "pressure difference (p1 - p2)": (e12, -(run.p1[idx] - run.p2[idx])),
         "command rate (du/dt)": (e12, -du),
         "valve near centre (u, |u| < 0.1)": (e12, -u * (np.abs(u) < 0.1)),

@@ -114,11 +114,16 @@ def _velocity_estimate(t: np.ndarray, x: np.ndarray, half: int = 10) -> np.ndarr
     return v
 
 
-def _derivative_kernels(half: int) -> tuple[np.ndarray, np.ndarray]:
-    """Savitzky-Golay kernels (quadratic, window 2*half+1) for the first and second derivative."""
+def _savgol_kernels(half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Savitzky-Golay kernels (quadratic, window 2*half+1): smoothing, first and second derivative."""
     j = np.arange(-half, half + 1, dtype=float)
     pinv = np.linalg.pinv(np.vander(j, 3, increasing=True))
-    return pinv[1][::-1], 2.0 * pinv[2][::-1]
+    return pinv[0][::-1], pinv[1][::-1], 2.0 * pinv[2][::-1]
+
+
+def _derivative_kernels(half: int) -> tuple[np.ndarray, np.ndarray]:
+    """Savitzky-Golay kernels for the first and second derivative."""
+    return _savgol_kernels(half)[1:]
 
 
 def friction_from_newton(cyl: Cylinder, run: Run, half: int = 15,
@@ -178,12 +183,17 @@ def free_parameters(plant: Plant, estimate: Sequence[str]) -> list[int]:
     return [plant.param_names.index(n) for n in estimate]
 
 
+def sensor_noise(cyl: Cylinder, outputs: Sequence[str]) -> np.ndarray:
+    """Standard deviation of the sensor noise of each output (x, p1, p2)."""
+    sen = cyl.sensors
+    return np.array([sen.position_noise if o == "x" else sen.pressure_noise for o in outputs])
+
+
 def residual_scales(plant: Plant, cyl: Cylinder, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Output weights (1 / sensor noise) and defect scales (what a state can be trusted to
     from the sensors)."""
     sen = cyl.sensors
-    noise = {"x": sen.position_noise, "p1": sen.pressure_noise, "p2": sen.pressure_noise}
-    wts = np.array([1.0 / noise[n] for n in plant.output_names])
+    wts = 1.0 / sensor_noise(cyl, plant.output_names)
     sscale = np.array([{"p1": sen.pressure_noise, "p2": sen.pressure_noise, "x": sen.position_noise,
                         "v": sen.position_noise / dt}.get(n, 1e-3) for n in plant.state_names])
     return wts, sscale
@@ -321,6 +331,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     problem = ShootingProblem(sf, Ktot, threads, W, H, Y, mask, wts, sscale, nxt)
     evaluate = problem.evaluate
 
+    def out_of_time() -> bool:
+        return time.perf_counter() - t_start > options.time_limit_s
+
     def merit(E, D, mu):
         return 0.5 * float(np.sum(E * E)) + mu * float(np.sum(np.abs(D)))
 
@@ -334,7 +347,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     history = []
     it = 0
     for it in range(1, options.max_iter + 1):
-        if time.perf_counter() - t_start > options.time_limit_s:
+        if out_of_time():
             status = "time_limit"
             break
         E, D, X, Sens = ev
@@ -349,7 +362,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         accepted = converged_here = False
         predicted = math.inf
         for _attempt in range(8):
-            if _attempt and time.perf_counter() - t_start > options.time_limit_s:
+            if _attempt and out_of_time():
                 break  # a struggling line search is where the time goes
             step = _solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam)
             if step is None:
@@ -382,8 +395,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         if not accepted:
             # at the numerical noise floor of the cost nothing can be gained any more
             noise_floor = step is not None and predicted < 1.0 and viol < 1e-2 * max(1, Ktot)
-            timed_out = time.perf_counter() - t_start > options.time_limit_s
-            status = "converged" if noise_floor else "time_limit" if timed_out else "line_search_failed"
+            status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
             break
         lam = lam / 10 if lam > 1e-6 else 0.0
         S, theta, p = S_try, th_try, p_try
