@@ -365,7 +365,10 @@ def cmd_diagnose(args) -> int:
         from .diagnose_rerun import log_diagnosis
         from .visual import open_recording
 
-        log_diagnosis(diagnosis, open_recording(rerun_mode, rerun_target))
+        rec = open_recording(rerun_mode, rerun_target)
+        log_diagnosis(diagnosis, rec)
+        rec.flush()  # the .rrd (or the viewer) holds everything before the process ends
+        rec.disconnect()
     return 0
 
 

@@ -10,8 +10,8 @@ it), and the whiteness test and regressor screen as small tables with a line eac
 to read them. Units for people: um for position errors, mm for positions along the
 stroke, kPa for pressures, mm/s for velocities; the Diagnosis itself stays in SI.
 
-The text helpers (`headline`, `format_value`) are shared with the Rerun logging
-(`diagnose_rerun`); matplotlib is imported only when plots are drawn.
+The text helpers (`headline`, `format_value` and the small formatters) are shared with the
+Rerun logging (`diagnose_rerun`); matplotlib is imported only when plots are drawn.
 """
 from __future__ import annotations
 
@@ -24,7 +24,9 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["write_report", "render_report", "headline", "format_value", "param_unit"]
+from sim.cylinder import PARAMETERS
+
+__all__ = ["write_report", "render_report", "headline", "format_value"]
 
 _SCATTER_MAX = 4000  # points per series in the scatter plots
 _LINE_MAX = 8000  # points per line in the whole-run trace plots
@@ -87,22 +89,6 @@ def _display_unit(unit: str, value: float) -> tuple[str, float]:
     return _DISPLAY_UNITS.get(unit, (unit, 1.0))
 
 
-def param_unit(name: str) -> str:
-    """The SI unit of a candidate parameter: `tau` of a single effect is looked up by the
-    caller with the effect; `effect.param` (pair keys) and the friction names here."""
-    from sim.effects import EFFECTS
-
-    friction = {"Fc": "N", "Fv": "N s/m", "kp": "N/Pa"}
-    if name in friction:
-        return friction[name]
-    if "." in name:
-        eff, p = name.split(".", 1)
-        cls = EFFECTS.get(eff)
-        if cls is not None and p in cls.PARAMS:
-            return cls.PARAMS[p].unit
-    return ""
-
-
 def _param_info(effect: str, name: str):
     """ParamInfo of `name` (a parameter of `effect`, or `effect.param` for a pair) or None."""
     from sim.effects import EFFECTS
@@ -158,9 +144,8 @@ def _params_text(c, sep: str = ", ", bounds: bool = False) -> str:
 
 
 def _friction_text(fr: dict, std: dict | None = None) -> str:
-    units = {"Fc": "N", "Fv": "N s/m", "kp": "N/Pa"}
-    return ", ".join(f"{n} = {format_value(fr[n], (std or {}).get(n), units[n])}"
-                     + (" (at its bound 0)" if fr[n] == 0 else "") for n in units if n in fr)
+    return ", ".join(f"{n} = {format_value(fr[n], (std or {}).get(n), PARAMETERS[n].unit)}"
+                     + (" (at its bound 0)" if fr[n] == 0 else "") for n in ("Fc", "Fv", "kp") if n in fr)
 
 
 def _effect_description(name: str) -> str:
@@ -172,21 +157,13 @@ def _effect_description(name: str) -> str:
     return cls.description if cls is not None else ""
 
 
-def _normalized_rms(c) -> float:
-    val = getattr(c, "validation", None)
-    try:
-        return val.normalized_rms() if val is not None else math.nan
-    except Exception:  # noqa: BLE001 - a display value only
-        return math.nan
-
-
 # ------------------------------------------------------------------ the verdict in words
 
 def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str], str] = lambda s: s) -> list[str]:
     """The verdict in plain sentences (the first one is the headline). `strong` marks the
     effect word (HTML <b>, markdown **), `esc` escapes the rest."""
     b = d.baseline
-    noise_x = (b.get("noise") or {}).get("x", getattr(d.cylinder.sensors, "position_noise", math.nan))
+    noise_x = b["noise"]["x"]
     before = b.get("rmse_x_validation", math.nan)
     nrms = b.get("normalized_rms", math.nan)
     best = d.best
@@ -197,14 +174,13 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
         out.append(esc(f"The gap is best explained by ") + strong(best.effect)
                    + esc(f" ({_effect_description(best.effect)}): with it, the validation position error shrinks by "
                          f"{_pct(best.shrink)} ({_um(before)} → {_um(after)})" + (f"; {params}." if params else ".")))
-        rest = _normalized_rms(best)
-        if _finite(rest):
-            if rest < _WITHIN_NOISE:
-                out.append(esc(f"What remains is at the sensor noise ({_sig(rest)} × the noise over all outputs; "
-                               f"it was {_sig(nrms)} ×)."))
-            else:
-                out.append(esc(f"Part of the gap remains: {_sig(rest)} × the sensor noise over all outputs "
-                               f"(it was {_sig(nrms)} ×; 1 would be a perfect model)."))
+        rest = best.validation.normalized_rms()  # the verdict is significant, hence validated
+        if rest < _WITHIN_NOISE:
+            out.append(esc(f"What remains is at the sensor noise ({_sig(rest)} × the noise over all outputs; "
+                           f"it was {_sig(nrms)} ×)."))
+        else:
+            out.append(esc(f"Part of the gap remains: {_sig(rest)} × the sensor noise over all outputs "
+                           f"(it was {_sig(nrms)} ×; 1 would be a perfect model)."))
         others = [c.effect for c in d.ranking if c.significant and c.effect != best.effect]
         if others:
             out.append(esc("Other candidates that also help significantly (usually by imitating part of the same "
@@ -217,6 +193,9 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
                                  "significantly better than the verdict alone: both effects are likely present."))
             elif p.status == "failed":
                 out.append(esc("The pair ") + strong(p.effect) + esc(" could not be fitted."))
+            elif not _finite(p.shrink):  # screened out on TRAIN, or its simulation of VALID diverged
+                out.append(esc("The pair ") + strong(p.effect)
+                           + esc(f" was not scored on VALID: {p.error or p.status}."))
             else:
                 out.append(esc("The pair ") + strong(p.effect) + esc(
                     " is not significantly better than the verdict alone "
@@ -234,6 +213,10 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
                    + esc("). See where the error lies below, and consider effects that were not tried."))
     if tried:
         out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
+    screened = [c.effect for c in d.ranking if c.status == "no_gain_on_train"]
+    if screened:
+        out.append(esc("Not validated, as they fit TRAIN no better than the nominal model (the fast screen): "
+                       + ", ".join(screened) + "."))
     return out
 
 
@@ -242,8 +225,7 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
 def _new_figure(w: float, h: float):
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(w, h), dpi=100, layout="constrained")
-    return fig
+    return Figure(figsize=(w, h), dpi=100, layout="constrained")
 
 
 def _png(fig) -> bytes:
@@ -348,19 +330,12 @@ def _plot_residual_vs_position(d, bestval):
                          "Position error against position", (-0.02 * L, 1.02 * L))
 
 
-def _worst_segment(base) -> tuple[int, int] | None:
-    if not base.segments:
-        return None
-    r = base.residual[_x_index(base)]
-    sse = [float(np.nansum(r[a:b] ** 2)) for a, b in base.segments]
-    return base.segments[int(np.argmax(sse))]
-
-
 def _plot_traces(d, bestval):
     base = d.base_validation
     run = d.valid
     t = run.t - run.t[0]
-    seg = _worst_segment(base)
+    # the nominal model's worst segment by its validation cost (all outputs, noise-weighted)
+    seg = base.segments[int(np.argmax(base.segment_cost))] if base.segments else None
     rows = [("x", "position (mm)", 1e3), ("p1", "p1, cap side\n(kPa abs)", 1e-3),
             ("p2", "p2, rod side\n(kPa abs)", 1e-3)]
     rows = [r for r in rows if r[0] in base.outputs]
@@ -410,13 +385,20 @@ def _plot_traces(d, bestval):
     return fig
 
 
+def _bar_figure(n: int, row_height: float, extra: float, empty: str):
+    """A figure of one horizontal bar axes for `n` rows; with none, it says `empty`."""
+    fig = _new_figure(10, row_height * max(n, 1) + extra)
+    ax = fig.add_subplot()
+    if not n:
+        ax.text(0.5, 0.5, empty, ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+    return fig, ax
+
+
 def _plot_regions(d, has_after: bool):
     regs = list(d.regions or [])
-    fig = _new_figure(10, 0.36 * max(len(regs), 1) + 1.4)
-    ax = fig.add_subplot()
+    fig, ax = _bar_figure(len(regs), 0.36, 1.4, "no regions")
     if not regs:
-        ax.text(0.5, 0.5, "no regions", ha="center", va="center", transform=ax.transAxes)
-        ax.set_axis_off()
         return fig
     y = np.arange(len(regs))[::-1]
     share = np.array([r.get("share_of_error", math.nan) for r in regs]) * 100
@@ -425,7 +407,7 @@ def _plot_regions(d, has_after: bool):
     ax.barh(y + h / 2, share, height=h, color="#c92a2a", label="share of the squared position error (%)")
     ax.barh(y - h / 2, frac, height=h, color="#adb5bd", label="share of the samples (%)")
     ax.set_yticks(y, [r.get("where", "?") for r in regs], fontsize=8.5)
-    top = float(np.nanmax(np.concatenate([share, frac]))) if len(regs) else 100
+    top = float(np.nanmax(np.concatenate([share, frac])))
     ax.set_xlim(0, top * 1.55 + 1)
     for yi, r, s, f in zip(y, regs, share, frac):
         c = r.get("concentration", math.nan)
@@ -456,11 +438,8 @@ def _subsystem_value(r: dict) -> tuple[str, str]:
 
 def _plot_subsystems(d):
     rows = list(d.subsystems or [])
-    fig = _new_figure(10, 0.75 * max(len(rows), 1) + 1.3)
-    ax = fig.add_subplot()
+    fig, ax = _bar_figure(len(rows), 0.75, 1.3, "no subsystem split")
     if not rows:
-        ax.text(0.5, 0.5, "no subsystem split", ha="center", va="center", transform=ax.transAxes)
-        ax.set_axis_off()
         return fig
     y = np.arange(len(rows))[::-1]
     ratio = np.array([r["rmse"] / r["floor"] if _finite(r.get("rmse")) and _finite(r.get("floor")) and r["floor"] > 0
@@ -551,7 +530,7 @@ def _inputs_html(d) -> str:
 {_sig(cyl.sensors.pressure_noise / 1e3)} kPa</td></tr>
 {_run_rows("TRAIN (fits the models)", d.train)}
 {_run_rows("VALID (scores them)", d.valid)}
-<tr><th>validation</th><td colspan="2">{nseg} segments of about {_sig(b.get('horizon_s', o.horizon_s))} s, each simulated
+<tr><th>validation</th><td colspan="2">{nseg} segments of about {_sig(o.horizon_s)} s, each simulated
 open loop with the recorded command from its own fitted start (nothing of VALID enters the models)</td></tr>
 <tr><th>nominal model</th><td colspan="2">friction identified on TRAIN: {_e(fr)}<br>
 position error of the fit on TRAIN {_um(b.get('rmse_x_train'))}; on VALID {_um(b.get('rmse_x_validation'))} in position,
@@ -563,31 +542,28 @@ noise could produce (z ≥ {_sig(o.min_z, 2)}) and the all-output error shrinks 
 </table>"""
 
 
-def _t_text(t) -> str:
-    if _finite(t):
-        return f"{float(t):.1f}"
-    if t is not None and isinstance(t, float) and math.isinf(t):
-        return "∞" if t > 0 else "−∞"
-    return "n/a"
+def _z_text(z) -> str:
+    """The z statistic of a candidate's validation gain; n/a when it was not validated."""
+    return f"{float(z):.1f}" if _finite(z) else "n/a"
 
 
 def _candidate_row(c, rank, verdict: str, ncols: int) -> str:
     sig = '<span class="yes">✓</span>' if c.significant else '<span class="no">–</span>'
-    cls = "verdict" if c.effect == verdict else ("failed" if c.status == "failed" or c.error else "")
+    cls = "verdict" if c.effect == verdict else ("failed" if c.error else "")
     params = "<br>".join(_e(p) for p in _params_text(c, "\n", bounds=True).split("\n") if p) or "–"
-    val = getattr(c, "validation", None)
-    vstat = getattr(val, "status", "converged") if val is not None else "converged"
+    vstat = c.validation.status if c.validation is not None else "converged"
     vnote = f"<br><span class=\"small\">start fit on VALID: {_e(vstat)}</span>" if vstat != "converged" else ""
     fr = _e(_friction_text(c.friction or {})) or "–"
     out = (f'<tr class="{cls}"><td class="num">{rank}</td><td><b>{_e(c.effect)}</b><br>'
            f'<span class="small">{_e(_effect_description(c.effect))}</span></td>'
            f'<td class="num">{_pct(c.shrink)}</td><td class="num">{_pct(c.shrink_all)}</td>'
-           f'<td class="num">{_t_text(c.z)}</td><td>{sig}</td>'
+           f'<td class="num">{_z_text(c.z)}</td><td>{sig}</td>'
            f'<td class="num">{_um(c.rmse_x_validation)}</td>'
            f'<td>{params}</td><td class="small">{fr}</td>'
            f'<td>{_e(c.status)}{vnote}<br><span class="small">{c.wall_s:.1f} s</span></td></tr>')
-    if c.error:
-        out += f'<tr class="failed"><td></td><td colspan="{ncols - 1}" class="err">{_e(c.error)}</td></tr>'
+    if c.error:  # the screen's reason is no error of the tool
+        note = "small" if c.status == "no_gain_on_train" else "err"
+        out += f'<tr class="failed"><td></td><td colspan="{ncols - 1}" class="{note}">{_e(c.error)}</td></tr>'
     return out
 
 
@@ -602,15 +578,19 @@ def _ranking_html(d) -> str:
     pair = ""
     if d.pair is not None:
         pair = ("<h3>The best pair</h3><p class=\"explain\">The verdict's effect and the runner-up fitted together; "
-                "significant here means significantly better than the verdict alone.</p>"
+                "shrink and z are against the nominal model, as above, but significant here means significantly "
+                "better than the verdict alone.</p>"
                 f"<table><tr>{head}</tr>{_candidate_row(d.pair, '', d.verdict, n)}</table>")
     return f"""
 <table><tr>{head}</tr>{rows}</table>
 <p class="explain"><b>shrink of x</b>: the share of the position error on VALID that disappears once the effect is added
 and re-identified on TRAIN (100 % = all of it, negative = worse). <b>shrink, all outputs</b>: the same for position and
 both pressures together, each in units of its sensor noise. <b>z</b>: how far the gain lies beyond what sensor noise
-could produce (above 3: not luck). <b>friction re-identified</b>: Fc, Fv, kp refitted with the effect.
-<b>fit</b>: how the identification on TRAIN ended.</p>{pair}"""
+could produce (above {_sig(d.options.min_z, 2)}: not luck). <b>friction re-identified</b>: Fc, Fv, kp refitted with
+the effect. <b>fit</b>: how the identification on TRAIN ended; <code>no_gain_on_train</code>: the effect fits TRAIN no
+better than the nominal model and was not validated (the fast screen); <code>worse_than_nominal</code>: the fit ended
+worse on TRAIN than the nominal model it contains (a local minimum) and was not validated; these, failed fits and
+models whose simulation of VALID diverged have no shrink and no z (n/a).</p>{pair}"""
 
 
 def _regions_sentence(d) -> str:
@@ -630,14 +610,11 @@ def _regions_sentence(d) -> str:
 def _whiteness_rows(d) -> list[tuple[str, dict]]:
     rows = [("nominal model", d.whiteness)] if d.whiteness else []
     best = d.best
-    if best is not None and best.validation is not None:
-        try:
-            from .diagnose import whiteness
+    if best is not None:  # the verdict is significant, hence validated
+        from .diagnose import whiteness
 
-            val = best.validation
-            rows.append((f"with {best.effect}", whiteness(val.residual[_x_index(val)])))
-        except Exception:  # noqa: BLE001 - an extra line of the report, never its failure
-            pass
+        val = best.validation
+        rows.append((f"with {best.effect}", whiteness(val.residual[_x_index(val)])))
     return rows
 
 

@@ -27,12 +27,14 @@ import math
 import numpy as np
 import rerun as rr
 
-from .diagnose_report import _friction_text, _params_text, _pct, _sig, _t_text, _um, headline
+from .diagnose_report import _friction_text, _params_text, _pct, _sig, _subsystem_value, _um, _z_text, headline
 
 __all__ = ["log_diagnosis", "summary_markdown", "regions_markdown"]
 
 ROOT = "diagnosis"
 _COLORS = {"measured": (34, 34, 34), "nominal": (31, 119, 180), "verdict": (232, 89, 12)}
+_RANK_HEAD = ["| # | effect | shrink x | shrink all | z | significant | x error | parameters | fit |",
+              "|---|---|---|---|---|---|---|---|---|"]
 
 
 def _md(s: str) -> str:
@@ -52,28 +54,24 @@ def summary_markdown(d) -> str:
         f"- cylinder: {_md(d.cylinder.name)} ({_md(d.cylinder.source) if d.cylinder.source else 'in memory'})",
         f"- TRAIN: {src(d.train)}, {d.train.duration:.2f} s",
         f"- VALID: {src(d.valid)}, {d.valid.duration:.2f} s, {len(d.base_validation.segments)} segments of about "
-        f"{_sig(b.get('horizon_s', d.options.horizon_s))} s",
+        f"{_sig(d.options.horizon_s)} s",
         f"- nominal friction (TRAIN): {_md(_friction_text(b.get('friction') or {}, b.get('friction_std') or {}))}",
         f"- nominal model on VALID: x {_um(b.get('rmse_x_validation'))}, "
         f"all outputs {_sig(b.get('normalized_rms'))} x the sensor noise",
-        "", "## Ranking", "",
-        "| # | effect | shrink x | shrink all | z | significant | x error | parameters | fit |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "", "## Ranking", "", *_RANK_HEAD,
     ]
 
     def row(c, rank) -> str:
-        t = _t_text(c.z)
         fit = _md(c.status) + (f": {_md(c.error)}" if c.error else "")
         name = f"**{_md(c.effect)}**" if c.effect == d.verdict else _md(c.effect)
-        return (f"| {rank} | {name} | {_pct(c.shrink)} | {_pct(c.shrink_all)} | {t} | "
+        return (f"| {rank} | {name} | {_pct(c.shrink)} | {_pct(c.shrink_all)} | {_z_text(c.z)} | "
                 f"{'yes' if c.significant else 'no'} | {_um(c.rmse_x_validation)} | "
                 f"{_md(_params_text(c, '; ', bounds=True)) or '-'} | {fit} |")
 
     lines += [row(c, i + 1) for i, c in enumerate(d.ranking)]
     if d.pair is not None:
-        lines += ["", "Best pair (significant = better than the verdict alone):", "",
-                  "| # | effect | shrink x | shrink all | z | significant | x error | parameters | fit |",
-                  "|---|---|---|---|---|---|---|---|---|", row(d.pair, "pair")]
+        lines += ["", "Best pair (shrink and z against the nominal model; significant = better than the verdict "
+                  "alone):", "", *_RANK_HEAD, row(d.pair, "pair")]
     if d.subsystems:
         lines += ["", "## Subsystems (nominal model)", "", "| part | RMSE | floor | share of the excess |",
                   "|---|---|---|---|"]
@@ -81,8 +79,8 @@ def summary_markdown(d) -> str:
             if "error" in r:
                 lines.append(f"| {_md(r.get('subsystem', '?'))} | failed: {_md(r['error'])} | | |")
                 continue
-            k, u = {"m": (1e6, "um"), "Pa": (1e-3, "kPa")}.get(r.get("unit"), (1.0, r.get("unit", "")))
-            lines.append(f"| {_md(r.get('subsystem', '?'))} | {_sig(r['rmse'] * k)} {u} | {_sig(r['floor'] * k)} {u} | "
+            rmse, floor = _subsystem_value(r)
+            lines.append(f"| {_md(r.get('subsystem', '?'))} | {rmse} | {floor} | "
                          + ("within noise" if r.get("within_noise") else _pct(r.get("share_of_error"))) + " |")
     w = d.whiteness or {}
     if w:

@@ -47,13 +47,15 @@ def _diagnosis(cyl, verdict: str = "valve_delay", gap: bool = True) -> Diagnosis
                       significant=False, friction={"Fc": 22.3, "Fv": 0.0, "kp": 0.0}, wall_s=7.7, validation=leak)
     failed = Candidate("stiction", status="failed", wall_s=0.5,
                        error="IdentificationError: the line search failed <at iteration 3>")
+    screened = Candidate("mass", params={"delta": 0.01}, std={"delta": 0.002}, status="no_gain_on_train", wall_s=1.1,
+                         error="fits TRAIN no better than the nominal model (+0.01% of its cost): not validated")
     pair = Candidate("valve_delay+leakage", shrink=best.shrink, rmse_x_validation=good.rmse("x"),
                      params={"valve_delay.tau": 1.4e-3, "valve_delay.share": 1.0, "leakage.conductance": 1e-13},
                      std={"valve_delay.tau": 2e-7, "valve_delay.share": 1e-3, "leakage.conductance": 1e-14},
                      status="converged", shrink_all=0.98, z=0.4, significant=False, validation=good)
     if verdict == "none":
-        best.significant, best.t_stat, pair = False, 1.0, None
-    ranking = [best, other, failed]
+        best.significant, best.z, pair = False, 1.0, None
+    ranking = [best, other, screened, failed]
     nrms = base.normalized_rms()
     baseline = {"rmse_x_validation": base.rmse("x"), "rmse_p1_validation": base.rmse("p1"),
                 "rmse_p2_validation": base.rmse("p2"), "normalized_rms": nrms,
@@ -70,7 +72,7 @@ def _diagnosis(cyl, verdict: str = "valve_delay", gap: bool = True) -> Diagnosis
     correlations = [{"regressor": "command rate (du/dt)", "hints": "valve_delay", "r": 0.6, "n": 700},
                     {"regressor": "pressure difference (p1 - p2)", "hints": "leakage", "r": -0.1, "n": 700}]
     d = Diagnosis(cylinder=cyl, train=train, valid=valid,
-                  options=DiagnoseOptions(candidates=("valve_delay", "leakage", "stiction"), workers=1),
+                  options=DiagnoseOptions(candidates=("valve_delay", "leakage", "mass", "stiction"), workers=1),
                   baseline=baseline, verdict=verdict, ranking=ranking, pair=pair,
                   regions=regions(cyl, valid, base, good if verdict != "none" else None), subsystems=subsystems,
                   whiteness=whiteness(base.residual[0]), correlations=correlations, base_validation=base, wall_s=12.0)
@@ -101,7 +103,7 @@ def test_the_report_is_one_self_contained_file_with_the_verdict_and_every_candid
     assert re.search(r"The gap is best explained by <b>valve_delay</b> .*shrinks by \d+ % "
                      r"\([\d.]+ um → [\d.]+ um\); tau = 1\.41590 ms ± 0\.00019 ms", text)
     rows = re.findall(r"<tr[^>]*>.*?</tr>", text, re.S)
-    for effect in ("valve_delay", "leakage", "stiction", "valve_delay+leakage"):
+    for effect in ("valve_delay", "leakage", "mass", "stiction", "valve_delay+leakage"):
         assert any(f"<b>{effect}</b>" in r for r in rows), effect
     # a failed candidate shows its error (escaped), a parameter left at its bound is marked
     assert "IdentificationError: the line search failed &lt;at iteration 3&gt;" in text
@@ -121,7 +123,7 @@ def test_none_verdict_says_so_in_plain_words(cyl_a):
     text = render_report(clean, title="clean rig")
     assert "<title>clean rig</title>" in text
     assert "The nominal model already fits VALID to within the sensor noise" in text
-    assert "Candidates tried: valve_delay, leakage, stiction." in text
+    assert "Candidates tried: valve_delay, leakage, mass, stiction." in text
     assert len(_images(text)) == 6
     # a gap that no candidate explains is not "within the noise"
     unexplained = _diagnosis(cyl_a, verdict="none", gap=True)
@@ -143,6 +145,24 @@ def test_write_is_atomic(diag, tmp_path, monkeypatch):
     write_report(diag, path, title="new")
     assert "<title>new</title>" in path.read_text(encoding="utf-8")
     assert [p.name for p in tmp_path.iterdir()] == ["r.html"]
+
+
+def test_candidates_not_validated_are_described_as_such(cyl_a):
+    d = _diagnosis(cyl_a, verdict="none", gap=True)
+    assert ("Not validated, as they fit TRAIN no better than the nominal model (the fast screen): mass."
+            in headline(d))
+    text = render_report(d, plots={})
+    row = next(r for r in re.findall(r"<tr[^>]*>.*?</tr>", text, re.S) if "<b>mass</b>" in r)
+    # rank, then shrink of x, shrink of all outputs, z and x error: none exists without a validation
+    assert re.findall(r'<td class="num">([^<]*)</td>', row) == ["3", "n/a", "n/a", "n/a", "n/a"]
+    assert "no_gain_on_train" in row
+    assert '<td colspan="9" class="small">fits TRAIN no better' in text  # a screen's reason, not an error
+    # a pair that ended worse on TRAIN than the nominal model was not scored: not "not better than the verdict"
+    d = _diagnosis(cyl_a)
+    d.pair = Candidate("valve_delay+leakage", status="worse_than_nominal",
+                       error="the fit ended worse on TRAIN than the nominal model it contains: a local minimum")
+    last = headline(d)[-1]
+    assert "was not scored on VALID: the fit ended worse on TRAIN" in last and "significantly" not in last
 
 
 @pytest.mark.parametrize("value, std, unit, text", [
@@ -194,13 +214,13 @@ def test_rerun_recording_holds_the_diagnosis(cyl_a, tmp_path, verdict):
         assert not any(p.endswith("/verdict") for p in data)
     x = [v[0] for v in data["/diagnosis/position/measured"]["scalars"]]
     np.testing.assert_allclose(sorted(x), sorted(d.valid.x))
-    r = np.array([v[0] for v in data["/diagnosis/residual/x/nominal"]["scalars"]])
-    assert len(r) == N and np.all(np.isfinite(r))
+    r = [v[0] for v in data["/diagnosis/residual/x/nominal"]["scalars"]]
+    np.testing.assert_allclose(sorted(r), sorted(d.base_validation.residual[0]))
     bars = data["/diagnosis/regions/share_of_error"]["values"][-1][0]  # a tensor
     np.testing.assert_allclose(bars["buffer"], [r_["share_of_error"] for r_ in d.regions])
     summary = data["/diagnosis/summary"]["text"][-1][0]
-    for effect in ("valve\\_delay", "leakage", "stiction"):
+    for effect in ("valve\\_delay", "leakage", "mass", "stiction"):
         assert effect in summary
-    assert "line search failed" in summary
+    assert "line search failed" in summary and "no\\_gain\\_on\\_train" in summary
     labels = data["/diagnosis/regions/labels"]["text"][-1][0]
     assert all(r_["where"].replace("|", "\\|") in labels for r_ in d.regions)
