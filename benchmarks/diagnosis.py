@@ -40,6 +40,9 @@ from sim.cylinder import load_cylinder  # noqa: E402
 from sim.effects import EFFECTS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+SHORT = {"stiction": "stict", "friction_asymmetry": "f_asym", "friction_position": "f_pos",
+         "friction_dynamics": "f_dyn", "valve_deadzone": "v_dz", "valve_delay": "v_del", "leakage": "leak",
+         "heat_transfer": "heat", "supply_droop": "droop"}
 QUICK_EFFECTS = ("stiction", "mass", "valve_delay", "leakage", "heat_transfer")
 
 
@@ -95,7 +98,7 @@ def report(results: list[dict], effects) -> None:
     verdicts = labels + sorted({r["verdict"] for r in results} - set(labels))
     width = max(len(x) for x in labels) + 1
     print("\nconfusion matrix (rows: true effect, columns: verdict)")
-    short = [v[:6] for v in verdicts]
+    short = [SHORT.get(v, v[:6]) for v in verdicts]
     print(" " * width + " ".join(f"{s:>6s}" for s in short))
     for lab in labels:
         rows = [r for r in results if r["effect"] == lab]
