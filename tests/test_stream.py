@@ -53,8 +53,11 @@ def test_replay_as_fast_as_possible_records_every_sample_and_estimates(cyl_a, ru
 
 def _cli(*args, **kw):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # as from a terminal: a suite started in the background (`cmd &`) ignores SIGINT, and a
+    # child inheriting that would never see the Ctrl-C this test sends
     return subprocess.Popen([sys.executable, "-m", "combined_reality", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, **kw)
+                            stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
 
 
 @pytest.mark.slow
