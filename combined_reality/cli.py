@@ -85,14 +85,28 @@ def _clean_json(obj):
 
 
 def _parse_effects(specs: Sequence[str] | None):
-    from sim.effects import parse_effect_spec
+    """--effect values: words of the effect vocabulary, or a friction model of the family
+    (which replaces the cylinder file's friction), each as 'name:k=v,k=v'."""
+    from sim.effects import EFFECTS, parse_effect_spec
+    from sim.friction_models import FRICTION_MODELS, check_combination, parse_friction_spec
 
     effects = []
     for spec in specs or ():
+        name = spec.partition(":")[0].strip()
         try:
-            effects.append(parse_effect_spec(spec))
+            if name in FRICTION_MODELS and name not in EFFECTS:
+                effects.append(parse_friction_spec(spec))
+            else:
+                effects.append(parse_effect_spec(spec))
         except ValueError as e:
+            if name not in EFFECTS and name not in FRICTION_MODELS:
+                e = ValueError(f"unknown effect or friction model '{name}' (effects: {', '.join(EFFECTS)}; "
+                               f"friction models: {', '.join(FRICTION_MODELS)})")
             raise UsageError(f"--effect {spec}: {e}.") from None
+    try:
+        check_combination(effects)
+    except ValueError as e:
+        raise UsageError(f"--effect: {e}.") from None
     return effects
 
 
@@ -590,7 +604,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rate", type=float, default=1000.0, help="sample rate in Hz (default 1000)")
     s.add_argument("--effect", action="append", metavar="NAME[:k=v,...]",
                    help="switch on an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 "
-                        "(repeatable; any word of the vocabulary, see docs/effects.md)")
+                        "(repeatable; any word of the vocabulary, see docs/effects.md), or a friction model "
+                        "of the family as the truth's friction, e.g. cvs:Fc_pos=1.59,Fs_pos=6 (docs/friction.md)")
     s.add_argument("--no-noise", action="store_true", help="noise-free sensors")
     s.add_argument("-o", "--output", required=True, help="run CSV to write")
     s.add_argument("-q", "--quiet", action="store_true")

@@ -131,6 +131,9 @@ def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Pla
     names = [e.name for e in effects]
     if len(set(names)) != len(names):
         raise ValueError(f"an effect is listed twice: {names}")
+    from .friction_models import check_combination  # imported here: friction_models builds on effects
+
+    check_combination(effects)
     active = [e for e in effects if _applies(e, drive)]
 
     param_names = list(NOMINAL_PARAMS)
