@@ -87,21 +87,13 @@ def _clean_json(obj):
 def _parse_effects(specs: Sequence[str] | None):
     """--effect values: words of the effect vocabulary, or a friction model of the family
     (which replaces the cylinder file's friction), each as 'name:k=v,k=v'."""
-    from sim.effects import EFFECTS, parse_effect_spec
-    from sim.friction_models import FRICTION_MODELS, check_combination, parse_friction_spec
+    from sim.friction_models import check_combination, parse_truth_spec
 
     effects = []
     for spec in specs or ():
-        name = spec.partition(":")[0].strip()
         try:
-            if name in FRICTION_MODELS and name not in EFFECTS:
-                effects.append(parse_friction_spec(spec))
-            else:
-                effects.append(parse_effect_spec(spec))
+            effects.append(parse_truth_spec(spec))
         except ValueError as e:
-            if name not in EFFECTS and name not in FRICTION_MODELS:
-                e = ValueError(f"unknown effect or friction model '{name}' (effects: {', '.join(EFFECTS)}; "
-                               f"friction models: {', '.join(FRICTION_MODELS)})")
             raise UsageError(f"--effect {spec}: {e}.") from None
     try:
         check_combination(effects)
@@ -709,10 +701,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_online_arguments(rp)
     rp.set_defaults(func=cmd_replay)
 
-    from . import cli_friction, cli_procedure
+    from . import cli_batch, cli_friction, cli_procedure
 
     cli_friction.add_parser(sub)
     cli_procedure.add_parser(sub)
+    cli_batch.add_parser(sub)
     return p
 
 

@@ -96,6 +96,13 @@ def map_start(cyl: Cylinder, runs: Sequence[Run], spec: FitSpec) -> dict[str, fl
                 # a start on a bound would freeze the parameter in the bounded Gauss-Newton step
                 span = info.upper - info.lower
                 start[k] = float(np.clip(val, info.lower + 1e-6 * span, info.upper - 1e-6 * span))
+    for suffix in ("pos", "neg"):
+        # the slowest samples of a dynamic run sit in reversals, where the filtered acceleration
+        # smears the breakaway: the map then shows a dip where the cylinder has a hump, and
+        # Gauss-Newton started in the dip can collapse the Stribeck term (vs -> 0)
+        fs, fc = f"Fs_{suffix}", f"Fc_{suffix}"
+        if fs in start and fc in start and start[fs] < 1.2 * start[fc]:
+            start[fs] = 1.3 * start[fc]
     return start
 
 

@@ -45,7 +45,7 @@ from typing import Any, Callable, ClassVar, Mapping, Sequence
 import casadi as ca
 import numpy as np
 
-from .effects import Effect, ParamInfo, make_from, parse_spec
+from .effects import EFFECTS, Effect, ParamInfo, make_from, parse_effect_spec, parse_spec
 
 __all__ = ["FrictionModel", "CV", "Karnopp", "Threlfall", "CVS", "LuGre", "CVLoad", "CVSLoad", "Belforte",
            "FRICTION_MODELS", "DIRECTIONS", "make_friction_model", "parse_friction_spec", "check_combination",
@@ -546,6 +546,18 @@ def make_friction_model(name: str, values: Mapping[str, Any] | None = None) -> F
 def parse_friction_spec(spec: str) -> FrictionModel:
     """'cvs:Fc_pos=16.9,Fc_neg=13.5' -> CVS(...) (command-line form)."""
     return parse_spec(spec, make_friction_model, "friction model")
+
+
+def parse_truth_spec(spec: str) -> Effect:
+    """'name:k=v,...' naming a word of the effect vocabulary or a friction model of the family
+    (what the virtual rig can be given as truth)."""
+    name = spec.partition(":")[0].strip()
+    if name in FRICTION_MODELS and name not in EFFECTS:
+        return parse_friction_spec(spec)
+    if name not in EFFECTS:
+        raise ValueError(f"unknown effect or friction model '{name}' (effects: {', '.join(EFFECTS)}; "
+                         f"friction models: {', '.join(FRICTION_MODELS)})")
+    return parse_effect_spec(spec)
 
 
 def check_combination(effects: Sequence[Effect]) -> None:

@@ -1,0 +1,589 @@
+"""Batch identification of many cylinders: a manifest of cylinders in, one row per cylinder
+out, on local processes or on a dask.distributed cluster.
+
+Every cylinder is one task (`run_job`), a pure function of its inputs: it loads the cylinder
+file and the runs (or has the virtual rig make them), identifies the friction model chosen
+for it by multiple shooting and, if asked, diagnoses the gap. A task never raises: a bad
+file or a solver failure becomes the row's status and error. Tasks run on any
+`concurrent.futures.Executor` (a process pool, or dask's `Client.get_executor()`), so the
+pipeline does not know which one it has.
+
+Incremental: a row is stored under DIR/cache/ keyed by the content hash of everything it
+depends on (the cylinder file's and runs' bytes, the simulation recipe, the model, the
+options, the code revision); an unchanged cylinder is not recomputed. results.csv and
+results.parquet are rewritten atomically after every finished cylinder, so an interrupted
+batch leaves valid files holding what was done.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+import time
+import tomllib
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Executor, Future, as_completed
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+# bump when the content of a row changes for the same inputs (invalidates cached rows)
+ROW_REVISION = 1
+MODELS_HELP = "nominal (the cylinder file's Fc + Fv v + kp |dp|) or a friction model of the family"
+
+
+class ManifestError(ValueError):
+    """The manifest cannot be read as a whole (its rows cannot even be listed)."""
+
+
+@dataclass(frozen=True)
+class SimulateSpec:
+    """Runs made by the virtual rig: `runs` runs of `duration` s with seeds seed, seed+1, ...,
+    with `effects` (effect words or a friction model, 'name:k=v,...') as the truth."""
+
+    duration: float = 20.0
+    seed: int = 1
+    effects: tuple[str, ...] = ()
+    runs: int = 1
+    rate: float = 1000.0
+    noise: bool = True
+
+
+@dataclass(frozen=True)
+class CylinderJob:
+    name: str
+    config: str  # absolute path
+    runs: tuple[str, ...] = ()  # absolute paths
+    simulate: SimulateSpec | None = None
+    model: str = "nominal"
+    diagnose: bool = False
+    runs_dir: str = ""  # where simulated runs are kept (DIR/runs)
+
+    def content_hash(self) -> str:
+        """Everything the row depends on; a missing file hashes as missing (and fails)."""
+        h = hashlib.sha256()
+        from sim.compiled import CODE_REVISION
+
+        recipe = {"row": ROW_REVISION, "code": CODE_REVISION, "name": self.name, "model": self.model,
+                  "diagnose": self.diagnose, "simulate": asdict(self.simulate) if self.simulate else None}
+        h.update(json.dumps(recipe, sort_keys=True).encode())
+        for p in (self.config, *self.runs):
+            h.update(b"\0" + Path(p).name.encode() + b"\0")
+            try:
+                h.update(hashlib.sha256(Path(p).read_bytes()).digest())
+            except OSError:
+                h.update(b"missing")
+        return h.hexdigest()[:24]
+
+
+# ------------------------------------------------------------------ the manifest
+
+_CYLINDER_KEYS = {"name", "config", "runs", "simulate", "model"}
+_SIMULATE_KEYS = {"duration", "seed", "effect", "runs", "rate", "noise"}
+
+
+def load_manifest(path: str | os.PathLike[str], runs_dir: Path | None = None,
+                  diagnose: bool = False) -> list[CylinderJob]:
+    """The manifest's cylinders as jobs. Structural faults (TOML syntax, a missing name, an
+    unknown key, duplicate names, an unknown model) raise ManifestError with one sentence;
+    files that are missing or bad fail their own row later, not the batch."""
+    from .friction_identify import fit_spec
+
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise ManifestError(f"cannot read the manifest {path}: {e.strerror or e}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ManifestError(f"{path} is not valid TOML: {e}") from None
+    unknown = set(doc) - {"cylinder", "model", "simulate"}
+    if unknown:
+        raise ManifestError(f"{path}: unknown top-level key(s) {', '.join(sorted(unknown))} "
+                            "(expected [[cylinder]] tables, and optionally model = ... and [simulate] defaults).")
+    entries = doc.get("cylinder")
+    if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
+        raise ManifestError(f"{path} lists no cylinders: add [[cylinder]] tables with name, config and runs "
+                            "(or simulate).")
+    default_model = doc.get("model", "nominal")
+    default_sim = doc.get("simulate", {})
+    if not isinstance(default_sim, dict):
+        raise ManifestError(f"{path}: the top-level simulate must be a table of defaults.")
+    base = path.resolve().parent
+    jobs, seen = [], set()
+    for i, e in enumerate(entries, 1):
+        where = f"{path}, cylinder {i}"
+        name = e.get("name")
+        if not isinstance(name, str) or not name.strip():
+            raise ManifestError(f"{where}: every cylinder needs a name (a non-empty string).")
+        where = f"{path}, cylinder '{name}'"
+        if name in seen:
+            raise ManifestError(f"{where}: the name is used twice; names identify rows and must be unique.")
+        seen.add(name)
+        bad = set(e) - _CYLINDER_KEYS
+        if bad:
+            raise ManifestError(f"{where}: unknown key(s) {', '.join(sorted(bad))} "
+                                f"(known: {', '.join(sorted(_CYLINDER_KEYS))}).")
+        config = e.get("config")
+        if not isinstance(config, str):
+            raise ManifestError(f"{where}: config must name a cylinder file.")
+        model = e.get("model", default_model)
+        try:
+            if model != "nominal":
+                fit_spec(model)
+        except (ValueError, TypeError):
+            raise ManifestError(f"{where}: unknown model {model!r} ({MODELS_HELP}: "
+                                f"{', '.join(_dynamic_specs())}).") from None
+        runs, sim = e.get("runs"), e.get("simulate")
+        if (runs is None) == (sim is None):
+            raise ManifestError(f"{where}: give either runs = [...] (recorded runs) or simulate = {{...}}, "
+                                "exactly one of them.")
+        if runs is not None and (not isinstance(runs, list) or not runs or not all(isinstance(r, str) for r in runs)):
+            raise ManifestError(f"{where}: runs must be a non-empty list of run CSV paths.")
+        spec = None
+        if sim is not None:
+            if not isinstance(sim, dict):
+                raise ManifestError(f"{where}: simulate must be a table, e.g. {{duration = 20, seed = 1}}.")
+            spec = _simulate_spec({**default_sim, **sim}, where, diagnose)
+        jobs.append(CylinderJob(name=name, config=str((base / config).resolve()),
+                                runs=tuple(str((base / r).resolve()) for r in runs or ()),
+                                simulate=spec, model=model, diagnose=diagnose,
+                                runs_dir=str(runs_dir) if runs_dir is not None else ""))
+    return jobs
+
+
+def _dynamic_specs() -> tuple[str, ...]:
+    from .friction_identify import DYNAMIC_SPECS
+
+    return DYNAMIC_SPECS
+
+
+def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
+    bad = set(sim) - _SIMULATE_KEYS
+    if bad:
+        raise ManifestError(f"{where}: unknown simulate key(s) {', '.join(sorted(bad))} "
+                            f"(known: {', '.join(sorted(_SIMULATE_KEYS))}).")
+    eff = sim.get("effect", ())
+    effects = (eff,) if isinstance(eff, str) else tuple(eff)
+    if not all(isinstance(x, str) for x in effects):
+        raise ManifestError(f"{where}: simulate.effect must be a string 'name:k=v,...' or a list of them.")
+    try:
+        duration, rate = float(sim.get("duration", 20.0)), float(sim.get("rate", 1000.0))
+        seed, runs = int(sim.get("seed", 1)), int(sim.get("runs", 2 if diagnose else 1))
+    except (TypeError, ValueError):
+        raise ManifestError(f"{where}: simulate.duration, rate, seed and runs must be numbers.") from None
+    if not (duration > 0 and math.isfinite(duration)) or not 10 <= rate <= 100_000 or runs < 1:
+        raise ManifestError(f"{where}: simulate needs duration > 0 s, 10 <= rate <= 100000 Hz and runs >= 1.")
+    return SimulateSpec(duration=duration, seed=seed, effects=effects, runs=runs, rate=rate,
+                        noise=bool(sim.get("noise", True)))
+
+
+# ------------------------------------------------------------------ one cylinder (the task)
+
+class _RowError(Exception):
+    pass
+
+
+def _load_inputs(job: CylinderJob):
+    from hw.virtual_rig import VirtualRig  # noqa: F401  (fails early if the rig side is broken)
+    from sim.cylinder import ConfigError, load_cylinder
+    from sim.friction_models import FrictionModel, check_combination, parse_truth_spec
+
+    from .cli import simulate_run
+    from .runs import RunFormatError, cylinder_identity, cylinder_tag, read_run, recorded_cylinder, write_run
+
+    try:
+        cyl = load_cylinder(job.config)
+    except FileNotFoundError:
+        raise _RowError(f"cylinder file {job.config} not found") from None
+    except (ConfigError, OSError, ValueError) as e:
+        raise _RowError(f"cylinder file: {e}") from None
+    runs, truth = [], {}
+    if job.simulate is not None:
+        s = job.simulate
+        try:
+            effects = [parse_truth_spec(x) for x in s.effects]
+            check_combination(effects)
+        except ValueError as e:
+            raise _RowError(f"simulate.effect: {e}") from None
+        model = next((e for e in effects if isinstance(e, FrictionModel)), None)
+        truth = ({f"truth_{k}": v for k, v in zip(model.param_names(), model.values())} if model is not None
+                 else {f"truth_{k}": cyl.value(k) for k in ("Fc", "Fv", "kp")})
+        for k in range(s.runs):
+            run = simulate_run(cyl, s.duration, s.seed + k, s.rate, effects, noise=s.noise)
+            if job.runs_dir:
+                out = Path(job.runs_dir) / f"{_safe(job.name)}_{k + 1}.csv"
+                out.parent.mkdir(parents=True, exist_ok=True)
+                write_run(out, run, comments=[cylinder_tag(cyl), f"combined-reality batch: virtual rig, seed "
+                                              f"{s.seed + k}; truth: {'; '.join(s.effects) or 'the cylinder file'}"])
+                run = replace(run, source=out)
+            runs.append(run)
+    else:
+        ident = cylinder_identity(cyl)
+        for p in job.runs:
+            try:
+                run = read_run(p)
+            except FileNotFoundError:
+                raise _RowError(f"run {p} not found") from None
+            except (RunFormatError, OSError, ValueError) as e:
+                raise _RowError(str(e)) from None
+            theirs = recorded_cylinder(run)
+            if theirs is not None and theirs != ident:
+                raise _RowError(f"run {Path(p).name} was recorded on the cylinder '{theirs}', not on the one "
+                                f"{Path(job.config).name} describes")
+            runs.append(run)
+        rates = {round(r.sample_period, 9) for r in runs}
+        if len(rates) > 1:
+            raise _RowError("the runs have different sample rates; identify runs of one rig and rate together")
+    return cyl, runs, truth
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)[:80] or "cylinder"
+
+
+def _run_statistics(cyl, runs) -> dict:
+    from .identify import friction_from_newton
+
+    dp = np.concatenate([np.abs(r.p1 - r.p2) for r in runs])
+    speeds, pc = [], []
+    pa = cyl.supply.atmosphere
+    for r in runs:
+        _, v, _ = friction_from_newton(cyl, r)
+        if len(v):
+            speeds.append(np.abs(v))
+            pc.append(np.where(np.gradient(r.x) >= 0, r.p2 - pa, r.p1 - pa))
+    return {"mean_dp": float(dp.mean()),
+            "mean_pc": float(np.concatenate(pc).mean()) if pc else math.nan,
+            "max_speed": float(np.percentile(np.concatenate(speeds), 99.5)) if speeds else math.nan,
+            "duration_s": float(sum(r.t[-1] - r.t[0] for r in runs))}
+
+
+def run_job(job: CylinderJob) -> dict:
+    """Identify one cylinder: its row (never raises; failures are the row's status)."""
+    t0 = time.perf_counter()
+    row: dict = {"name": job.name, "status": "failed", "error": "", "model": job.model,
+                 "config": job.config, "source": "simulated" if job.simulate else "recorded",
+                 "n_runs": job.simulate.runs if job.simulate else len(job.runs)}
+    try:
+        with np.errstate(all="ignore"):
+            row.update(_identify_row(job))
+        row["status"] = "ok"
+    except _RowError as e:
+        row["error"] = str(e)
+    except Exception as e:  # a solver failure must not end the batch; its row says what happened
+        from .identify import IdentificationError
+
+        kind = "identification failed" if isinstance(e, IdentificationError) else type(e).__name__
+        row["error"] = f"{kind}: {e}"
+    row["wall_s"] = time.perf_counter() - t0
+    row["hash"] = job.content_hash()
+    return row
+
+
+def _identify_row(job: CylinderJob) -> dict:
+    from .friction_identify import identify_friction_model, model_parameters
+    from .identify import IdentifyOptions, identify
+
+    cyl, runs, truth = _load_inputs(job)
+    g = cyl.geometry
+    out: dict = {"cylinder": cyl.name, "bore": g.bore, "rod": g.rod, "stroke": g.stroke,
+                 "supply_pressure": cyl.supply.pressure, "atmosphere": cyl.supply.atmosphere,
+                 **_run_statistics(cyl, runs)}
+    opts = IdentifyOptions(threads=1)
+    if job.model == "nominal":
+        res = identify(cyl, runs, opts)
+    else:
+        res = identify_friction_model(cyl, runs, job.model, opts)
+    values, std = model_parameters(res)
+    for k, v in values.items():
+        out[k], out[f"{k}_std"] = v, std.get(k, math.nan)
+    out.update(truth)
+    out.update({"rmse_x": res.fit.get("rmse_x"), "r2_x": res.fit.get("r2_x"), "rmse_p1": res.fit.get("rmse_p1"),
+                "rmse_p2": res.fit.get("rmse_p2"), "solver_status": res.solver["status"],
+                "iterations": res.solver["iterations"]})
+    if res.solver["status"] not in ("converged",):
+        out["warning"] = f"the solver stopped with status {res.solver['status']}"
+    if job.diagnose:
+        out.update(_diagnose_row(cyl, runs))
+    return out
+
+
+def _diagnose_row(cyl, runs) -> dict:
+    from .diagnose import DiagnoseOptions, diagnose
+
+    if len(runs) < 2:
+        return {"verdict": None, "diagnosis_error": "a diagnosis needs two runs (TRAIN and VALID); give two runs "
+                                                    "or simulate.runs = 2"}
+    d = diagnose(cyl, runs[0], runs[-1], DiagnoseOptions(workers=1))
+    best = d.best
+    return {"verdict": d.verdict, "verdict_shrink": best.shrink if best is not None else None,
+            "baseline_rmse_x_validation": d.baseline["rmse_x_validation"]}
+
+
+# ------------------------------------------------------------------ output files
+
+_FIRST = ("name", "status", "error", "model", "source", "n_runs", "cylinder", "config", "bore", "rod", "stroke",
+          "supply_pressure", "atmosphere", "duration_s", "mean_dp", "mean_pc", "max_speed")
+_METRICS = ("rmse_x", "r2_x", "rmse_p1", "rmse_p2", "solver_status", "iterations", "warning", "verdict",
+            "verdict_shrink", "baseline_rmse_x_validation", "diagnosis_error", "wall_s", "hash", "cached")
+
+
+def columns(rows: Sequence[dict]) -> list[str]:
+    """First the identity and cylinder columns, then each parameter followed by its _std (and
+    truth_), in order of appearance, then the fit metrics."""
+    seen = [c for c in _FIRST]
+    params: list[str] = []
+    for r in rows:
+        for k in r:
+            if k in _FIRST or k in _METRICS or k.endswith("_std") or k.startswith("truth_") or k in params:
+                continue
+            params.append(k)
+    cols = list(seen)
+    for p in params:
+        cols += [p, f"{p}_std"]
+        if any(f"truth_{p}" in r for r in rows):
+            cols.append(f"truth_{p}")
+    extra = [k for r in rows for k in r if k not in cols and k not in _METRICS]
+    cols += list(dict.fromkeys(extra))
+    cols += [m for m in _METRICS if any(m in r for r in rows)]
+    return cols
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _cell(v):
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return ""
+    if isinstance(v, float):
+        return repr(v)
+    return v
+
+
+def write_results(out_dir: Path, rows: Sequence[dict]) -> None:
+    """results.csv and results.parquet, each replaced atomically."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    cols = columns(rows)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(cols)
+    for r in rows:
+        w.writerow([_cell(r.get(c)) for c in cols])
+    _atomic_write(out_dir / "results.csv", buf.getvalue().encode())
+
+    def typed(c):
+        vals = [r.get(c) for r in rows]
+        present = [v for v in vals if v is not None]
+        if present and all(isinstance(v, bool) for v in present):
+            return pa.array(vals, pa.bool_())
+        if present and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in present):
+            return pa.array([None if v is None else int(v) for v in vals], pa.int64())
+        if present and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in present):
+            return pa.array([None if v is None else float(v) for v in vals], pa.float64())
+        return pa.array([None if v is None else str(v) for v in vals], pa.string())
+
+    table = pa.table({c: typed(c) for c in cols})
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink)
+    _atomic_write(out_dir / "results.parquet", sink.getvalue().to_pybytes())
+
+
+def read_results_csv(path: Path) -> list[dict]:
+    """results.csv back as rows (numbers as float, empty cells as None)."""
+    rows = []
+    with open(path, newline="", encoding="utf-8") as f:
+        for r in csv.DictReader(f):
+            row = {}
+            for k, v in r.items():
+                if v == "":
+                    row[k] = None
+                    continue
+                try:
+                    row[k] = float(v)
+                except ValueError:
+                    row[k] = v
+            rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------ the batch
+
+@dataclass
+class BatchSummary:
+    out_dir: str
+    total: int
+    ok: int
+    failed: int
+    cached: int
+    wall_s: float
+    rows: list[dict] = field(default_factory=list)
+    scheduler: str = "local"
+    workers: int = 1
+
+    def to_json(self) -> dict:
+        return {"out": self.out_dir, "cylinders": self.total, "ok": self.ok, "failed": self.failed,
+                "reused_unchanged": self.cached, "wall_s": round(self.wall_s, 3), "scheduler": self.scheduler,
+                "workers": self.workers, "results_csv": str(Path(self.out_dir) / "results.csv"),
+                "results_parquet": str(Path(self.out_dir) / "results.parquet"),
+                "report": str(Path(self.out_dir) / "report.html"),
+                "failures": [{"name": r["name"], "error": r.get("error", "")} for r in self.rows
+                             if r.get("status") != "ok"],
+                "rows": [{k: _json_value(v) for k, v in r.items()} for r in self.rows]}
+
+
+def _json_value(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+class _Cache:
+    """Finished rows keyed by content hash (one small JSON per cylinder, written atomically)."""
+
+    def __init__(self, out_dir: Path):
+        self.dir = out_dir / "cache"
+        self.dir.mkdir(parents=True, exist_ok=True)
+
+    def _path(self, job: CylinderJob, key: str) -> Path:
+        return self.dir / f"{_safe(job.name)}.{key}.json"
+
+    def get(self, job: CylinderJob, key: str) -> dict | None:
+        try:
+            row = json.loads(self._path(job, key).read_text())
+        except (OSError, ValueError):
+            return None
+        return row if row.get("status") == "ok" else None
+
+    def put(self, job: CylinderJob, key: str, row: dict) -> None:
+        for old in self.dir.glob(f"{_safe(job.name)}.*.json"):
+            old.unlink(missing_ok=True)
+        _atomic_write(self._path(job, key), json.dumps({k: _json_value(v) for k, v in row.items()}).encode())
+
+
+def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | None = None,
+              progress: Callable[[int, int, dict, float], None] | None = None,
+              on_start: Callable[[int, int], None] | None = None, report: bool = True,
+              scheduler: str = "local", workers: int = 1) -> BatchSummary:
+    """Run the jobs (cached rows reused), writing results after every finished cylinder.
+    `progress(done, total, row, elapsed_s)` is called as rows arrive."""
+    t0 = time.perf_counter()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cache = _Cache(out_dir)
+    rows: list[dict | None] = [None] * len(jobs)
+    keys = [j.content_hash() for j in jobs]
+    todo = []
+    n_cached = 0
+    for i, (job, key) in enumerate(zip(jobs, keys)):
+        hit = cache.get(job, key)
+        if hit is not None:
+            rows[i] = {**hit, "cached": True}
+            n_cached += 1
+        else:
+            todo.append(i)
+    done = n_cached
+    if on_start:
+        on_start(n_cached, len(jobs))
+
+    def finished(i: int, row: dict) -> None:
+        nonlocal done
+        rows[i] = row
+        if row.get("status") == "ok":
+            cache.put(jobs[i], keys[i], row)
+        done += 1
+        write_results(out_dir, [r for r in rows if r is not None])
+        if progress:
+            progress(done, len(jobs), row, time.perf_counter() - t0)
+
+    if n_cached:
+        write_results(out_dir, [r for r in rows if r is not None])
+    if todo:
+        if executor is None:
+            for i in todo:
+                finished(i, run_job(jobs[i]))
+        else:
+            futures: dict[Future, int] = {executor.submit(run_job, jobs[i]): i for i in todo}
+            for fut in as_completed(futures):
+                i = futures[fut]
+                try:
+                    row = fut.result()
+                except Exception as e:  # the worker itself died (out of memory, killed)
+                    row = {"name": jobs[i].name, "status": "failed", "model": jobs[i].model,
+                           "error": f"the worker running it failed: {type(e).__name__}: {e}"}
+                finished(i, row)
+    final = [r for r in rows if r is not None]
+    write_results(out_dir, final)
+    if report:
+        from .batch_report import write_batch_report
+
+        write_batch_report(final, out_dir / "report.html", png_dir=out_dir / "report")
+    ok = sum(1 for r in final if r.get("status") == "ok")
+    summary = BatchSummary(out_dir=str(out_dir), total=len(jobs), ok=ok, failed=len(final) - ok, cached=n_cached,
+                           wall_s=time.perf_counter() - t0, rows=final, scheduler=scheduler, workers=workers)
+    _atomic_write(out_dir / "summary.json", json.dumps(summary.to_json(), indent=1).encode())
+    return summary
+
+
+# ------------------------------------------------------------------ dask
+
+def cache_files() -> dict[str, bytes]:
+    """The compiled model code of this machine's cache (shipped to cluster workers)."""
+    from sim.compiled import cache_dir
+
+    d = cache_dir()
+    return {p.name: p.read_bytes() for p in sorted(d.glob("cr_*.so"))} if d.is_dir() else {}
+
+
+def missing_cache_files(names: Iterable[str]) -> list[str]:
+    """Run on a worker: which of these compiled files its cache lacks."""
+    from sim.compiled import cache_dir
+
+    d = cache_dir()
+    return [n for n in names if not (d / n).exists()]
+
+
+def install_cache_files(files: dict[str, bytes]) -> int:
+    """Run on a worker: store compiled model code in its cache (atomically; existing kept)."""
+    from sim.compiled import cache_dir
+
+    d = cache_dir()
+    d.mkdir(parents=True, exist_ok=True)
+    n = 0
+    for name, data in files.items():
+        target = d / name
+        if not target.exists():
+            _atomic_write(target, data)
+            target.chmod(0o755)
+            n += 1
+    return n
+
+
+def share_compiled_code(client) -> int:
+    """Give every worker the compiled model code this machine has, so that no worker
+    rebuilds a model structure that was compiled once already (workers on the same machine
+    share its cache; each worker process then keeps the functions it loaded). Returns the
+    number of files installed."""
+    files = cache_files()
+    if not files:
+        return 0
+    missing = client.run(missing_cache_files, list(files))
+    installed = 0
+    for worker, names in missing.items():
+        if names:
+            res = client.run(install_cache_files, {n: files[n] for n in names}, workers=[worker])
+            installed += sum(res.values())
+    return installed

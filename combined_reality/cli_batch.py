@@ -1,0 +1,154 @@
+"""`combined-reality batch`: identify many cylinders, on local processes or a dask cluster.
+
+    combined-reality batch MANIFEST.toml --out DIR [--workers N] [--scheduler ADDRESS]
+        [--diagnose] [--json OUT.json] [--no-report] [-q]
+
+The manifest and the outputs: combined_reality.batch, docs/batch.md. Exit status 0 when every
+cylinder was identified, 1 when some failed (their rows say why), 2 for a bad manifest.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "batch", help="identify every cylinder of a manifest (local processes or a dask cluster), with a report",
+        description="Identify the friction of many cylinders: the manifest lists [[cylinder]] tables with name, "
+                    "config (a cylinder file) and runs (recorded runs, identified jointly) or simulate = "
+                    "{duration, seed, effect, runs} (the virtual rig makes the runs), and optionally model "
+                    "(per cylinder, or once at the top for all: nominal, or a friction model of the family). "
+                    "Relative paths are relative to the manifest. Writes DIR/results.csv, DIR/results.parquet, "
+                    "DIR/report.html and DIR/summary.json; re-running skips cylinders whose inputs and options "
+                    "are unchanged. Exit status 1 if some cylinders failed.")
+    p.add_argument("manifest", metavar="MANIFEST.toml")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="local worker processes (default: all cores); with --scheduler, ignored")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on an existing dask.distributed cluster, e.g. tcp://10.0.0.5:8786 (its workers need "
+                        "combined-reality installed)")
+    p.add_argument("--diagnose", action="store_true",
+                   help="also diagnose each cylinder (first run TRAIN, last run VALID; simulated cylinders get "
+                        "two runs)")
+    p.add_argument("--json", metavar="OUT.json", help="write the summary as JSON ('-' for stdout)")
+    p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress")
+    p.set_defaults(func=run)
+    return p
+
+
+def _fmt_s(s: float) -> str:
+    s = max(0.0, s)
+    return f"{s:.0f} s" if s < 90 else f"{s / 60:.1f} min" if s < 5400 else f"{s / 3600:.1f} h"
+
+
+class _Progress:
+    """A bar with ETA on a terminal (tqdm), plain lines otherwise."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.bar = None
+        self.t0 = time.perf_counter()
+        self.base = 0
+
+    def start(self, cached: int, total: int) -> None:
+        self.base = cached
+        if self.quiet:
+            return
+        if cached:
+            print(f"{cached} of {total} cylinders unchanged since the last run: their rows are reused",
+                  file=sys.stderr, flush=True)
+        if sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=cached, unit="cyl", file=sys.stderr, dynamic_ncols=True,
+                            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}")
+
+    def __call__(self, done: int, total: int, row: dict, elapsed: float) -> None:
+        if self.quiet:
+            return
+        status = "ok" if row.get("status") == "ok" else f"FAILED: {row.get('error', '')}"
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{row['name']}: {status}"[:60])
+            self.bar.update(1)
+            return
+        computed = done - self.base
+        left = total - done
+        eta = f", about {_fmt_s(elapsed / computed * left)} left" if computed and left else ""
+        print(f"[{done}/{total}] {row['name']}: {status} ({row.get('wall_s', 0.0):.1f} s){eta}",
+              file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def run(args) -> int:
+    from .batch import ManifestError, load_manifest, run_batch, share_compiled_code
+    from .cli import UsageError
+
+    out = Path(args.out)
+    try:
+        jobs = load_manifest(args.manifest, runs_dir=out / "runs", diagnose=args.diagnose)
+    except ManifestError as e:
+        raise UsageError(str(e)) from None
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be at least 1, not {args.workers}.")
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a folder.")
+    progress = _Progress(args.quiet)
+    say = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    client = None
+    try:
+        if args.scheduler:
+            try:
+                from distributed import Client
+            except ImportError:
+                raise UsageError("--scheduler needs dask.distributed (pip install 'dask[distributed]').") from None
+            try:
+                client = Client(args.scheduler, timeout="10s")
+            except (OSError, TimeoutError) as e:
+                raise UsageError(f"cannot reach the dask scheduler at {args.scheduler}: {e}.") from None
+            workers = len(client.scheduler_info().get("workers", {}))
+            n = share_compiled_code(client)
+            say(f"dask cluster {args.scheduler}: {workers} workers" + (f"; compiled model code installed on them "
+                                                                        f"({n} files)" if n else ""))
+            executor = client.get_executor(pure=False)
+            summary = run_batch(jobs, out, executor, progress=progress, on_start=progress.start,
+                                report=not args.no_report, scheduler=args.scheduler, workers=workers)
+        else:
+            workers = min(args.workers or os.cpu_count() or 1, max(1, len(jobs)))
+            say(f"{len(jobs)} cylinders on {workers} local process{'es' if workers > 1 else ''}")
+            if workers > 1:
+                from concurrent.futures import ProcessPoolExecutor
+
+                with ProcessPoolExecutor(workers) as pool:
+                    summary = run_batch(jobs, out, pool, progress=progress, on_start=progress.start,
+                                        report=not args.no_report, workers=workers)
+            else:
+                summary = run_batch(jobs, out, None, progress=progress, on_start=progress.start,
+                                    report=not args.no_report, workers=1)
+    finally:
+        progress.close()
+        if client is not None:
+            client.close()
+    doc = summary.to_json()
+    if args.json == "-":
+        json.dump(doc, sys.stdout, indent=1)
+        print()
+    elif args.json:
+        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+    if not args.quiet:
+        print(f"{summary.ok} of {summary.total} cylinders identified, {summary.failed} failed "
+              f"({_fmt_s(summary.wall_s)}); results in {out / 'results.csv'}"
+              + ("" if args.no_report else f", report {out / 'report.html'}"), file=sys.stderr)
+        for f in doc["failures"]:
+            print(f"  {f['name']}: {f['error']}", file=sys.stderr)
+    return 0 if summary.failed == 0 else 1
