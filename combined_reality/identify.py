@@ -366,7 +366,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
                 break  # a struggling line search is where the time goes
             step = _solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam)
             if step is None:
-                lam = max(1e-3, lam * 10)
+                lam = max(1e-6, lam * 10)
                 continue
             ds0, dth = step[: R * nx].reshape(R, nx), step[R * nx:]
             dS = np.empty((Ktot, nx))
@@ -383,15 +383,12 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
             if viol > 0:
                 mu = max(mu, (gdir + 0.5 * quad) / (0.5 * viol) + 1.0)
             found = line_search(evaluate, lambda ev_, _th: merit(ev_[0], ev_[1], mu), S, dS.T, theta, dth, p,
-                                free, lower, upper, cost + mu * viol, min(gdir - mu * viol, 0.0),
-                                1.0 / 64 if _attempt == 0 else 1.0 / 4)
+                                free, lower, upper, cost + mu * viol, min(gdir - mu * viol, 0.0), 1.0 / 64)
             if found:
                 alpha, S_try, th_try, p_try, ev_try = found
                 accepted = True
                 break
-            # after a failed backtracking the damping shortens the step, so a retry needs only a
-            # few trials; damping below 1e-3 of the scaled diagonal barely turns the step
-            lam = max(1e-3, lam * 10)
+            lam = max(1e-6, lam * 10)
         if converged_here:
             status = "converged"
             break
