@@ -308,6 +308,22 @@ def _cmd_virtual_rig(args) -> int:
 
 # ------------------------------------------------------------------ diagnose
 
+def check_train_and_valid(cyl: Cylinder, train: Run, valid: Run, train_name: str, valid_name: str,
+                          verb: str = "diagnose") -> None:
+    """Refuse (UsageError) a TRAIN/VALID pair of which a run was recorded on another cylinder
+    than the file describes (its cylinder tag), or VALID sampled at another rate than TRAIN.
+    `verb` completes the advice: '... ; {verb} runs of the cylinder they were recorded on.'"""
+    mine = cylinder_identity(cyl)
+    for r, what in ((train, train_name), (valid, valid_name)):
+        theirs = recorded_cylinder(r)
+        if theirs is not None and theirs != mine:
+            raise UsageError(f"{what} was recorded on the cylinder '{theirs}', but the cylinder file "
+                             f"{cyl.source or ''} describes '{mine}'; {verb} runs of the cylinder they were recorded on.")
+    if abs(valid.sample_period / train.sample_period - 1) > 0.01:
+        raise UsageError(f"{valid_name} is sampled every {valid.sample_period * 1e3:.3g} ms but {train_name} every "
+                         f"{train.sample_period * 1e3:.3g} ms; validate with a run of the same rig and rate.")
+
+
 def cmd_diagnose(args) -> int:
     from sim.effects import EFFECTS
 
@@ -319,15 +335,7 @@ def cmd_diagnose(args) -> int:
         _check_run_against_cylinder(r, cyl)
         if r.n < 1000:
             raise UsageError(f"{r.source}: {r.n} samples are too few to diagnose (at least 1 s at 1 kHz).")
-    mine = cylinder_identity(cyl)
-    for r, what in ((train, args.train), (valid, args.validate)):
-        theirs = recorded_cylinder(r)
-        if theirs is not None and theirs != mine:
-            raise UsageError(f"{what} was recorded on the cylinder '{theirs}', but the cylinder file "
-                             f"{cyl.source or ''} describes '{mine}'; diagnose runs of the cylinder they were recorded on.")
-    if abs(valid.sample_period / train.sample_period - 1) > 0.01:
-        raise UsageError(f"{args.validate} is sampled every {valid.sample_period * 1e3:.3g} ms but {args.train} every "
-                         f"{train.sample_period * 1e3:.3g} ms; validate with a run of the same rig and rate.")
+    check_train_and_valid(cyl, train, valid, args.train, args.validate, "diagnose")
     names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:
@@ -704,6 +712,7 @@ def build_parser() -> argparse.ArgumentParser:
     from . import cli_batch, cli_friction, cli_procedure
 
     cli_friction.add_parser(sub)
+    cli_friction.add_compare_parser(sub)
     cli_procedure.add_parser(sub)
     cli_batch.add_parser(sub)
     return p

@@ -5,14 +5,19 @@ A friction model replaces the nominal friction (Fc + Fv v + kp |dp|) of the plan
 identified as an effect of the one plant, on the cylinder with the nominal friction zeroed.
 Its start comes from a static map of the run itself: the friction Newton's law implies at
 every sample (seed 000's method), averaged in velocity bins per direction and fitted with
-the map's least squares (friction_map.fit_model). Gauss-Newton then only polishes.
+the map's least squares (friction_map.fit_model). Gauss-Newton then only polishes. The map's
+slow end is biased (filtering smears reversals and breakaways), so its fit can put a model's
+velocity scale (vs, ve, dv) far above the speeds where it could act, or Belforte's pressure
+terms on their bound; from there Gauss-Newton stalls in a local minimum. Such a start is
+accompanied by a second one shaped from the map's faster half and its slowest speed, and
+the start that reaches the lower TRAIN cost is kept (`solver["start"]` says which).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -29,6 +34,9 @@ from .runs import Run
 DYNAMIC_SPECS: tuple[str, ...] = ("cv", "karnopp", "threlfall", "cvs", "cvs_delta", "lugre", "cv_load",
                                   "cvs_load", "belforte")
 _BINS_PER_DIRECTION = 24
+# a condition of a static curve that the plant, which has no such signal, holds as a constant
+# parameter: an input of the dynamic fit, not an estimate
+_CONDITION_PARAMETERS = {"load": "Fn"}
 
 
 def fit_spec(name: str) -> FitSpec:
@@ -39,11 +47,14 @@ def fit_spec(name: str) -> FitSpec:
 
 
 def estimated_parameters(spec: FitSpec) -> tuple[str, ...]:
-    """The model's parameters a dynamic fit estimates: all per-direction ones except those the
-    spec holds fixed (cvs: the exponent); shared conditions (the normal load) are inputs."""
+    """The model's parameters a dynamic fit estimates: all of them except those the spec holds
+    fixed (cvs: the exponent) and the conditions the plant holds constant (the normal load Fn
+    of the load models: an input). LuGre's shared sigma0, sigma1 are estimated: the static map
+    cannot determine them, runs can."""
     cls = FRICTION_MODELS[spec.family]
-    return tuple(n for n in cls.PARAMS if n not in cls.SHARED
-                 and not any(n == f"{b}_{DIRECTIONS[d][0]}" for b in spec.fixed for d in DIRECTIONS))
+    inputs = {_CONDITION_PARAMETERS[c] for c in cls.CONDITIONS if c in _CONDITION_PARAMETERS}
+    fixed = {f"{b}_{DIRECTIONS[d][0]}" for b in spec.fixed for d in DIRECTIONS}
+    return tuple(n for n in cls.PARAMS if n not in inputs and n not in fixed)
 
 
 def map_points_from_runs(cyl: Cylinder, runs: Sequence[Run], bins: int = _BINS_PER_DIRECTION) -> list[MapPoint]:
@@ -80,7 +91,10 @@ def map_points_from_runs(cyl: Cylinder, runs: Sequence[Run], bins: int = _BINS_P
 def map_start(cyl: Cylinder, runs: Sequence[Run], spec: FitSpec) -> dict[str, float]:
     """Start values of the model's parameters from the equation-error map of the runs (per
     direction; the model's defaults where a direction cannot be fitted)."""
-    points = map_points_from_runs(cyl, runs)
+    return _map_start(map_points_from_runs(cyl, runs), spec)
+
+
+def _map_start(points: Sequence[MapPoint], spec: FitSpec) -> dict[str, float]:
     cls = FRICTION_MODELS[spec.family]
     start: dict[str, float] = {}
     for direction in DIRECTIONS:
@@ -106,22 +120,103 @@ def map_start(cyl: Cylinder, runs: Sequence[Run], spec: FitSpec) -> dict[str, fl
     return start
 
 
+def _shaped_start(points: Sequence[MapPoint], spec: FitSpec, start: dict[str, float]) -> dict[str, float] | None:
+    """A second start for the directions where the map start is implausible, else None.
+
+    Implausible: a velocity scale (vs, ve, dv) not within a factor 2 of twice the slowest
+    speed of the direction's points (the slow end is where the map is biased: a scale the
+    fit put far above it bent the fast end, and one a few times above it already leads
+    Gauss-Newton into a local minimum on some runs), or Belforte's pressure terms carrying
+    less than 1 % of the friction at the median speed (K2, K3 on their bound, K1 huge).
+    Shaped: Fc, B from a line through the faster half of the points, Fs = 1.5 Fc (at least
+    Fc + 5 % of the friction at the median speed), the scale twice the slowest speed,
+    Belforte's pressure terms as a share of that line (alpha = 1); load terms at 0."""
+    cls = FRICTION_MODELS[spec.family]
+    out = dict(start)
+    changed = False
+    for direction, (suffix, sign) in DIRECTIONS.items():
+        pts = [p for p in points if np.sign(p.v) == sign]
+        if len(pts) < 4:
+            continue
+        a = np.abs([p.v for p in pts])
+        f = np.abs([p.F for p in pts])
+        order = np.argsort(a)
+        fast = order[len(order) // 2:]
+        Fc, B = np.maximum(np.linalg.lstsq(np.column_stack([np.ones(len(fast)), a[fast]]), f[fast], rcond=None)[0], 0)
+        v_lo, v_med = float(a.min()), float(np.median(a))
+        F_med = float(Fc + B * v_med)
+        get = lambda base: start.get(f"{base}_{suffix}", getattr(cls, f"{base}_{suffix}", math.nan))  # noqa: E731
+        scales = [b for b in cls.BASE if b in cls.SCALES]
+        bad = any(not v_lo <= get(b) <= 4 * v_lo for b in scales)
+        if spec.family == "belforte":
+            dp, pc = float(np.median([p.dp for p in pts])), float(np.median([p.pc for p in pts]))
+            bad = bad or not get("K2") * dp + get("K3") * pc >= 0.01 * F_med
+        if not bad:
+            continue
+        changed = True
+        P = max(0.5 * Fc, 0.05 * F_med)  # Belforte: the pressure terms at rest
+        shaped = {"Fc": Fc, "B": B, "Fs": max(1.5 * Fc, Fc + 0.05 * F_med), "delta": 2.0, "mu": 0.0, "mu_s": 0.0,
+                  "mu_v": 0.0, "FA": max(Fc - P, 0.0), "alpha": 1.0, "K1": B / P if P > 0 else 0.0}
+        if spec.family == "belforte":
+            shaped.update(K2=0.5 * P / max(dp, 1.0), K3=0.5 * P / max(pc, 1.0))
+        shaped.update({b: 2 * v_lo for b in scales})
+        for b in cls.BASE:
+            name = f"{b}_{suffix}"
+            if b in shaped and b not in spec.fixed:
+                info = cls.PARAMS[name]
+                span = info.upper - info.lower
+                out[name] = float(np.clip(shaped[b], info.lower + 1e-6 * span, info.upper - 1e-6 * span))
+    return out if changed else None
+
+
 def identify_friction_model(cyl: Cylinder, runs: Sequence[Run], model: str | FitSpec,
                             options: IdentifyOptions = IdentifyOptions(),
                             start: dict[str, float] | None = None,
-                            progress: Callable[[str], None] | None = None) -> IdentifyResult:
+                            progress: Callable[[str], None] | None = None, *,
+                            load: float | None = None) -> IdentifyResult:
     """Identify a friction model of the family on the runs by multiple shooting (all of the
-    model's parameters; the cylinder file's nominal friction is replaced, not used)."""
+    model's parameters but the normal load; the cylinder file's nominal friction is replaced,
+    not used). Without `start`, from the equation-error map and, where that start is
+    implausible, also from a shaped one (module docstring): the lower TRAIN cost wins.
+    `load`: the constant normal load Fn of the load models (their default 0 otherwise, at
+    which the load terms have no effect); at one load they are not separable from Fc, Fs, B."""
     spec = fit_spec(model) if isinstance(model, str) else model
-    values = dict(start) if start is not None else map_start(cyl, runs, spec)
-    values.update({f"{b}_{DIRECTIONS[d][0]}": v for b, v in spec.fixed.items() for d in DIRECTIONS})
-    if progress:
-        progress(f"  {spec.name}: start from the equation-error map: "
-                 + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
-    effect = make_friction_model(spec.family, values)
-    estimate = tuple(effect.key(k) for k in estimated_parameters(spec))
-    return identify(without_nominal_friction(cyl), runs, replace(options, estimate=estimate, prefit=False),
-                    effects=[effect], progress=progress)
+    cls = FRICTION_MODELS[spec.family]
+    if start is not None:
+        starts = [("given", dict(start))]
+    else:
+        points = map_points_from_runs(cyl, runs)
+        first = _map_start(points, spec)
+        starts = [("equation-error map", first)]
+        shaped = _shaped_start(points, spec, first)
+        if shaped is not None:
+            starts.append(("shaped (the map's start is implausible)", shaped))
+    fixed = {f"{b}_{DIRECTIONS[d][0]}": v for b, v in spec.fixed.items() for d in DIRECTIONS}
+    if load is not None:
+        if "Fn" not in cls.PARAMS:
+            raise ValueError(f"friction model {spec.name} has no normal load (Fn); only the load models take one")
+        fixed["Fn"] = float(load)
+    best, failure = None, None
+    for what, values in starts:
+        values = {**values, **fixed}
+        if progress:
+            progress(f"  {spec.name}: start from the {what}: " + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
+        effect = make_friction_model(spec.family, values)
+        estimate = tuple(effect.key(k) for k in estimated_parameters(spec))
+        try:
+            res = identify(without_nominal_friction(cyl), runs, replace(options, estimate=estimate, prefit=False),
+                           effects=[effect], progress=progress)
+        except IdentificationError as e:
+            failure = e
+            continue
+        res.solver["start"] = what
+        if best is None or res.solver["cost"] < best.solver["cost"]:
+            best = res
+    if best is None:
+        raise failure
+    if progress and len(starts) > 1:
+        progress(f"  {spec.name}: kept the start from the {best.solver['start']} (lowest TRAIN cost)")
+    return best
 
 
 def friction_model_of(result: IdentifyResult) -> FrictionModel | None:
@@ -161,6 +256,7 @@ class ModelComparison:
     score: float = math.nan  # normalized_rms with a penalty per parameter (lower is better)
     wall_s: float = 0.0
     error: str = ""
+    start: str = ""  # the start the kept fit came from (identify_friction_model)
 
     def to_json(self) -> dict:
         def num(x):
@@ -171,6 +267,8 @@ class ModelComparison:
                "std": {k: num(v) for k, v in self.std.items()}, "rmse_x_train": num(self.rmse_x_train),
                "rmse_x_validation": num(self.rmse_x_validation), "normalized_rms": num(self.normalized_rms),
                "score": num(self.score), "wall_s": round(self.wall_s, 3)}
+        if self.start:
+            out["start"] = self.start
         if self.error:
             out["error"] = self.error
         return out
@@ -181,16 +279,17 @@ def _compare_one(args) -> ModelComparison:
 
     from .diagnose import validate
 
-    cyl, train, valid, name, opts, horizon, penalty = args
+    cyl, train, valid, name, opts, horizon, penalty, load = args
     t0 = time.perf_counter()
     try:
         with np.errstate(all="ignore"):
             if name == "nominal":
                 res = identify(cyl, [train], opts)
             else:
-                res = identify_friction_model(cyl, [train], name, opts)
+                has_load = "Fn" in FRICTION_MODELS[fit_spec(name).family].PARAMS
+                res = identify_friction_model(cyl, [train], name, opts, load=load if has_load else None)
             val = validate(res.cylinder, res.effects, valid, horizon)
-    except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
+    except Exception as e:  # noqa: BLE001  one model's failure must not lose the others' results
         return ModelComparison(model=name, n_params=0, status="failed", error=f"{type(e).__name__}: {e}",
                                wall_s=time.perf_counter() - t0)
     values, std = model_parameters(res)
@@ -200,32 +299,49 @@ def _compare_one(args) -> ModelComparison:
                            iterations=res.solver["iterations"], rmse_x_train=res.fit["rmse_x"],
                            rmse_x_validation=val.rmse("x"), normalized_rms=nrms,
                            score=nrms * (1 + penalty * k) if math.isfinite(nrms) else math.inf,
-                           wall_s=time.perf_counter() - t0)
+                           wall_s=time.perf_counter() - t0, start=res.solver.get("start", ""))
+
+
+def _expected_cost(model: str) -> int:
+    """Estimated parameters: a proxy of a model's fitting time (the slowest start first)."""
+    return 3 if model == "nominal" else len(estimated_parameters(fit_spec(model)))
 
 
 def compare_friction_models(cyl: Cylinder, train: Run, valid: Run, models: Sequence[str],
                             horizon_s: float = 1.0, workers: int = 1, penalty_per_param: float = 0.01,
                             options: IdentifyOptions = IdentifyOptions(max_iter=40, time_limit_s=60.0),
-                            progress: Callable[[str], None] | None = None) -> list[ModelComparison]:
+                            progress: Callable[[str], None] | None = None,
+                            load: float | None = None) -> list[ModelComparison]:
     """Each model identified on TRAIN by multiple shooting, simulated on VALID segment by
     segment (diagnose.validate: parameters never see VALID), ranked by the noise-weighted
-    validation error with 1 % per parameter added. 'nominal' is the cylinder file's model."""
+    validation error of all outputs times (1 + penalty_per_param x estimated parameters);
+    failed models last. 'nominal' is the cylinder file's model (Fc, Fv, kp). `load` is the
+    normal load Fn the load models are identified at (else their default, 0). `progress`
+    gets one line per model as it finishes, with its own and the total elapsed time."""
+    import time
+
     for m in models:
         if m != "nominal":
             fit_spec(m)
+    t0 = time.perf_counter()
     opts = replace(options, threads=1) if workers > 1 else options
-    jobs = [(cyl, train, valid, m, opts, horizon_s, penalty_per_param) for m in models]
+    order = sorted(models, key=_expected_cost, reverse=True) if workers > 1 else list(models)
+    jobs = [(cyl, train, valid, m, opts, horizon_s, penalty_per_param, load) for m in order]
+    rows: list[ModelComparison] = []
+
+    def done(row: ModelComparison) -> None:
+        rows.append(row)
+        if progress:
+            what = f"failed: {row.error}" if row.status == "failed" else \
+                f"{row.status}, VALID {row.normalized_rms:.3g} x noise"
+            progress(f"  [{len(rows)}/{len(jobs)}] {row.model:10s} {row.wall_s:6.1f} s ({what}); "
+                     f"{time.perf_counter() - t0:.0f} s elapsed")
+
     if workers > 1 and len(jobs) > 1:
         with ProcessPoolExecutor(min(workers, len(jobs))) as pool:
-            rows = []
-            for row in pool.map(_compare_one, jobs):
-                rows.append(row)
-                if progress:
-                    progress(f"  {row.model:10s} done ({row.wall_s:.1f} s, {row.status})")
+            for fut in as_completed([pool.submit(_compare_one, j) for j in jobs]):
+                done(fut.result())
     else:
-        rows = []
         for j in jobs:
-            rows.append(_compare_one(j))
-            if progress:
-                progress(f"  {rows[-1].model:10s} done ({rows[-1].wall_s:.1f} s, {rows[-1].status})")
+            done(_compare_one(j))
     return sorted(rows, key=lambda r: (r.status == "failed", r.score))
