@@ -167,8 +167,8 @@ def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
     if bad:
         raise ManifestError(f"{where}: unknown simulate key(s) {', '.join(sorted(bad))} "
                             f"(known: {', '.join(sorted(_SIMULATE_KEYS))}).")
-    eff = sim.get("effect", ())
-    effects = (eff,) if isinstance(eff, str) else tuple(eff)
+    eff = sim.get("effect", [])
+    effects = tuple(eff) if isinstance(eff, list) else (eff,)
     if not all(isinstance(x, str) for x in effects):
         raise ManifestError(f"{where}: simulate.effect must be a string 'name:k=v,...' or a list of them.")
     try:
@@ -178,8 +178,10 @@ def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
         raise ManifestError(f"{where}: simulate.duration, rate, seed and runs must be numbers.") from None
     if not (duration > 0 and math.isfinite(duration)) or not 10 <= rate <= 100_000 or runs < 1:
         raise ManifestError(f"{where}: simulate needs duration > 0 s, 10 <= rate <= 100000 Hz and runs >= 1.")
-    return SimulateSpec(duration=duration, seed=seed, effects=effects, runs=runs, rate=rate,
-                        noise=bool(sim.get("noise", True)))
+    noise = sim.get("noise", True)
+    if not isinstance(noise, bool):
+        raise ManifestError(f"{where}: simulate.noise must be true or false.")
+    return SimulateSpec(duration=duration, seed=seed, effects=effects, runs=runs, rate=rate, noise=noise)
 
 
 # ------------------------------------------------------------------ one cylinder (the task)
