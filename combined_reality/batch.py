@@ -577,8 +577,8 @@ def install_cache_files(files: dict[str, bytes]) -> int:
 def share_compiled_code(client) -> int:
     """Give every worker the compiled model code this machine has, so that no worker
     rebuilds a model structure that was compiled once already (workers on the same machine
-    share its cache; each worker process then keeps the functions it loaded). Returns the
-    number of files installed."""
+    share its cache; a task loads the compiled library from there). Returns the number of
+    files installed."""
     files = cache_files()
     if not files:
         return 0
