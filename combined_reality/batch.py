@@ -519,14 +519,20 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
                 finished(i, run_job(jobs[i]))
         else:
             futures: dict[Future, int] = {executor.submit(run_job, jobs[i]): i for i in todo}
-            for fut in as_completed(futures):
-                i = futures[fut]
-                try:
-                    row = fut.result()
-                except Exception as e:  # the worker itself died (out of memory, killed)
-                    row = {"name": jobs[i].name, "status": "failed", "model": jobs[i].model,
-                           "error": f"the worker running it failed: {type(e).__name__}: {e}"}
-                finished(i, row)
+            try:
+                for fut in as_completed(futures):
+                    i = futures[fut]
+                    try:
+                        row = fut.result()
+                    except Exception as e:  # the worker itself died (out of memory, killed)
+                        row = {"name": jobs[i].name, "status": "failed", "model": jobs[i].model,
+                               "error": f"the worker running it failed: {type(e).__name__}: {e}"}
+                    finished(i, row)
+            except BaseException:
+                # Ctrl-C: what is queued is dropped at once (the files hold what was done)
+                for fut in futures:
+                    fut.cancel()
+                raise
     final = [r for r in rows if r is not None]
     write_results(out_dir, final)
     if report:
