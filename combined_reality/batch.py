@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .runs import atomic_write
+
 # bump when the content of a row changes for the same inputs (invalidates cached rows)
 ROW_REVISION = 1
 MODELS_HELP = "nominal (the cylinder file's Fc + Fv v + kp |dp|) or a friction model of the family"
@@ -92,7 +94,7 @@ def load_manifest(path: str | os.PathLike[str], runs_dir: Path | None = None,
     """The manifest's cylinders as jobs. Structural faults (TOML syntax, a missing name, an
     unknown key, duplicate names, an unknown model) raise ManifestError with one sentence;
     files that are missing or bad fail their own row later, not the batch."""
-    from .friction_identify import fit_spec
+    from .friction_identify import check_model
 
     path = Path(path)
     try:
@@ -133,8 +135,7 @@ def load_manifest(path: str | os.PathLike[str], runs_dir: Path | None = None,
             raise ManifestError(f"{where}: config must name a cylinder file.")
         model = e.get("model", default_model)
         try:
-            if model != "nominal":
-                fit_spec(model)
+            check_model(model)
         except (ValueError, TypeError):
             raise ManifestError(f"{where}: unknown model {model!r} ({MODELS_HELP}: "
                                 f"{', '.join(_dynamic_specs())}).") from None
@@ -191,12 +192,11 @@ class _RowError(Exception):
 
 
 def _load_inputs(job: CylinderJob):
-    from hw.virtual_rig import VirtualRig  # noqa: F401  (fails early if the rig side is broken)
     from sim.cylinder import ConfigError, load_cylinder
     from sim.friction_models import FrictionModel, check_combination, parse_truth_spec
 
     from .cli import simulate_run
-    from .runs import RunFormatError, cylinder_identity, cylinder_tag, read_run, recorded_cylinder, write_run
+    from .runs import RunFormatError, cylinder_tag, read_run, recorded_elsewhere, write_run
 
     try:
         cyl = load_cylinder(job.config)
@@ -225,7 +225,6 @@ def _load_inputs(job: CylinderJob):
                 run = replace(run, source=out)
             runs.append(run)
     else:
-        ident = cylinder_identity(cyl)
         for p in job.runs:
             try:
                 run = read_run(p)
@@ -233,8 +232,8 @@ def _load_inputs(job: CylinderJob):
                 raise _RowError(f"run {p} not found") from None
             except (RunFormatError, OSError, ValueError) as e:
                 raise _RowError(str(e)) from None
-            theirs = recorded_cylinder(run)
-            if theirs is not None and theirs != ident:
+            theirs = recorded_elsewhere(run, cyl)
+            if theirs is not None:
                 raise _RowError(f"run {Path(p).name} was recorded on the cylinder '{theirs}', not on the one "
                                 f"{Path(job.config).name} describes")
             runs.append(run)
@@ -249,19 +248,16 @@ def _safe(name: str) -> str:
 
 
 def _run_statistics(cyl, runs) -> dict:
-    from .identify import friction_from_newton
+    """The operating conditions of the runs: what the report evaluates pressure-dependent
+    curves at, and how far the curves reach."""
+    from .identify import _velocity_estimate
 
-    dp = np.concatenate([np.abs(r.p1 - r.p2) for r in runs])
-    speeds, pc = [], []
     pa = cyl.supply.atmosphere
-    for r in runs:
-        _, v, _ = friction_from_newton(cyl, r)
-        if len(v):
-            speeds.append(np.abs(v))
-            pc.append(np.where(np.gradient(r.x) >= 0, r.p2 - pa, r.p1 - pa))
-    return {"mean_dp": float(dp.mean()),
-            "mean_pc": float(np.concatenate(pc).mean()) if pc else math.nan,
-            "max_speed": float(np.percentile(np.concatenate(speeds), 99.5)) if speeds else math.nan,
+    v = [_velocity_estimate(r.t, r.x) for r in runs]
+    pc = np.concatenate([np.where(vi >= 0, r.p2 - pa, r.p1 - pa) for vi, r in zip(v, runs)])
+    return {"mean_dp": float(np.concatenate([np.abs(r.p1 - r.p2) for r in runs]).mean()),
+            "mean_pc": float(pc.mean()),
+            "max_speed": float(np.percentile(np.abs(np.concatenate(v)), 99.5)),
             "duration_s": float(sum(r.t[-1] - r.t[0] for r in runs))}
 
 
@@ -283,24 +279,19 @@ def run_job(job: CylinderJob) -> dict:
         kind = "identification failed" if isinstance(e, IdentificationError) else type(e).__name__
         row["error"] = f"{kind}: {e}"
     row["wall_s"] = time.perf_counter() - t0
-    row["hash"] = job.content_hash()
     return row
 
 
 def _identify_row(job: CylinderJob) -> dict:
-    from .friction_identify import identify_friction_model, model_parameters
-    from .identify import IdentifyOptions, identify
+    from .friction_identify import identify_model, model_parameters
+    from .identify import IdentifyOptions
 
     cyl, runs, truth = _load_inputs(job)
     g = cyl.geometry
     out: dict = {"cylinder": cyl.name, "bore": g.bore, "rod": g.rod, "stroke": g.stroke,
                  "supply_pressure": cyl.supply.pressure, "atmosphere": cyl.supply.atmosphere,
                  **_run_statistics(cyl, runs)}
-    opts = IdentifyOptions(threads=1)
-    if job.model == "nominal":
-        res = identify(cyl, runs, opts)
-    else:
-        res = identify_friction_model(cyl, runs, job.model, opts)
+    res = identify_model(cyl, runs, job.model, IdentifyOptions(threads=1))
     values, std = model_parameters(res)
     for k, v in values.items():
         out[k], out[f"{k}_std"] = v, std.get(k, math.nan)
@@ -338,14 +329,13 @@ _METRICS = ("rmse_x", "r2_x", "rmse_p1", "rmse_p2", "solver_status", "iterations
 def columns(rows: Sequence[dict]) -> list[str]:
     """First the identity and cylinder columns, then each parameter followed by its _std (and
     truth_), in order of appearance, then the fit metrics."""
-    seen = [c for c in _FIRST]
     params: list[str] = []
     for r in rows:
         for k in r:
             if k in _FIRST or k in _METRICS or k.endswith("_std") or k.startswith("truth_") or k in params:
                 continue
             params.append(k)
-    cols = list(seen)
+    cols = list(_FIRST)
     for p in params:
         cols += [p, f"{p}_std"]
         if any(f"truth_{p}" in r for r in rows):
@@ -354,15 +344,6 @@ def columns(rows: Sequence[dict]) -> list[str]:
     cols += list(dict.fromkeys(extra))
     cols += [m for m in _METRICS if any(m in r for r in rows)]
     return cols
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _cell(v):
@@ -384,7 +365,7 @@ def write_results(out_dir: Path, rows: Sequence[dict]) -> None:
     w.writerow(cols)
     for r in rows:
         w.writerow([_cell(r.get(c)) for c in cols])
-    _atomic_write(out_dir / "results.csv", buf.getvalue().encode())
+    atomic_write(out_dir / "results.csv", buf.getvalue().encode())
 
     def typed(c):
         vals = [r.get(c) for r in rows]
@@ -400,7 +381,7 @@ def write_results(out_dir: Path, rows: Sequence[dict]) -> None:
     table = pa.table({c: typed(c) for c in cols})
     sink = pa.BufferOutputStream()
     pq.write_table(table, sink)
-    _atomic_write(out_dir / "results.parquet", sink.getvalue().to_pybytes())
+    atomic_write(out_dir / "results.parquet", sink.getvalue().to_pybytes())
 
 
 def read_results_csv(path: Path) -> list[dict]:
@@ -474,7 +455,7 @@ class _Cache:
     def put(self, job: CylinderJob, key: str, row: dict) -> None:
         for old in self.dir.glob(f"{_safe(job.name)}.*.json"):
             old.unlink(missing_ok=True)
-        _atomic_write(self._path(job, key), json.dumps({k: _json_value(v) for k, v in row.items()}).encode())
+        atomic_write(self._path(job, key), json.dumps({k: _json_value(v) for k, v in row.items()}).encode())
 
 
 def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | None = None,
@@ -503,6 +484,7 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
 
     def finished(i: int, row: dict) -> None:
         nonlocal done
+        row["hash"] = keys[i]
         rows[i] = row
         if row.get("status") == "ok":
             cache.put(jobs[i], keys[i], row)
@@ -533,8 +515,7 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
                 for fut in futures:
                     fut.cancel()
                 raise
-    final = [r for r in rows if r is not None]
-    write_results(out_dir, final)
+    final = [r for r in rows if r is not None]  # written as they came
     if report:
         from .batch_report import write_batch_report
 
@@ -542,7 +523,7 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
     ok = sum(1 for r in final if r.get("status") == "ok")
     summary = BatchSummary(out_dir=str(out_dir), total=len(jobs), ok=ok, failed=len(final) - ok, cached=n_cached,
                            wall_s=time.perf_counter() - t0, rows=final, scheduler=scheduler, workers=workers)
-    _atomic_write(out_dir / "summary.json", json.dumps(summary.to_json(), indent=1).encode())
+    atomic_write(out_dir / "summary.json", json.dumps(summary.to_json(), indent=1).encode())
     return summary
 
 
@@ -574,7 +555,7 @@ def install_cache_files(files: dict[str, bytes]) -> int:
     for name, data in files.items():
         target = d / name
         if not target.exists():
-            _atomic_write(target, data)
+            atomic_write(target, data)
             target.chmod(0o755)
             n += 1
     return n

@@ -10,7 +10,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 from importlib import resources
 from pathlib import Path
@@ -18,7 +17,8 @@ from typing import Sequence
 
 from sim.cylinder import ESTIMABLE, ConfigError, Cylinder, load_cylinder
 
-from .runs import Run, RunFormatError, cylinder_identity, cylinder_tag, read_run, recorded_cylinder, write_run
+from .runs import Run, RunFormatError, atomic_write, cylinder_identity, cylinder_tag, read_run, \
+    recorded_elsewhere, write_run
 
 
 class UsageError(ValueError):
@@ -47,19 +47,7 @@ def _write_text_atomic(path: str | Path, text: str) -> None:
     """Write via a temporary file and rename: readers see the old file or the whole new one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private; results are ordinary files
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, text.encode("utf-8"))
 
 
 def _write_json_atomic(path: str | Path, data: dict) -> None:
@@ -313,12 +301,12 @@ def check_train_and_valid(cyl: Cylinder, train: Run, valid: Run, train_name: str
     """Refuse (UsageError) a TRAIN/VALID pair of which a run was recorded on another cylinder
     than the file describes (its cylinder tag), or VALID sampled at another rate than TRAIN.
     `verb` completes the advice: '... ; {verb} runs of the cylinder they were recorded on.'"""
-    mine = cylinder_identity(cyl)
     for r, what in ((train, train_name), (valid, valid_name)):
-        theirs = recorded_cylinder(r)
-        if theirs is not None and theirs != mine:
+        theirs = recorded_elsewhere(r, cyl)
+        if theirs is not None:
             raise UsageError(f"{what} was recorded on the cylinder '{theirs}', but the cylinder file "
-                             f"{cyl.source or ''} describes '{mine}'; {verb} runs of the cylinder they were recorded on.")
+                             f"{cyl.source or ''} describes '{cylinder_identity(cyl)}'; {verb} runs of the "
+                             "cylinder they were recorded on.")
     if abs(valid.sample_period / train.sample_period - 1) > 0.01:
         raise UsageError(f"{valid_name} is sampled every {valid.sample_period * 1e3:.3g} ms but {train_name} every "
                          f"{train.sample_period * 1e3:.3g} ms; validate with a run of the same rig and rate.")

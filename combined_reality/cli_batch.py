@@ -10,10 +10,12 @@ cylinder was identified, 1 when some failed (their rows say why), 2 for a bad ma
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 
@@ -90,9 +92,22 @@ class _Progress:
             self.bar.close()
 
 
+def _connect(address: str):
+    from .cli import UsageError
+
+    try:
+        from distributed import Client
+    except ImportError:
+        raise UsageError("--scheduler needs dask.distributed (pip install 'dask[distributed]').") from None
+    try:
+        return Client(address, timeout="10s")
+    except (OSError, TimeoutError) as e:
+        raise UsageError(f"cannot reach the dask scheduler at {address}: {e}.") from None
+
+
 def run(args) -> int:
     from .batch import ManifestError, load_manifest, run_batch, share_compiled_code
-    from .cli import UsageError
+    from .cli import UsageError, _write_json_atomic
 
     out = Path(args.out)
     try:
@@ -105,46 +120,29 @@ def run(args) -> int:
         raise UsageError(f"--out {out} exists and is not a folder.")
     progress = _Progress(args.quiet)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    client = None
-    try:
+    with contextlib.ExitStack() as stack:
+        stack.callback(progress.close)
         if args.scheduler:
-            try:
-                from distributed import Client
-            except ImportError:
-                raise UsageError("--scheduler needs dask.distributed (pip install 'dask[distributed]').") from None
-            try:
-                client = Client(args.scheduler, timeout="10s")
-            except (OSError, TimeoutError) as e:
-                raise UsageError(f"cannot reach the dask scheduler at {args.scheduler}: {e}.") from None
+            client = _connect(args.scheduler)
+            stack.callback(client.close)
             workers = len(client.scheduler_info().get("workers", {}))
             n = share_compiled_code(client)
             say(f"dask cluster {args.scheduler}: {workers} workers" + (f"; compiled model code installed on them "
                                                                         f"({n} files)" if n else ""))
-            executor = client.get_executor(pure=False)
-            summary = run_batch(jobs, out, executor, progress=progress, on_start=progress.start,
-                                report=not args.no_report, scheduler=args.scheduler, workers=workers)
+            executor, where = client.get_executor(pure=False), args.scheduler
         else:
             workers = min(args.workers or os.cpu_count() or 1, max(1, len(jobs)))
             say(f"{len(jobs)} cylinders on {workers} local process{'es' if workers > 1 else ''}")
-            if workers > 1:
-                from concurrent.futures import ProcessPoolExecutor
-
-                with ProcessPoolExecutor(workers) as pool:
-                    summary = run_batch(jobs, out, pool, progress=progress, on_start=progress.start,
-                                        report=not args.no_report, workers=workers)
-            else:
-                summary = run_batch(jobs, out, None, progress=progress, on_start=progress.start,
-                                    report=not args.no_report, workers=1)
-    finally:
-        progress.close()
-        if client is not None:
-            client.close()
+            executor = stack.enter_context(ProcessPoolExecutor(workers)) if workers > 1 else None
+            where = "local"
+        summary = run_batch(jobs, out, executor, progress=progress, on_start=progress.start,
+                            report=not args.no_report, scheduler=where, workers=workers)
     doc = summary.to_json()
     if args.json == "-":
         json.dump(doc, sys.stdout, indent=1)
         print()
     elif args.json:
-        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+        _write_json_atomic(args.json, doc)
     if not args.quiet:
         print(f"{summary.ok} of {summary.total} cylinders identified, {summary.failed} failed "
               f"({_fmt_s(summary.wall_s)}); results in {out / 'results.csv'}"

@@ -16,6 +16,7 @@ the start that reaches the lower TRAIN cost is kept (`solver["start"]` says whic
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
@@ -219,6 +220,22 @@ def identify_friction_model(cyl: Cylinder, runs: Sequence[Run], model: str | Fit
     return best
 
 
+def check_model(name: str) -> None:
+    """Refuse (ValueError) a name that is neither 'nominal' nor a model of the family."""
+    if name != "nominal":
+        fit_spec(name)
+
+
+def identify_model(cyl: Cylinder, runs: Sequence[Run], model: str, options: IdentifyOptions = IdentifyOptions(),
+                   load: float | None = None) -> IdentifyResult:
+    """'nominal' (the cylinder file's Fc + Fv v + kp |dp|, from the equation-error prefit) or a
+    friction model of the family; `load` goes to the models that have a normal load."""
+    if model == "nominal":
+        return identify(cyl, runs, options)
+    has_load = "Fn" in FRICTION_MODELS[fit_spec(model).family].PARAMS
+    return identify_friction_model(cyl, runs, model, options, load=load if has_load else None)
+
+
 def friction_model_of(result: IdentifyResult) -> FrictionModel | None:
     return next((e for e in result.effects if isinstance(e, FrictionModel)), None)
 
@@ -275,19 +292,13 @@ class ModelComparison:
 
 
 def _compare_one(args) -> ModelComparison:
-    import time
-
     from .diagnose import validate
 
     cyl, train, valid, name, opts, horizon, penalty, load = args
     t0 = time.perf_counter()
     try:
         with np.errstate(all="ignore"):
-            if name == "nominal":
-                res = identify(cyl, [train], opts)
-            else:
-                has_load = "Fn" in FRICTION_MODELS[fit_spec(name).family].PARAMS
-                res = identify_friction_model(cyl, [train], name, opts, load=load if has_load else None)
+            res = identify_model(cyl, [train], name, opts, load)
             val = validate(res.cylinder, res.effects, valid, horizon)
     except Exception as e:  # noqa: BLE001  one model's failure must not lose the others' results
         return ModelComparison(model=name, n_params=0, status="failed", error=f"{type(e).__name__}: {e}",
@@ -318,11 +329,8 @@ def compare_friction_models(cyl: Cylinder, train: Run, valid: Run, models: Seque
     failed models last. 'nominal' is the cylinder file's model (Fc, Fv, kp). `load` is the
     normal load Fn the load models are identified at (else their default, 0). `progress`
     gets one line per model as it finishes, with its own and the total elapsed time."""
-    import time
-
     for m in models:
-        if m != "nominal":
-            fit_spec(m)
+        check_model(m)
     t0 = time.perf_counter()
     opts = replace(options, threads=1) if workers > 1 else options
     order = sorted(models, key=_expected_cost, reverse=True) if workers > 1 else list(models)

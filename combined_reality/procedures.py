@@ -37,7 +37,7 @@ from sim.plant import G, KAPPA, R_AIR, RHO0, T0, build_plant
 
 from .excitation import ProgramOptions, guarded
 from .identify import friction_from_newton
-from .runs import Run, RunRecorder, _atomic_write
+from .runs import Run, RunRecorder, atomic_write
 
 __all__ = ["ProcedureError", "SafetyOptions", "BreakawayOptions", "SweepOptions", "BreakawayTrial",
            "DirectionSummary", "BreakawayResult", "SweepPoint", "SweepResult", "breakaway_test", "speed_sweep",
@@ -248,7 +248,7 @@ def write_points(path, rows: Sequence[Mapping[str, float]], comments: Sequence[s
     lines.append(",".join(columns))
     lines += [",".join(str(int(r[c])) if c in ("count", "breakaway") else repr(float(r[c])) for c in columns)
               for r in rows]
-    _atomic_write(Path(path), ("\n".join(lines) + "\n").encode("utf-8"))
+    atomic_write(Path(path), ("\n".join(lines) + "\n").encode("utf-8"))
 
 
 # ------------------------------------------------------------------ cylinder quantities

@@ -351,6 +351,13 @@ def recorded_cylinder(run: Run) -> str | None:
     return None
 
 
+def recorded_elsewhere(run: Run, cyl) -> str | None:
+    """The identity of the cylinder the run was recorded on if that is not `cyl`, else None
+    (also None for runs without a cylinder tag: other tools' files)."""
+    theirs = recorded_cylinder(run)
+    return theirs if theirs is not None and theirs != cylinder_identity(cyl) else None
+
+
 def write_run(path: str | os.PathLike[str], run: Run, comments: Sequence[str] | None = None) -> None:
     """Write ``run`` as CSV atomically (readers never see a partial file); round-trips exactly."""
     path = Path(path)
@@ -358,7 +365,7 @@ def write_run(path: str | os.PathLike[str], run: Run, comments: Sequence[str] | 
     parts: list[str] = [_comment_lines(comments or ()), _join(names) + "\n"]
     formatted = [_format_column(name, col) for name, col in zip(names, cols)]
     parts.append("".join(",".join(row) + "\n" for row in zip(*formatted)))
-    _atomic_write(path, "".join(parts).encode("utf-8"))
+    atomic_write(path, "".join(parts).encode("utf-8"))
 
 
 def _columns_of(run: Run) -> tuple[list[str], list[np.ndarray]]:
@@ -400,7 +407,8 @@ def _comment_lines(comments: Iterable[str]) -> str:
     return "".join(out)
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write via a temporary file, fsync and rename: readers see the old file or the whole new one."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
     # os.open with 0o666 lets the umask decide the permissions, as for an ordinary new file
     # (tempfile would leave the result readable by its owner only).
