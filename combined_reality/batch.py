@@ -10,7 +10,7 @@ pipeline does not know which one it has.
 
 Incremental: a row is stored under DIR/cache/ keyed by the content hash of everything it
 depends on (the cylinder file's and runs' bytes, the simulation recipe, the model, the
-options, the code revision); an unchanged cylinder is not recomputed. results.csv and
+options, the source code); an unchanged cylinder is not recomputed. results.csv and
 results.parquet are rewritten atomically after every finished cylinder, so an interrupted
 batch leaves valid files holding what was done.
 """
@@ -18,6 +18,7 @@ batch leaves valid files holding what was done.
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import io
 import json
@@ -34,8 +35,6 @@ import numpy as np
 
 from .runs import atomic_write
 
-# bump when the content of a row changes for the same inputs (invalidates cached rows)
-ROW_REVISION = 1
 MODELS_HELP = "nominal (the cylinder file's Fc + Fv v + kp |dp|) or a friction model of the family"
 
 
@@ -69,9 +68,7 @@ class CylinderJob:
     def content_hash(self) -> str:
         """Everything the row depends on; a missing file hashes as missing (and fails)."""
         h = hashlib.sha256()
-        from sim.compiled import CODE_REVISION
-
-        recipe = {"row": ROW_REVISION, "code": CODE_REVISION, "name": self.name, "model": self.model,
+        recipe = {"code": _code_fingerprint(), "name": self.name, "model": self.model,
                   "diagnose": self.diagnose, "simulate": asdict(self.simulate) if self.simulate else None}
         h.update(json.dumps(recipe, sort_keys=True).encode())
         for p in (self.config, *self.runs):
@@ -81,6 +78,19 @@ class CylinderJob:
             except OSError:
                 h.update(b"missing")
         return h.hexdigest()[:24]
+
+
+@functools.lru_cache(maxsize=1)
+def _code_fingerprint() -> str:
+    """The source of the model and application packages: a row computed by other code is not
+    reused (an upgrade, a fix of the identification)."""
+    import sim
+
+    h = hashlib.sha256()
+    for pkg in (Path(sim.__file__).parent, Path(__file__).parent):
+        for f in sorted(pkg.glob("*.py")):
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 # ------------------------------------------------------------------ the manifest
