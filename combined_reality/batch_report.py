@@ -28,9 +28,9 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from sim.cylinder import PARAMETERS
-from sim.friction_models import FRICTION_MODELS
+from sim.friction_models import DIRECTIONS, FRICTION_MODELS
 
-from .diagnose_report import _CSS, _e, _img, _new_figure, _png, _sig, format_value
+from .diagnose_report import _CSS, _e, _img, _new_figure, _png, _sig, _wrap, format_value
 from .friction_map import FIT_SPECS
 
 __all__ = ["write_batch_report", "render_batch_report", "friction_curve", "efficiency", "REF_SPEED",
@@ -45,7 +45,7 @@ REL_TOL = 0.05  # relative error against the truth beyond which a parameter is h
 _DEFAULT_MAX_SPEED = 0.5  # m/s: velocity range of a curve whose fastest speed is unknown
 _DEFAULT_ATMOSPHERE = 1.013e5  # Pa, as in configs/
 _TINY_SPEED = 1e-9  # m/s: "at rest, about to slide" for the breakaway force
-_DIRS = (("extension", "pos", 1.0), ("retraction", "neg", -1.0))
+_DIRS = tuple((d, sfx, sign) for d, (sfx, sign) in DIRECTIONS.items())  # (direction, suffix, sign of v)
 # seed 004 Table 3: quantity, heading, unit shown, factor SI -> shown
 _TABLE3 = (("Fs", "F<sub>s</sub> static", "N", 1.0), ("Fc", "F<sub>c</sub> Coulomb", "N", 1.0),
            ("B", "B viscous", "N s/m", 1.0), ("vs", "v<sub>s</sub> Stribeck", "mm/s", 1e3))
@@ -76,7 +76,7 @@ def _text(row: Mapping[str, Any], key: str) -> str:
     return str(v).strip()
 
 
-@dataclass
+@dataclass(eq=False)  # hashed by identity: keys the efficiencies of a report
 class _Cyl:
     """One row, read: its model's full parameter vector and what the row gave of it."""
 
@@ -115,12 +115,18 @@ class _Cyl:
         v = self.num("max_speed")
         return v if v is not None and v > 0 else _DEFAULT_MAX_SPEED
 
+    @property
+    def needs(self) -> tuple[str, ...]:
+        """The operating conditions its static curve takes."""
+        if self.family == "nominal":
+            return ("dp",)
+        return FRICTION_MODELS[self.family].CONDITIONS if self.family else ()
+
     def conditions(self) -> dict[str, float]:
         """Operating conditions of the static curve: dp, pc from the runs' means (0 when
         not available), load = the model's Fn."""
         cond = {}
-        needs = ("dp",) if self.family == "nominal" else (
-            FRICTION_MODELS[self.family].CONDITIONS if self.family else ())
+        needs = self.needs
         for key, col in (("dp", "mean_dp"), ("pc", "mean_pc")):
             if key in needs:
                 cond[key] = self.num(col) or 0.0
@@ -129,11 +135,15 @@ class _Cyl:
         return cond
 
     def missing_conditions(self) -> list[str]:
-        needs = ("dp",) if self.family == "nominal" else (
-            FRICTION_MODELS[self.family].CONDITIONS if self.family else ())
         if self.family == "nominal" and not self.values.get("kp"):
             return []
-        return [col for key, col in (("dp", "mean_dp"), ("pc", "mean_pc")) if key in needs and self.num(col) is None]
+        return [col for key, col in (("dp", "mean_dp"), ("pc", "mean_pc"))
+                if key in self.needs and self.num(col) is None]
+
+    def supply_gauge(self) -> float | None:
+        """supply_pressure - atmosphere (Pa; the default atmosphere when the row has none)."""
+        ps, pa = self.num("supply_pressure"), self.num("atmosphere")
+        return ps - (pa if pa is not None else _DEFAULT_ATMOSPHERE) if ps is not None else None
 
 
 def _read(row: Mapping[str, Any], i: int) -> _Cyl:
@@ -210,20 +220,19 @@ def _breakaway(c: _Cyl, sign: float) -> float:
 
 
 def _efficiency(c: _Cyl, ref_speed: float) -> _Efficiency:
-    bore, ps = c.num("bore"), c.num("supply_pressure")
-    pa = c.num("atmosphere")
-    pA = None
-    if bore is not None and bore > 0 and ps is not None:
-        p = ps - (pa if pa is not None else _DEFAULT_ATMOSPHERE)
-        pA = p * math.pi * bore ** 2 / 4 if p > 0 else None
-    mb: dict[str, float | None] = {}
-    mr: dict[str, float | None] = {}
-    for d, _sfx, sign in _DIRS:
-        ok = pA is not None and c.drawable
-        mb[d] = _breakaway(c, sign) / pA if ok else None
-        mr[d] = abs(float(_curve(c, sign * ref_speed))) / pA if ok else None
+    bore, p = c.num("bore"), c.supply_gauge()
+    pA = p * math.pi * bore ** 2 / 4 if bore is not None and bore > 0 and p is not None and p > 0 else None
+    ok = pA is not None and c.drawable
+    mb = {d: _breakaway(c, sign) / pA if ok else None for d, _sfx, sign in _DIRS}
+    mr = {d: abs(float(_curve(c, sign * ref_speed))) / pA if ok else None for d, _sfx, sign in _DIRS}
     ms = c.num("max_speed")
-    return _Efficiency(pA, mb, mr, ms is not None and ms < ref_speed, pa is None and pA is not None)
+    return _Efficiency(pA, mb, mr, ms is not None and ms < ref_speed, c.num("atmosphere") is None and pA is not None)
+
+
+def _efficiencies(cs: Sequence[_Cyl], ref_speed: float) -> dict[_Cyl, _Efficiency]:
+    """The efficiency of every identified cylinder that has a curve, in batch order: computed
+    once per report (the plots, the headline and the table read it)."""
+    return {c: _efficiency(c, ref_speed) for c in cs if c.ok and c.drawable}
 
 
 def efficiency(row: Mapping[str, Any], ref_speed: float = REF_SPEED) -> dict[str, float | None]:
@@ -261,9 +270,7 @@ def _label(c: _Cyl, width: int = 0) -> str:
 
 def _wrapped(s: str, width: int = 30, lines: int = 2) -> str:
     """A name on at most `lines` lines of about `width` characters (shortened beyond)."""
-    import textwrap
-
-    parts = textwrap.wrap(s, width) or [s]
+    parts = _wrap(s, width)
     if len(parts) > lines:
         parts = parts[:lines]
         parts[-1] = parts[-1][:width - 1] + "…"
@@ -400,11 +407,10 @@ _PLOTS = (("a_friction_maps", "Friction-velocity maps of the identified cylinder
           ("b_efficiency", "Efficiency factor of the identified cylinders"))
 
 
-def _make_plots(cs: Sequence[_Cyl], ref_speed: float) -> dict[str, bytes]:
-    drawn = [c for c in cs if c.ok and c.drawable]
-    if not drawn:
+def _make_plots(effs: Mapping[_Cyl, _Efficiency], ref_speed: float) -> dict[str, bytes]:
+    if not effs:
         return {}
-    effs = [_efficiency(c, ref_speed) for c in drawn]
+    drawn, effs = list(effs), list(effs.values())
     out = {"a_friction_maps": _png(_plot_maps(drawn))}
     if any(v is not None for e in effs for m in (e.m_break, e.m_ref) for v in m.values()):
         out["b_efficiency"] = _png(_plot_efficiency(drawn, effs, ref_speed))
@@ -414,14 +420,13 @@ def _make_plots(cs: Sequence[_Cyl], ref_speed: float) -> dict[str, bytes]:
 # ------------------------------------------------------------------ HTML sections
 
 _MORE_CSS = """
-td.bad{background:#ffe3e3;color:#c92a2a;font-weight:600}td.good{color:#2b8a3e}
 td.low{background:#e7f5ff}td.high{background:#fff4e6}
 th.sub{font-weight:normal;font-size:.85em}td.name{max-width:22em}
 .headline.fail{border-left-color:#c92a2a}.headline.clean{border-left-color:#2b8a3e}
 """
 
 
-def _headline(cs: Sequence[_Cyl], ref_speed: float) -> tuple[list[str], str]:
+def _headline(cs: Sequence[_Cyl], effs_of: Mapping[_Cyl, _Efficiency], ref_speed: float) -> tuple[list[str], str]:
     n = len(cs)
     ok = [c for c in cs if c.ok]
     failed = [c for c in cs if c.status == "failed"]
@@ -440,8 +445,7 @@ def _headline(cs: Sequence[_Cyl], ref_speed: float) -> tuple[list[str], str]:
         out.append("No cylinder was identified, so there is nothing to compare"
                    + (": see why below." if failed or skipped or other else "."))
         return out, "fail"
-    drawn = [c for c in ok if c.drawable]
-    effs = [(c.name, _efficiency(c, ref_speed)) for c in drawn]  # names may repeat
+    effs = [(c.name, e) for c, e in effs_of.items()]  # names may repeat
     ref = f"{_sig(ref_speed * 1e3)} mm/s"
     at_ref = [(max(v for v in e.m_ref.values() if v is not None), name) for name, e in effs
               if any(v is not None for v in e.m_ref.values())]
@@ -496,15 +500,13 @@ def _cylinders_html(cs: Sequence[_Cyl]) -> str:
     for c in cs:
         if not c.ok:
             continue
-        ps, pa = c.num("supply_pressure"), c.num("atmosphere")
-        gauge = ps - (pa if pa is not None else _DEFAULT_ATMOSPHERE) if ps is not None else None
         runs = c.num("n_runs")
         about = [t for t in (_text(c.row, "cylinder"), _text(c.row, "config")) if t and t != c.name]
         rows.append(
             f'<tr><td class="name">{_e(c.name)}<br><span class="small">{"<br>".join(_e(t) for t in about)}</span></td>'
             f'<td>{_e(_text(c.row, "source")) or _NA}</td><td class="num">{int(runs) if runs is not None else _NA}</td>'
             + _num_cell(c.num("duration_s"), 1.0) + _num_cell(c.num("bore"), 1e3) + _num_cell(c.num("rod"), 1e3) + _num_cell(c.num("stroke"), 1e3)
-            + _num_cell(gauge, 1e-5) + _num_cell(c.num("mean_dp"), 1e-5) + _num_cell(c.num("mean_pc"), 1e-5)
+            + _num_cell(c.supply_gauge(), 1e-5) + _num_cell(c.num("mean_dp"), 1e-5) + _num_cell(c.num("mean_pc"), 1e-5)
             + _num_cell(c.num("max_speed"), 1e3) + "</tr>")
     if not rows:
         return ""
@@ -594,13 +596,13 @@ def _table3_html(ok: Sequence[_Cyl]) -> str:
         cells = []
         for q, _h, _u, k in _TABLE3:
             for _d, sfx, _g in _DIRS:
-                p = _table3_param(c, q, sfx) if c.family else None
+                p = _table3_param(c, q, sfx)
                 cells.append(f'<td class="num">{_param_text(c, p, k) if p else _DASH}</td>')
         model = _e(c.model) if c.model else _NA
         if c.family is None and c.model:
             model += ' <span class="small">(unknown)</span>'
         rows.append(f'<tr><td class="name">{_e(c.name)}</td><td>{model}</td>{"".join(cells)}'
-                    f'<td class="small">{_other_params(c) if c.family else _DASH}</td></tr>')
+                    f'<td class="small">{_other_params(c)}</td></tr>')
     return f"""<h2>Friction parameters (as seed 004 Table 3)</h2>
 <table><tr><th rowspan="2">cylinder</th><th rowspan="2">model</th>{head1}<th rowspan="2">other parameters</th></tr>
 <tr>{head2}</tr>{''.join(rows)}</table>
@@ -630,16 +632,16 @@ def _truth_html(ok: Sequence[_Cyl]) -> str:
         errs = _truth_errors(c)
         if not errs:
             continue
-        cells = []
+        cells, nbad = [], 0
         for p, (rel, z) in errs.items():
             v, t = c.values[p], c.num(f"truth_{p}")
             bad = rel is not None and abs(rel) > REL_TOL
+            nbad += bad
             rel_txt = f"{100 * rel:+.1f} %" if rel is not None else f"{_sig(v - t)} (truth 0)"
             z_txt = f"{z:+.1f} σ" if z is not None else "n/a"
             tip = f"identified {_sig(v, 4)}, truth {_sig(t, 4)} ({c.units.get(p, '')})"
             cells.append(f'<tr><td>{_e(p)}</td><td class="num{" bad" if bad else ""}" title="{_e(tip)}">{rel_txt}'
                          f'</td><td class="num">{z_txt}</td></tr>')
-        nbad = sum(1 for rel, _z in errs.values() if rel is not None and abs(rel) > REL_TOL)
         summary = (f'<b>{nbad} of {len(errs)}</b> beyond {_TOL_TEXT}' if nbad
                    else f'all {len(errs)} within {_TOL_TEXT}')
         rows.append(f'<tr><td class="name">{_e(c.name)}<br><span class="small">{summary}</span></td>'
@@ -662,16 +664,14 @@ def _m_cell(v: float | None, star: bool = False) -> str:
     return f'<td class="num{cls}">{v:.3f}{"*" if star else ""}</td>'
 
 
-def _efficiency_html(ok: Sequence[_Cyl], img: Mapping[str, str], ref_speed: float) -> str:
-    drawn = [c for c in ok if c.drawable]
-    if not drawn:
+def _efficiency_html(effs: Mapping[_Cyl, _Efficiency], img: Mapping[str, str], ref_speed: float) -> str:
+    if not effs:
         return ""
     rows, any_star, assumed = [], False, []
-    for c in drawn:
-        e = _efficiency(c, ref_speed)
+    for c, e in effs.items():
         bore = c.num("bore")
         area = math.pi * bore ** 2 / 4 if bore else None
-        p = e.pA / area if e.pA is not None and area else None
+        p = c.supply_gauge() if e.pA is not None else None
         any_star |= e.extrapolated
         if e.atmosphere_assumed:
             assumed.append(c.name)
@@ -750,10 +750,15 @@ def render_batch_report(rows: Sequence[Mapping[str, Any]], *, title: str = "Batc
                         ref_speed: float = REF_SPEED, plots: Mapping[str, bytes] | None = None) -> str:
     """The report as one HTML string (plots drawn unless given)."""
     cs = [_read(r, i) for i, r in enumerate(rows)]
-    plots = _make_plots(cs, ref_speed) if plots is None else plots
+    effs = _efficiencies(cs, ref_speed)
+    return _render(cs, effs, title, ref_speed, _make_plots(effs, ref_speed) if plots is None else plots)
+
+
+def _render(cs: Sequence[_Cyl], effs: Mapping[_Cyl, _Efficiency], title: str, ref_speed: float,
+            plots: Mapping[str, bytes]) -> str:
     img = {k: _img(v, alt) for k, alt in _PLOTS if (v := plots.get(k)) is not None}
     ok = [c for c in cs if c.ok]
-    lines, cls = _headline(cs, ref_speed)
+    lines, cls = _headline(cs, effs, ref_speed)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>
 <meta name="viewport" content="width=device-width, initial-scale=1"><style>{_CSS}{_MORE_CSS}</style></head><body>
@@ -763,7 +768,7 @@ def render_batch_report(rows: Sequence[Mapping[str, Any]], *, title: str = "Batc
 {_cylinders_html(cs)}
 {_maps_html(ok, img)}
 {_table3_html(ok)}
-{_efficiency_html(ok, img, ref_speed)}
+{_efficiency_html(effs, img, ref_speed)}
 {_fit_html(ok)}
 <p class="small">combined_reality batch report, {len(cs)} cylinder{'s' if len(cs) != 1 else ''}.</p>
 </body></html>
@@ -777,10 +782,11 @@ def write_batch_report(rows: Sequence[Mapping[str, Any]], path: str | Path, png_
     from .cli import _write_text_atomic
 
     cs = [_read(r, i) for i, r in enumerate(rows)]
-    plots = _make_plots(cs, ref_speed)
+    effs = _efficiencies(cs, ref_speed)
+    plots = _make_plots(effs, ref_speed)
     if png_dir is not None:
         png_dir = Path(png_dir)
         png_dir.mkdir(parents=True, exist_ok=True)
         for name, data in plots.items():
             (png_dir / f"{name}.png").write_bytes(data)
-    _write_text_atomic(path, render_batch_report(rows, title=title, ref_speed=ref_speed, plots=plots))
+    _write_text_atomic(path, _render(cs, effs, title, ref_speed, plots))

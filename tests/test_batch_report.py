@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from combined_reality.batch_report import efficiency, friction_curve, render_batch_report, write_batch_report
+from sim.friction_models import FRICTION_MODELS
 
 PA, PS = 1.013e5, 7.013e5  # atmosphere, supply (6 bar gauge, seed 004 section 3)
 CYL = dict(status="ok", supply_pressure=PS, atmosphere=PA, source="recorded", n_runs=3, mean_dp=1.2e5,
@@ -92,6 +93,13 @@ def test_nominal_curve_opposes_motion_with_the_pressure_term_at_the_mean_dp():
 def test_a_curve_from_csv_text_fills_missing_parameters_with_the_model_defaults():
     row = {k: str(v) for k, v in ACT2.items()}  # as read from results.csv
     np.testing.assert_allclose(friction_curve(row, [0.01]), friction_curve(ACT2, [0.01]))
+    # B_neg missing: the cvs model's default, the other parameters the row's
+    b_neg = FRICTION_MODELS["cvs"].defaults()["B_neg"]
+    assert b_neg != ACT2["B_neg"]
+    v = np.array([0.01, -0.01, -0.2])
+    no_b = {k: x for k, x in row.items() if k != "B_neg"}
+    want = _eq3(v, (22, 20), (16.87, 13.47), (178.85, b_neg), (0.00342, 0.00616))
+    np.testing.assert_allclose(friction_curve(no_b, v), want, rtol=1e-12)
     with pytest.raises(ValueError, match="unknown friction model"):
         friction_curve(dict(ACT2, model="magic"), [0.01])
     with pytest.raises(ValueError, match="none of the parameters"):
@@ -133,7 +141,7 @@ def test_table_3_shows_the_values_per_direction(report):
     assert "a&lt;b&amp;c" not in t3  # failed rows are not in the comparison
 
 
-def test_truth_table_marks_errors_beyond_5_percent(tmp_path):
+def test_truth_table_marks_errors_beyond_5_percent():
     off = dict(NOMINAL, name="off", Fv=15.0)  # Fv 11.9 % above its truth
     text = render_batch_report([NOMINAL, off], plots={})
     truth = _section(text, "<h3>Against the truth")
@@ -156,6 +164,9 @@ def test_efficiency_factor_is_seed_004_eq_1(report):
     assert m["retraction"] == pytest.approx((13.47 + 165.59 * 0.2) / pA2)
     mn = efficiency(NOMINAL)  # no Fs: Fc, with the pressure term at the mean |p1 - p2|
     assert mn["breakaway_extension"] == pytest.approx((24.8 + 2.89e-5 * 1.6e5) / pA2)
+    # Threlfall's curve rises from 0 at rest: its breakaway is the plateau Fc of each direction
+    mt = efficiency(dict(CYL, model="threlfall", bore=0.032, Fc_pos=10.0, Fc_neg=9.0))
+    assert (mt["breakaway_extension"], mt["breakaway_retraction"]) == pytest.approx((10.0 / pA2, 9.0 / pA2))
     sec = _section(text, "<h2>Efficiency factor")
     c2 = _cells(sec, ACT2["name"])
     assert c2[2:5] == ["6.00", "8.04", "483"]  # bar gauge, cm², N
