@@ -15,14 +15,12 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from conftest import assert_refused
+from conftest import CONFIGS, assert_refused
 
 from combined_reality import batch
 from combined_reality.batch import ManifestError, load_manifest, read_results_csv, run_batch
 from combined_reality.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ROOT / "configs"
 CFG_A = CONFIGS / "cyl_a_32x100.toml"
 CFG_B = CONFIGS / "cyl_b_16x40.toml"
 SEED_PAPERS = CONFIGS / "manifests" / "seed_papers.toml"
@@ -100,16 +98,13 @@ def _no_temporary_files(out: Path) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def recorded_run(tmp_path_factory) -> Path:
+def recorded_run(tmp_path_factory, cyl_a) -> Path:
     """A 4 s run of cylinder A recorded by the virtual rig, tagged with its cylinder."""
-    from sim.cylinder import load_cylinder
-
     from combined_reality.cli import simulate_run
     from combined_reality.runs import cylinder_tag, write_run
 
-    cyl = load_cylinder(CFG_A)
     p = tmp_path_factory.mktemp("recorded") / "a.csv"
-    write_run(p, simulate_run(cyl, SHORT, seed=5), comments=[cylinder_tag(cyl)])
+    write_run(p, simulate_run(cyl_a, SHORT, seed=5), comments=[cylinder_tag(cyl_a)])
     return p
 
 
@@ -218,7 +213,7 @@ def test_relative_paths_resolve_against_the_manifest_folder(tmp_path, monkeypatc
 
 # ------------------------------------------------------------------ failures fail their row only
 
-def test_bad_files_fail_their_rows_and_the_batch_finishes(folder, tmp_path, capsys, monkeypatch):
+def test_bad_files_fail_their_rows_and_the_batch_finishes(folder, tmp_path, capsys, monkeypatch, cyl_a):
     bad = folder / "bad.csv"
     shutil.copy(folder / "good.csv", bad)
     line = _edit_cell(bad, 10, "x", new="abc")
@@ -280,7 +275,7 @@ def test_bad_files_fail_their_rows_and_the_batch_finishes(folder, tmp_path, caps
         assert r["Fc"] is None  # no parameters for a failed row
         assert f"{name}: {r['error']}" in err  # listed at the end
     # the good rows are really identified: cylinder A's published friction, from 4 s of data
-    a = {k: float(v) for k, v in zip(("Fc", "Fv", "kp"), _published_a())}
+    a = {k: cyl_a.value(k) for k in ("Fc", "Fv", "kp")}
     for name in ("sim_ok", "recorded_ok"):
         r = by[name]
         assert r["status"] == "ok" and r["error"] is None, r
@@ -305,13 +300,6 @@ def test_bad_files_fail_their_rows_and_the_batch_finishes(folder, tmp_path, caps
     kept = read_run(out / "runs" / "sim_ok_1.csv")
     assert recorded_cylinder(kept).startswith("seed 002 cylinder A")
     assert _no_temporary_files(out) == []
-
-
-def _published_a():
-    from sim.cylinder import load_cylinder
-
-    cyl = load_cylinder(CFG_A)
-    return [cyl.value(k) for k in ("Fc", "Fv", "kp")]
 
 
 # ------------------------------------------------------------------ incremental
@@ -424,7 +412,6 @@ def test_interrupted_batch_leaves_valid_files_with_the_finished_rows(folder, tmp
 
 
 def test_html_report(folder, tmp_path):
-    pytest.importorskip("combined_reality.batch_report")
     m = _write(folder / "manifest.toml", f"""
         [[cylinder]]
         name = "identified_one"
@@ -478,7 +465,7 @@ def test_per_direction_stribeck_model_recovered():
 # ------------------------------------------------------------------ dask
 
 def test_dask_cluster_gives_the_table_of_local_processes(folder, tmp_path, capsys):
-    distributed = pytest.importorskip("distributed")
+    import distributed
     m = _write(folder / "manifest.toml", f"""
         [simulate]
         duration = {SHORT}
