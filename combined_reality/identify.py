@@ -24,7 +24,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from sim.compiled import ShootingFunctions, shooting_functions
+from sim.compiled import NumpyCall, ShootingFunctions, shooting_functions
 from sim.cylinder import ESTIMABLE, PARAMETERS, Cylinder
 from sim.effects import Effect
 from sim.integrator import IntegratorOptions
@@ -38,6 +38,10 @@ UNITS = {name: spec.unit for name, spec in PARAMETERS.items()}
 class IdentificationError(RuntimeError):
     """The identification could not be carried out (the message says why)."""
 
+
+# a damped step closer than this (relative, in the scaled variables) to one whose line search
+# just failed is not searched again
+_SAME_STEP = 1e-2
 
 @dataclass(frozen=True)
 class IdentifyOptions:
@@ -229,8 +233,8 @@ class ShootingProblem:
 
     def __init__(self, sf: ShootingFunctions, K: int, threads: int, W, H, Y, mask, wts, sscale, nxt):
         plant = sf.plant
-        self.f_sens = sf.sens.map(K, "thread", threads) if threads > 1 else sf.sens.map(K)
-        self.f_sim = sf.interval.map(K, "thread", threads) if threads > 1 else sf.interval.map(K)
+        self.f_sens = NumpyCall(sf.sens.map(K, "thread", threads) if threads > 1 else sf.sens.map(K))
+        self.f_sim = NumpyCall(sf.interval.map(K, "thread", threads) if threads > 1 else sf.interval.map(K))
         self.W, self.H, self.Y, self.mask, self.wts, self.sscale, self.nxt = W, H, Y, mask, wts, sscale, nxt
         self.K, self.M = K, sf.interval_len
         self.nx, self.nth = plant.nx, len(sf.free)
@@ -241,10 +245,10 @@ class ShootingProblem:
         nx, K, M = self.nx, self.K, self.M
         if with_sens:
             Xr, Sr = self.f_sens(S, self.W, p, self.H)
-            X = np.asarray(Xr).reshape(nx, K, M)
-            Sens = np.asarray(Sr).reshape(nx, K, M, nx + self.nth)
+            X = Xr.reshape(nx, K, M)
+            Sens = Sr.reshape(nx, K, M, nx + self.nth)
         else:
-            X = np.asarray(self.f_sim(S, self.W, p, self.H)).reshape(nx, K, M)
+            X = self.f_sim(S, self.W, p, self.H)[0].reshape(nx, K, M)
             Sens = None
         if not np.all(np.isfinite(X)):
             return None
@@ -361,11 +365,19 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
 
         accepted = converged_here = False
         predicted = math.inf
+        failed_step = None
+        scale = np.sqrt(np.maximum(np.diag(Nmat), 1e-300))
         for _attempt in range(8):
             if _attempt and out_of_time():
                 break  # a struggling line search is where the time goes
             step = _solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam)
             if step is None:
+                lam = max(1e-6, lam * 10)
+                continue
+            if failed_step is not None and (np.linalg.norm((step - failed_step) * scale)
+                                            <= _SAME_STEP * np.linalg.norm(failed_step * scale)):
+                # damping too weak to change the step: searching the step that just failed again
+                # is where a struggling fit spent its time
                 lam = max(1e-6, lam * 10)
                 continue
             ds0, dth = step[: R * nx].reshape(R, nx), step[R * nx:]
@@ -388,6 +400,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
                 alpha, S_try, th_try, p_try, ev_try = found
                 accepted = True
                 break
+            failed_step = step
             lam = max(1e-6, lam * 10)
         if converged_here:
             status = "converged"
@@ -438,7 +451,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         scale = np.sqrt(np.maximum(np.diag(cov_robust), 0) / np.maximum(np.diag(cov_gn), 1e-300))
         scale = np.maximum(scale, 1.0)
         cov = cov_gn * np.outer(scale, scale)
-    at_bound = (theta <= lower + 1e-12 * np.maximum(1, abs(lower))) | (theta >= upper - 1e-12 * np.maximum(1, abs(upper)))
+    at_bound = at_bounds(theta, lower, upper)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(nth, np.nan)
     corr = None
     if cov is not None and nth:
@@ -498,6 +511,15 @@ def _unit(plant: Plant, name: str) -> str:
     ename, pname = name.split(".", 1)
     eff = next(e for e in plant.effects if e.name == ename)
     return eff.PARAMS[pname].unit
+
+
+def at_bounds(value, lower, upper):
+    """Whether a value sits at a bound of its range. The tolerance is relative to the range,
+    not to the value's magnitude: a leak conductance of 1e-11 m^3/(s Pa) is far from its bound
+    0 in a range of 1e-7."""
+    value, lower, upper = (np.asarray(a, float) for a in (value, lower, upper))
+    tol = 1e-9 * (upper - lower)
+    return (value - lower <= tol) | (upper - value <= tol)
 
 
 def _bounds(plant: Plant, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:

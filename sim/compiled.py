@@ -134,6 +134,48 @@ def _bundle(funcs: list[ca.Function]) -> ca.Function:
     return ca.Function("bundle", args, outs)
 
 
+class NumpyCall:
+    """A CasADi function evaluated from and into dense numpy arrays.
+
+    A DM result reaches numpy through a Python list of its elements: for the sensitivities
+    of a 20 s run (about a million numbers) that took a fifth of an identification. A
+    function buffer writes the results straight into arrays held here. Inputs broadcast like
+    a DM call (a column fills every column). Results are fresh arrays."""
+
+    def __init__(self, f: ca.Function):
+        for i in range(f.n_in()):
+            if not f.sparsity_in(i).is_dense():
+                raise ValueError(f"{f.name()}: input {i} is sparse; NumpyCall needs dense inputs")
+        for i in range(f.n_out()):
+            if not f.sparsity_out(i).is_dense():
+                raise ValueError(f"{f.name()}: output {i} is sparse; NumpyCall needs dense outputs")
+        self.name = f.name()
+        self._shape_in = [f.size_in(i) for i in range(f.n_in())]
+        self._buffer, self._eval = f.buffer()
+        # CasADi stores column-major: the transpose of a C-ordered array has that layout
+        self._out = [np.empty(f.size_out(i)[::-1]) for i in range(f.n_out())]
+        for i, o in enumerate(self._out):
+            self._buffer.set_res(i, memoryview(o))
+
+    def __call__(self, *args) -> list[np.ndarray]:
+        if len(args) != len(self._shape_in):
+            raise TypeError(f"{self.name} takes {len(self._shape_in)} inputs, got {len(args)}")
+        held = []
+        for i, (a, (r, c)) in enumerate(zip(args, self._shape_in)):
+            a = np.asarray(a, float)
+            a = a.reshape(r, -1) if a.ndim < 2 else a
+            if a.shape != (r, c):
+                if a.shape != (r, 1):
+                    raise ValueError(f"{self.name}: input {i} has shape {a.shape}, expected ({r}, {c})")
+                a = np.broadcast_to(a, (r, c))
+            a = np.ascontiguousarray(a.T)
+            held.append(a)  # alive until the evaluation is done
+            self._buffer.set_arg(i, memoryview(a))
+        self._eval()
+        # C order, as a DM call gives: the same summation order downstream, the same numbers
+        return [np.ascontiguousarray(o.T) for o in self._out]
+
+
 @dataclass
 class ShootingFunctions:
     """The compiled functions one drive/structure needs.

@@ -86,3 +86,28 @@ def test_a_compiler_installed_later_compiles_what_was_stored_without_one(tmp_pat
     assert shooting_functions(build_plant("command"), 7, ()).stats.path.endswith(".casadi")
     monkeypatch.delenv("CC")
     assert shooting_functions(build_plant("command"), 7, ()).stats.path.endswith(".so")
+
+
+def test_numpy_call_gives_the_dm_call_numbers_and_refuses_wrong_shapes():
+    import casadi as ca
+    import pytest
+
+    from sim.compiled import NumpyCall
+
+    x, p = ca.SX.sym("x", 3, 2), ca.SX.sym("p", 2)
+    f = ca.Function("f", [x, p], [ca.sin(x) * p[0] + p[1], ca.sum1(x)]).map(4)
+    X = np.random.default_rng(0).normal(size=(3, 8))
+    P = np.array([1.5, -0.25])
+    call = NumpyCall(f)
+    out = call(X, P)  # a column fills every mapped column, as a DM call does
+    ref = [np.asarray(r) for r in f(X, P)]
+    for a, b in zip(out, ref):
+        assert a.shape == b.shape and a.flags.c_contiguous
+        np.testing.assert_array_equal(a, b)
+    again = call(2 * X, P)
+    np.testing.assert_array_equal(out[0], ref[0])  # an earlier result is not overwritten
+    assert not np.array_equal(again[0], out[0])
+    with pytest.raises(ValueError, match=r"input 0 has shape \(3, 7\), expected \(3, 8\)"):
+        call(X[:, :7], P)
+    with pytest.raises(TypeError, match="takes 2 inputs, got 1"):
+        call(X)
