@@ -203,10 +203,14 @@ def operating_regions(cyl: Cylinder, run: Run) -> dict[str, np.ndarray]:
     return masks
 
 
+MIN_REGION_FRACTION = 0.01  # a regime with fewer samples is listed, never singled out
+
+
 def regions(cyl: Cylinder, run: Run, base: Validation, best: Validation | None = None) -> list[dict]:
     """Where the validation position error lies: share of the squared error per operating
     regime, how over-represented it is (share / fraction of samples), and the position RMSE
-    there before and (with the verdict's effect) after."""
+    there before and (with the verdict's effect) after; most concentrated first, regimes
+    with under MIN_REGION_FRACTION of the samples last."""
     r = base.residual[base.outputs.index("x")]
     ok = np.isfinite(r)
     e2 = np.where(ok, r, 0.0) ** 2
@@ -223,7 +227,8 @@ def regions(cyl: Cylinder, run: Run, base: Validation, best: Validation | None =
         if best is not None:
             row["rmse_x_after"] = best.rmse("x", m)
         out.append(row)
-    return sorted(out, key=lambda r: -r["concentration"])
+    # a regime of a handful of samples can look concentrated by chance: those last
+    return sorted(out, key=lambda r: (r["fraction_of_samples"] < MIN_REGION_FRACTION, -r["concentration"]))
 
 
 def whiteness(resid: np.ndarray, lags: int = 20, decimate: int = 10) -> dict:

@@ -26,6 +26,9 @@ import numpy as np
 
 from sim.cylinder import PARAMETERS
 
+from .diagnose import MIN_REGION_FRACTION
+from .identify import at_bounds
+
 __all__ = ["write_report", "render_report", "headline", "format_value"]
 
 _SCATTER_MAX = 4000  # points per series in the scatter plots
@@ -118,6 +121,11 @@ def format_value(value: float, std: float | None, unit: str) -> str:
         return vs + sfx + (f" ± {s:.1e}{sfx}" if s is not None else "")
     if s is None:
         return f"{v:.{max(0, 3 - mag)}f}{sfx}"
+    ms = math.floor(math.log10(s))
+    if ms >= 6 or ms < mag - 5:
+        # the std of an undetermined (1e26) or a degenerate (1e-34) fit: no 26-digit integer, no 35
+        # decimals; the value to 3 significant digits, or to the 6 it is at most given with
+        return f"{v:.{max(0, (2 if ms >= 6 else 5) - mag)}f}{sfx} ± {s:.1e}{sfx}"
     ds = max(0, 1 - math.floor(math.log10(s)))
     dv = min(max(max(0, 2 - mag), ds), max(0, 5 - mag))
     return f"{v:.{dv}f}{sfx} ± {s:.{ds}f}{sfx}"
@@ -126,8 +134,7 @@ def format_value(value: float, std: float | None, unit: str) -> str:
 def _at_bound(v: float, info) -> bool:
     if info is None or not _finite(v):
         return False
-    tol = 1e-9 * max(1.0, abs(info.lower), abs(info.upper))
-    return abs(v - info.lower) <= tol or abs(v - info.upper) <= tol
+    return bool(at_bounds(v, info.lower, info.upper))
 
 
 def _params_text(c, sep: str = ", ", bounds: bool = False) -> str:
@@ -136,7 +143,12 @@ def _params_text(c, sep: str = ", ", bounds: bool = False) -> str:
     parts = []
     for n, v in (c.params or {}).items():
         info = _param_info(c.effect, n)
-        txt = f"{n} = {format_value(v, (c.std or {}).get(n), info.unit if info else '')}"
+        std = (c.std or {}).get(n)
+        if info is not None and _finite(std) and std > info.upper - info.lower:
+            # a std wider than the whole range says the data do not determine the parameter
+            txt = f"{n} = {format_value(v, None, info.unit)} (not determined by the data)"
+        else:
+            txt = f"{n} = {format_value(v, std, info.unit if info else '')}"
         if bounds and _at_bound(v, info):
             txt += " (at its bound)"
         parts.append(txt)
@@ -174,6 +186,9 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
         out.append(esc(f"The gap is best explained by ") + strong(best.effect)
                    + esc(f" ({_effect_description(best.effect)}): with it, the validation position error shrinks by "
                          f"{_pct(best.shrink)} ({_um(before)} → {_um(after)})" + (f"; {params}." if params else ".")))
+        meaning = [f"{n} is the {info.description}" for n in best.params if (info := _param_info(best.effect, n))]
+        if meaning:  # a_coulomb or share mean nothing to a reader without it
+            out.append(esc("Its parameters: " + "; ".join(meaning) + "."))
         rest = best.validation.normalized_rms()  # the verdict is significant, hence validated
         if rest < _WITHIN_NOISE:
             out.append(esc(f"What remains is at the sensor noise ({_sig(rest)} × the noise over all outputs; "
@@ -214,7 +229,10 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
     if tried:
         out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
     screened = [c.effect for c in d.ranking if c.status == "no_gain_on_train"]
-    if screened:
+    if screened and screened == tried:
+        out.append(esc("None of them fits TRAIN better than the nominal model, so none was validated (the fast "
+                       "screen)."))
+    elif screened:
         out.append(esc("Not validated, as they fit TRAIN no better than the nominal model (the fast screen): "
                        + ", ".join(screened) + "."))
     return out
@@ -417,7 +435,8 @@ def _plot_regions(d, has_after: bool):
             txt += f" → {_um(r['rmse_x_after'])}"
         ax.text(max(s, f) + top * 0.02, yi, txt, va="center", fontsize=8)
     ax.set_xlabel("% (regions overlap: each group — direction, speed, stroke, valve, time — adds up to 100 %)")
-    ax.legend(loc="lower right", fontsize=8, framealpha=0.9)
+    # below the axes: inside, it hid the figures of whichever row ran under it
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncol=2, fontsize=8, frameon=False)
     ax.set_title("Where the nominal model's position error lies, most concentrated first\n"
                  "(× = share of error / share of samples; RMSE there: "
                  + (f"nominal → with {d.verdict})" if has_after else "nominal model)"), fontsize=9.5)
@@ -446,30 +465,33 @@ def _plot_subsystems(d):
                       else math.nan for r in rows])
     colors = ["#2b8a3e" if r.get("within_noise") else ("#f08c00" if np.isfinite(q) and q < 1.5 else "#c92a2a")
               for r, q in zip(rows, ratio)]
-    ax.barh(y, np.nan_to_num(ratio, nan=0.0), height=0.55, color=colors)
+    ax.barh(y, np.nan_to_num(ratio, nan=0.0), height=0.45, color=colors)
     ax.axvline(1, color="#222222", lw=1, ls="--")
-    finite = ratio[np.isfinite(ratio)]
+    finite = ratio[np.isfinite(ratio) & (ratio > 0)]
     hi = max(float(finite.max()) if finite.size else 1.0, 1.5)
     log = hi > 20
     if log:
         ax.set_xscale("log")
-        ax.set_xlim(0.5, hi * 150)
+        ax.set_xlim(min(0.5, 0.5 * float(finite.min())), hi * 2)
     else:
-        ax.set_xlim(0, hi * 2.6)
-    ax.text(1, len(rows) - 0.45, " noise floor", fontsize=8, va="bottom")
+        ax.set_xlim(0, hi * 1.15)
+    ax.text(1, -0.55, " noise floor", fontsize=8, va="bottom")
+    # each bar's figures above it, from the left edge: at the bar's end they ran out of the axes
+    # (a large ratio) or over the labels (a ratio below the axis start)
+    above = ax.get_yaxis_transform()  # x in axes fractions, y in data
     labels = []
-    for yi, r, q in zip(y, rows, ratio):
+    for yi, r in zip(y, rows):
         labels.append("\n".join(_wrap(r.get("subsystem", "?"), 46)))
         if "error" in r:
-            txt = f"failed: {r['error']}"[:80]
+            txt = f"failed: {r['error']}"[:100]
         else:
             rm, fl = _subsystem_value(r)
             txt = (f"RMSE {rm} (floor {fl}); " + ("within noise" if r.get("within_noise") else
                                                   f"{_pct(r.get('share_of_error', math.nan))} of the excess error"))
-        xpos = q * 1.08 if np.isfinite(q) and q > 0 else (0.55 if log else 0.05)
-        ax.text(xpos, yi, txt, va="center", fontsize=8)
+        ax.text(0.005, yi + 0.25, txt, va="bottom", fontsize=8, transform=above,
+                bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.8, "pad": 0.5})
     ax.set_yticks(y, labels, fontsize=8)
-    ax.set_ylim(-0.6, len(rows) - 0.1)
+    ax.set_ylim(-0.6, len(rows) - 0.25)
     ax.set_xlabel("validation RMSE / noise floor" + (" (log scale)" if log else "")
                   + ". Green: within the noise; amber: < 1.5 × the floor; red: above")
     ax.set_title("Which part of the model carries the gap (nominal model)", fontsize=10)
@@ -547,12 +569,18 @@ def _z_text(z) -> str:
     return f"{float(z):.1f}" if _finite(z) else "n/a"
 
 
+def _breakable(word: str) -> str:
+    """A status word (`worse_than_nominal`) that may wrap after its underscores: unbroken, it
+    pushed the ranking table past the page."""
+    return _e(word).replace("_", "_<wbr>")
+
+
 def _candidate_row(c, rank, verdict: str, ncols: int) -> str:
     sig = '<span class="yes">✓</span>' if c.significant else '<span class="no">–</span>'
     cls = "verdict" if c.effect == verdict else ("failed" if c.error else "")
     params = "<br>".join(_e(p) for p in _params_text(c, "\n", bounds=True).split("\n") if p) or "–"
     vstat = c.validation.status if c.validation is not None else "converged"
-    vnote = f"<br><span class=\"small\">start fit on VALID: {_e(vstat)}</span>" if vstat != "converged" else ""
+    vnote = f"<br><span class=\"small\">start fit on VALID: {_breakable(vstat)}</span>" if vstat != "converged" else ""
     fr = _e(_friction_text(c.friction or {})) or "–"
     out = (f'<tr class="{cls}"><td class="num">{rank}</td><td><b>{_e(c.effect)}</b><br>'
            f'<span class="small">{_e(_effect_description(c.effect))}</span></td>'
@@ -560,7 +588,7 @@ def _candidate_row(c, rank, verdict: str, ncols: int) -> str:
            f'<td class="num">{_z_text(c.z)}</td><td>{sig}</td>'
            f'<td class="num">{_um(c.rmse_x_validation)}</td>'
            f'<td>{params}</td><td class="small">{fr}</td>'
-           f'<td>{_e(c.status)}{vnote}<br><span class="small">{c.wall_s:.1f} s</span></td></tr>')
+           f'<td>{_breakable(c.status)}{vnote}<br><span class="small">{c.wall_s:.1f} s</span></td></tr>')
     if c.error:  # the screen's reason is no error of the tool
         note = "small" if c.status == "no_gain_on_train" else "err"
         out += f'<tr class="failed"><td></td><td colspan="{ncols - 1}" class="{note}">{_e(c.error)}</td></tr>'
@@ -590,11 +618,14 @@ could produce (above {_sig(d.options.min_z, 2)}: not luck). <b>friction re-ident
 the effect. <b>fit</b>: how the identification on TRAIN ended; <code>no_gain_on_train</code>: the effect fits TRAIN no
 better than the nominal model and was not validated (the fast screen); <code>worse_than_nominal</code>: the fit ended
 worse on TRAIN than the nominal model it contains (a local minimum) and was not validated; these, failed fits and
-models whose simulation of VALID diverged have no shrink and no z (n/a).</p>{pair}"""
+models whose simulation of VALID diverged have no shrink and no z (n/a). <b>start fit on VALID</b> (shown when it
+did not converge): how the worst fit of a validation segment's initial state ended; the model's parameters stay as
+identified on TRAIN, and a segment fit that stops early can only make the model look worse.</p>{pair}"""
 
 
 def _regions_sentence(d) -> str:
-    regs = [r for r in (d.regions or []) if _finite(r.get("concentration"))]
+    regs = [r for r in (d.regions or []) if _finite(r.get("concentration"))
+            and r.get("fraction_of_samples", 0.0) >= MIN_REGION_FRACTION]
     if not regs:
         return ""
     top = max(regs, key=lambda r: r["concentration"])
@@ -678,6 +709,22 @@ def _make_plots(d) -> dict[str, bytes]:
     return {k: _png(f()) for k, f in makers.items()}
 
 
+def _unphysical_note(d) -> str:
+    """A sentence when the nominal model's simulation of VALID leaves the physical range: the
+    nominal model has no end stops (MODEL.md), so a model that far off runs past them."""
+    sim = d.base_validation.simulated
+    o = d.base_validation.outputs
+    x = sim[o.index("x")]
+    p = np.concatenate([sim[o.index(n)] for n in ("p1", "p2") if n in o] or [np.zeros(0)])
+    out_x = bool(np.any((x < 0) | (x > d.cylinder.geometry.stroke)))
+    out_p = bool(np.any(p <= 0))
+    if not (out_x or out_p):
+        return ""
+    what = " and ".join(w for w, f in (("past the ends of the stroke", out_x), ("below zero pressure", out_p)) if f)
+    return (f" The nominal model's simulation runs {what}: the nominal model has no end stops and nothing keeps its "
+            "pressures physical, so a model this far off leaves the range a real cylinder stays in.")
+
+
 def render_report(diagnosis, *, title: str | None = None, plots: dict[str, bytes] | None = None) -> str:
     """The report as one HTML string (plots drawn unless given)."""
     d = diagnosis
@@ -688,6 +735,7 @@ def render_report(diagnosis, *, title: str | None = None, plots: dict[str, bytes
     img = {k: _img(v, alt) for (k, alt) in _PLOTS if (v := plots.get(k)) is not None}
     has = d.best is not None
     after = f" and with {_e(d.verdict)} (orange)" if has else ""
+    unphysical = _unphysical_note(d)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>
 <meta name="viewport" content="width=device-width, initial-scale=1"><style>{_CSS}</style></head><body>
@@ -712,7 +760,7 @@ at friction along the stroke or the chamber volumes.</p>
 
 <h2>Measured and simulated signals</h2>
 <p class="explain">Left the whole run, right the segment where the nominal model is worst; the bottom row is the position
-error, which is too small to see against the stroke.</p>
+error, which is too small to see against the stroke.{unphysical}</p>
 {img.get("d_traces", "")}
 
 <h2>Where the error lies</h2>

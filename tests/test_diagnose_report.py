@@ -9,7 +9,7 @@ import pytest
 
 from combined_reality.diagnose import (Candidate, DiagnoseOptions, Diagnosis, Validation, regions,
                                        whiteness)
-from combined_reality.diagnose_report import format_value, headline, render_report, write_report
+from combined_reality.diagnose_report import _params_text, format_value, headline, render_report, write_report
 from combined_reality.runs import Run
 
 N, DT = 4000, 1e-3
@@ -102,6 +102,8 @@ def test_the_report_is_one_self_contained_file_with_the_verdict_and_every_candid
     # the verdict in one sentence, with the shrink, the errors in um and the parameter in ms
     assert re.search(r"The gap is best explained by <b>valve_delay</b> .*shrinks by \d+ % "
                      r"\([\d.]+ um → [\d.]+ um\); tau = 1\.41590 ms ± 0\.00019 ms", text)
+    assert ("Its parameters: tau is the time constant of the valve opening; share is the share of the opening "
+            "that lags (1: a pure lag).") in text  # what tau and share mean
     rows = re.findall(r"<tr[^>]*>.*?</tr>", text, re.S)
     for effect in ("valve_delay", "leakage", "mass", "stiction", "valve_delay+leakage"):
         assert any(f"<b>{effect}</b>" in r for r in rows), effect
@@ -155,7 +157,7 @@ def test_candidates_not_validated_are_described_as_such(cyl_a):
     row = next(r for r in re.findall(r"<tr[^>]*>.*?</tr>", text, re.S) if "<b>mass</b>" in r)
     # rank, then shrink of x, shrink of all outputs, z and x error: none exists without a validation
     assert re.findall(r'<td class="num">([^<]*)</td>', row) == ["3", "n/a", "n/a", "n/a", "n/a"]
-    assert "no_gain_on_train" in row
+    assert "no_<wbr>gain_<wbr>on_<wbr>train" in row  # may wrap, so the table stays on the page
     assert '<td colspan="9" class="small">fits TRAIN no better' in text  # a screen's reason, not an error
     # a pair that ended worse on TRAIN than the nominal model was not scored: not "not better than the verdict"
     d = _diagnosis(cyl_a)
@@ -224,3 +226,43 @@ def test_rerun_recording_holds_the_diagnosis(cyl_a, tmp_path, verdict):
     assert "line search failed" in summary and "no\\_gain\\_on\\_train" in summary
     labels = data["/diagnosis/regions/labels"]["text"][-1][0]
     assert all(r_["where"].replace("|", "\\|") in labels for r_ in d.regions)
+
+
+def test_a_small_parameter_far_inside_its_range_is_not_marked_at_its_bound():
+    # a leak conductance of 1.9e-11 in a range of 0 to 1e-7: tiny, yet far from the bound 0
+    inside = Candidate(effect="leakage", params={"conductance": 1.9e-11}, std={"conductance": 6e-16})
+    assert "(at its bound)" not in _params_text(inside, bounds=True)
+    at_zero = Candidate(effect="leakage", params={"conductance": 0.0}, std={"conductance": 6e-16})
+    assert "(at its bound)" in _params_text(at_zero, bounds=True)
+
+
+def test_an_undetermined_parameter_says_so_instead_of_printing_its_std():
+    # a fit the data do not constrain: std 1e26 for a parameter whose range is -0.9 .. 10
+    c = Candidate(effect="friction_position", params={"bump": -0.9, "slope": 0.5},
+                  std={"bump": 9.87e25, "slope": 0.02})
+    text = _params_text(c, bounds=True)
+    assert "bump = -0.9000 (not determined by the data) (at its bound)" in text
+    assert "slope = 0.500 ± 0.020" in text
+    assert format_value(-0.9, 9.87e25, "1") == "-0.900 ± 9.9e+25"  # never a 26-digit integer
+    assert format_value(16.1794, 4.4e-34, "N s/m") == "16.1794 N s/m ± 4.4e-34 N s/m"  # nor 35 decimals
+
+
+def test_a_regime_of_a_handful_of_samples_is_not_singled_out():
+    from types import SimpleNamespace
+
+    from combined_reality.diagnose_report import _regions_sentence
+
+    d = SimpleNamespace(regions=[
+        {"where": "high flow (|u| > 0.5)", "share_of_error": 0.001, "fraction_of_samples": 5e-5, "concentration": 18.4},
+        {"where": "retraction (v < -5 mm/s)", "share_of_error": 0.6, "fraction_of_samples": 0.3, "concentration": 2.0}])
+    text = _regions_sentence(d)
+    assert text.startswith("Most concentrated: retraction") and "high flow" not in text
+
+
+def test_when_every_candidate_is_screened_out_the_list_is_not_repeated(cyl_a):
+    d = _diagnosis(cyl_a, verdict="none", gap=False)
+    for c in d.ranking:
+        c.status = "no_gain_on_train"
+    lines = headline(d)
+    assert lines[-1] == "None of them fits TRAIN better than the nominal model, so none was validated (the fast screen)."
+    assert sum("valve_delay, leakage, mass, stiction" in line for line in lines) == 1
