@@ -196,7 +196,7 @@ def _run_procedure(kind, rig, cyl, opts, record, comments, progress):
 
 def _write_outputs(args, cyl, result, comments, where: str, wall: float) -> None:
     from .cli import _clean_json, _eprint, _write_json_atomic
-    from .procedures import DIRECTION_NAMES, write_points
+    from .procedures import write_points
 
     if args.kind == "breakaway":
         what = [f"breakaway (static) friction, one row per direction, mean of {result.options.trials} trial(s): "

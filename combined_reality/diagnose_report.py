@@ -183,7 +183,7 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
     if best is not None:
         after = best.rmse_x_validation
         params = _params_text(best)
-        out.append(esc(f"The gap is best explained by ") + strong(best.effect)
+        out.append(esc("The gap is best explained by ") + strong(best.effect)
                    + esc(f" ({_effect_description(best.effect)}): with it, the validation position error shrinks by "
                          f"{_pct(best.shrink)} ({_um(before)} → {_um(after)})" + (f"; {params}." if params else ".")))
         meaning = [f"{n} is the {info.description}" for n in best.params if (info := _param_info(best.effect, n))]

@@ -228,7 +228,6 @@ def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int
     M = int(interval_len)
     sb = StepBuilder(plant, opts)
     nx, nw, npar = sb.nx, sb.nw, sb.npar
-    nz = nx + len(free)
     tag = f"{plant.drive}_{plant.structure_key}"
     names = [f"step_{tag}", f"interval_{tag}_{M}"]
     if with_sens:
