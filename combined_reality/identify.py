@@ -43,6 +43,7 @@ class IdentificationError(RuntimeError):
 # just failed is not searched again
 _SAME_STEP = 1e-2
 
+
 @dataclass(frozen=True)
 class IdentifyOptions:
     drive: str = "command"

@@ -172,6 +172,8 @@ class NumpyCall:
             held.append(a)  # alive until the evaluation is done
             self._buffer.set_arg(i, memoryview(a))
         self._eval()
+        if self._buffer.ret() != 0:  # a DM call raises here
+            raise RuntimeError(f"{self.name}: evaluation failed (return code {self._buffer.ret()})")
         # C order, as a DM call gives: the same summation order downstream, the same numbers
         return [np.ascontiguousarray(o.T) for o in self._out]
 
