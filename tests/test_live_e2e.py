@@ -84,11 +84,21 @@ def test_faulty_link_is_counted_reported_and_recorded_honestly(cyl_a, tmp_path, 
         _stop(rig)
     err = capsys.readouterr().err
     assert code == 0, err
-    link = json.loads(out.read_text())["link"]
+    doc = json.loads(out.read_text())
+    link = doc["link"]
     run = read_run(rec)
     assert link["frames_corrupt"] > 10 and link["samples_lost"] > 10
     assert run.n == link["samples"]  # every intact sample recorded, nothing invented
-    assert run.n + link["samples_lost"] == pytest.approx(6000, abs=30)
+    # the 6 s of rig time asked for: every 1 ms instant recorded or missing
+    missing = int(np.sum(np.round(np.diff(run.t) / 1e-3) - 1))
+    assert run.n + missing == pytest.approx(6000, abs=5)
+    # a missing sample was lost on the link (counted), or never sent: a rig on a busy machine
+    # skips the ticks it missed or drops what a slow host does not read, and says so (once,
+    # under the load of the full suite, 66 of 6000 were missing and not counted lost)
+    assert link["samples_lost"] <= missing
+    if missing - link["samples_lost"] > 5:
+        said = ("sampling deadline missed", "dropped by the rig")
+        assert any(w in e for e in doc["events"] for w in said), (missing, link, doc["events"])
     assert "corrupt" in err and "lost" in err  # said in plain lines
 
 
