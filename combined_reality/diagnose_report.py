@@ -126,7 +126,7 @@ def format_value(value: float, std: float | None, unit: str) -> str:
         # the std of an undetermined (1e26) or a degenerate (1e-34) fit: no 26-digit integer, no 35
         # decimals; the value to 3 significant digits, or to the 6 it is at most given with
         return f"{v:.{max(0, (2 if ms >= 6 else 5) - mag)}f}{sfx} ± {s:.1e}{sfx}"
-    ds = max(0, 1 - math.floor(math.log10(s)))
+    ds = max(0, 1 - ms)
     dv = min(max(max(0, 2 - mag), ds), max(0, 5 - mag))
     return f"{v:.{dv}f}{sfx} ± {s:.{ds}f}{sfx}"
 
