@@ -298,10 +298,14 @@ def _cmd_virtual_rig(args) -> int:
 
 def check_train_and_valid(cyl: Cylinder, train: Run, valid: Run, train_name: str, valid_name: str,
                           verb: str = "diagnose") -> None:
-    """Refuse (UsageError) a TRAIN/VALID pair of which a run was recorded on another cylinder
+    """Refuse (UsageError) a TRAIN/VALID pair of which a run does not fit the cylinder file
+    (stroke, pressures), is shorter than 1 s at 1 kHz, or was recorded on another cylinder
     than the file describes (its cylinder tag), or VALID sampled at another rate than TRAIN.
     `verb` completes the advice: '... ; {verb} runs of the cylinder they were recorded on.'"""
     for r, what in ((train, train_name), (valid, valid_name)):
+        _check_run_against_cylinder(r, cyl)
+        if r.n < 1000:
+            raise UsageError(f"{what}: {r.n} samples are too few (at least 1 s at 1 kHz).")
         theirs = recorded_elsewhere(r, cyl)
         if theirs is not None:
             raise UsageError(f"{what} was recorded on the cylinder '{theirs}', but the cylinder file "
@@ -319,10 +323,6 @@ def cmd_diagnose(args) -> int:
 
     cyl = _load_config(args.config)
     train, valid = read_run(args.train), read_run(args.validate)
-    for r in (train, valid):
-        _check_run_against_cylinder(r, cyl)
-        if r.n < 1000:
-            raise UsageError(f"{r.source}: {r.n} samples are too few to diagnose (at least 1 s at 1 kHz).")
     check_train_and_valid(cyl, train, valid, args.train, args.validate, "diagnose")
     names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
     unknown = [n for n in names if n not in EFFECTS]

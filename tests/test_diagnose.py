@@ -53,6 +53,14 @@ def test_validation_run_of_another_rate_is_refused(cyl_a, tmp_path, capsys):
     assert "same rig and rate" in capsys.readouterr().err
 
 
+def test_a_run_shorter_than_a_second_is_refused(cyl_a, tmp_path, capsys):
+    write_run(tmp_path / "a.csv", simulate_run(cyl_a, 2.0, seed=1))
+    write_run(tmp_path / "b.csv", simulate_run(cyl_a, 0.5, seed=2))
+    assert main(["diagnose", str(tmp_path / "a.csv"), "--validate", str(tmp_path / "b.csv"),
+                 "--config", str(cyl_a.source)]) == 2
+    assert "b.csv: 500 samples are too few (at least 1 s at 1 kHz)" in capsys.readouterr().err
+
+
 def test_validation_run_of_another_cylinder_is_refused(cyl_a, tmp_path, capsys):
     other = cyl_a.with_values({"stroke": 0.2})
     write_run(tmp_path / "a.csv", simulate_run(cyl_a, 2.0, seed=1), comments=[cylinder_tag(cyl_a)])
