@@ -30,7 +30,7 @@ import numpy as np
 from sim.cylinder import PARAMETERS
 from sim.friction_models import DIRECTIONS, FRICTION_MODELS
 
-from .diagnose_report import _CSS, _e, _img, _new_figure, _png, _sig, _wrap, format_value
+from .diagnose_report import _CSS, _e, _img, _new_figure, _png, _sig, _wrap, format_value, write_html_and_plots
 from .friction_map import FIT_SPECS
 
 __all__ = ["write_batch_report", "render_batch_report", "friction_curve", "efficiency", "REF_SPEED",
@@ -779,14 +779,7 @@ def write_batch_report(rows: Sequence[Mapping[str, Any]], path: str | Path, png_
                        title: str = "Batch identification", *, ref_speed: float = REF_SPEED) -> None:
     """Write the report of the batch's `rows` to `path` as one self-contained HTML file
     (atomically); with `png_dir`, also every plot as a PNG there."""
-    from .cli import _write_text_atomic
-
     cs = [_read(r, i) for i, r in enumerate(rows)]
     effs = _efficiencies(cs, ref_speed)
     plots = _make_plots(effs, ref_speed)
-    if png_dir is not None:
-        png_dir = Path(png_dir)
-        png_dir.mkdir(parents=True, exist_ok=True)
-        for name, data in plots.items():
-            (png_dir / f"{name}.png").write_bytes(data)
-    _write_text_atomic(path, _render(cs, effs, title, ref_speed, plots))
+    write_html_and_plots(path, _render(cs, effs, title, ref_speed, plots), plots, png_dir)

@@ -787,12 +787,17 @@ perfect (its noise floor).</p>
 def write_report(diagnosis, path, *, title: str | None = None, png_dir=None) -> None:
     """Write the report of `diagnosis` to `path` as one self-contained HTML file
     (atomically); with `png_dir`, also every plot as a PNG there."""
+    plots = _make_plots(diagnosis)
+    write_html_and_plots(path, render_report(diagnosis, title=title, plots=plots), plots, png_dir)
+
+
+def write_html_and_plots(path, html_text: str, plots: dict[str, bytes], png_dir=None) -> None:
+    """A report's HTML file (atomically) and, with `png_dir`, its plots as NAME.png there."""
     from .cli import _write_text_atomic
 
-    plots = _make_plots(diagnosis)
     if png_dir is not None:
         png_dir = Path(png_dir)
         png_dir.mkdir(parents=True, exist_ok=True)
         for name, data in plots.items():
             (png_dir / f"{name}.png").write_bytes(data)
-    _write_text_atomic(path, render_report(diagnosis, title=title, plots=plots))
+    _write_text_atomic(path, html_text)
