@@ -95,6 +95,13 @@ def map_start(cyl: Cylinder, runs: Sequence[Run], spec: FitSpec) -> dict[str, fl
     return _map_start(map_points_from_runs(cyl, runs), spec)
 
 
+def _inside(info, value: float) -> float:
+    """A start value kept just inside its range: on a bound, the bounded Gauss-Newton step
+    would freeze the parameter."""
+    span = info.upper - info.lower
+    return float(np.clip(value, info.lower + 1e-6 * span, info.upper - 1e-6 * span))
+
+
 def _map_start(points: Sequence[MapPoint], spec: FitSpec) -> dict[str, float]:
     cls = FRICTION_MODELS[spec.family]
     start: dict[str, float] = {}
@@ -106,11 +113,8 @@ def _map_start(points: Sequence[MapPoint], spec: FitSpec) -> dict[str, float]:
         except (FrictionMapError, ValueError, np.linalg.LinAlgError):
             continue
         for k, val in fit.model_values().items():
-            info = cls.PARAMS[k]
             if math.isfinite(val):
-                # a start on a bound would freeze the parameter in the bounded Gauss-Newton step
-                span = info.upper - info.lower
-                start[k] = float(np.clip(val, info.lower + 1e-6 * span, info.upper - 1e-6 * span))
+                start[k] = _inside(cls.PARAMS[k], val)
     for suffix in ("pos", "neg"):
         # the slowest samples of a dynamic run sit in reversals, where the filtered acceleration
         # smears the breakaway: the map then shows a dip where the cylinder has a hump, and
@@ -164,9 +168,7 @@ def _shaped_start(points: Sequence[MapPoint], spec: FitSpec, start: dict[str, fl
         for b in cls.BASE:
             name = f"{b}_{suffix}"
             if b in shaped and b not in spec.fixed:
-                info = cls.PARAMS[name]
-                span = info.upper - info.lower
-                out[name] = float(np.clip(shaped[b], info.lower + 1e-6 * span, info.upper - 1e-6 * span))
+                out[name] = _inside(cls.PARAMS[name], shaped[b])
     return out if changed else None
 
 
