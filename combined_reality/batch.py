@@ -182,11 +182,15 @@ def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
     effects = tuple(eff) if isinstance(eff, list) else (eff,)
     if not all(isinstance(x, str) for x in effects):
         raise ManifestError(f"{where}: simulate.effect must be a string 'name:k=v,...' or a list of them.")
-    try:
-        duration, rate = float(sim.get("duration", 20.0)), float(sim.get("rate", 1000.0))
-        seed, runs = int(sim.get("seed", 1)), int(sim.get("runs", 2 if diagnose else 1))
-    except (TypeError, ValueError):
-        raise ManifestError(f"{where}: simulate.duration, rate, seed and runs must be numbers.") from None
+    # TOML has types: a seed of 1.5 or a duration of true is a slip, not something to round
+    raw = {"duration": sim.get("duration", 20.0), "rate": sim.get("rate", 1000.0), "seed": sim.get("seed", 1),
+           "runs": sim.get("runs", 2 if diagnose else 1)}
+    for k, v in raw.items():
+        whole = k in ("seed", "runs")
+        if isinstance(v, bool) or not isinstance(v, int if whole else (int, float)):
+            raise ManifestError(f"{where}: simulate.{k} must be {'a whole number' if whole else 'a number'}, "
+                                f"not {v!r}.")
+    duration, rate, seed, runs = float(raw["duration"]), float(raw["rate"]), raw["seed"], raw["runs"]
     if not (duration > 0 and math.isfinite(duration)) or not 10 <= rate <= 100_000 or runs < 1:
         raise ManifestError(f"{where}: simulate needs duration > 0 s, 10 <= rate <= 100000 Hz and runs >= 1.")
     noise = sim.get("noise", True)
@@ -309,7 +313,7 @@ def _identify_row(job: CylinderJob) -> dict:
     out.update({"rmse_x": res.fit.get("rmse_x"), "r2_x": res.fit.get("r2_x"), "rmse_p1": res.fit.get("rmse_p1"),
                 "rmse_p2": res.fit.get("rmse_p2"), "solver_status": res.solver["status"],
                 "iterations": res.solver["iterations"]})
-    if res.solver["status"] not in ("converged",):
+    if res.solver["status"] != "converged":
         out["warning"] = f"the solver stopped with status {res.solver['status']}"
     if job.diagnose:
         out.update(_diagnose_row(cyl, runs))
@@ -539,12 +543,12 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
 
 # ------------------------------------------------------------------ dask
 
-def cache_files() -> dict[str, bytes]:
+def cache_files() -> dict[str, Path]:
     """The compiled model code of this machine's cache (shipped to cluster workers)."""
     from sim.compiled import cache_dir
 
     d = cache_dir()
-    return {p.name: p.read_bytes() for p in sorted(d.glob("cr_*.so"))} if d.is_dir() else {}
+    return {p.name: p for p in sorted(d.glob("cr_*.so"))} if d.is_dir() else {}
 
 
 def missing_cache_files(names: Iterable[str]) -> list[str]:
@@ -583,6 +587,7 @@ def share_compiled_code(client) -> int:
     installed = 0
     for worker, names in missing.items():
         if names:
-            res = client.run(install_cache_files, {n: files[n] for n in names}, workers=[worker])
+            # read here, for the workers that lack them: usually none, or one new structure
+            res = client.run(install_cache_files, {n: files[n].read_bytes() for n in names}, workers=[worker])
             installed += sum(res.values())
     return installed

@@ -107,7 +107,7 @@ def _connect(address: str):
 
 def run(args) -> int:
     from .batch import ManifestError, load_manifest, run_batch, share_compiled_code
-    from .cli import UsageError, _write_json_atomic
+    from .cli import UsageError, _eprint, _write_json_atomic
 
     out = Path(args.out)
     try:
@@ -119,7 +119,7 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} exists and is not a folder.")
     progress = _Progress(args.quiet)
-    say = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    say = (lambda m: None) if args.quiet else _eprint
     with contextlib.ExitStack() as stack:
         stack.callback(progress.close)
         if args.scheduler:
