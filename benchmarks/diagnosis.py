@@ -33,7 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from combined_reality.cli import simulate_run  # noqa: E402
+from combined_reality.live import simulate_run  # noqa: E402
 from combined_reality.diagnose import DiagnoseOptions, diagnose  # noqa: E402
 from combined_reality.identify import IdentifyOptions, identify  # noqa: E402
 from sim.cylinder import load_cylinder  # noqa: E402
@@ -76,7 +76,7 @@ def run_case(c: dict, duration: float, workers: int, reports: Path | None = None
     t_diag = time.perf_counter() - t0
     res = dg.to_json()
     if reports is not None:
-        from combined_reality.diagnose_report import write_report
+        from combined_reality.diagnose.report import write_report
 
         write_report(dg, reports / f"{case_id(c)}.html", png_dir=reports / case_id(c))
     true = next((r for r in res["ranking"] if r["effect"] == c["effect"]), None)

@@ -138,7 +138,7 @@ def baseline_cost(model: BaselineModel, cyl, run, theta: dict) -> float:
 
 # ============================================================== helpers
 def make_run(cyl, duration: float):
-    from combined_reality.cli import simulate_run
+    from combined_reality.live import simulate_run
 
     return simulate_run(cyl, duration, SEED, RATE)
 
@@ -200,7 +200,7 @@ def benchmark(tmp: Path, cap_s: float) -> int:
     env = dict(os.environ)
 
     from sim.cylinder import cylinder_to_toml, load_cylinder
-    from combined_reality.runs import write_run
+    from combined_reality.files import write_run
 
     cyl = load_cylinder(CFG)
     truth = {n: cyl.value(n) for n in NAMES}

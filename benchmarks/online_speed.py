@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from combined_reality.cli import simulate_run
+from combined_reality.live import simulate_run
 from combined_reality.identify import IdentifyOptions, identify
-from combined_reality.online import MovingHorizonEstimator, OnlineOptions
-from combined_reality.runs import write_run
+from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
+from combined_reality.files import write_run
 from sim.cylinder import load_cylinder
 
 REPO = Path(__file__).resolve().parents[1]

@@ -17,7 +17,7 @@ import can
 
 from .can_mapping import CanCodec
 from .protocol import Frame, HostFrame
-from .rig_server import PtyLink
+from .links import PtyLink
 
 OK = b"\r"
 BELL = b"\a"

@@ -1,9 +1,8 @@
 """Unmodelled effects as composable extensions of the nominal plant.
 
-An effect is a frozen dataclass whose fields are its parameter values. It hooks into
-named stages of the plant's signal flow (command, supply, flows, friction terms,
-friction, piston, chambers; see sim.plant.Signals), may add states of its
-own, and declares bounds for identification. The virtual rig uses effects as truth; the
+An effect is an extension of the plant (sim.extension): a frozen dataclass whose fields are
+its parameter values, hooking into named stages of the plant's signal flow (command,
+supply, flows, friction terms, friction, piston, chambers; see sim.extension.Signals). The virtual rig uses effects as truth; the
 identifier and the diagnosis use them as candidates. Names follow the FORMATS.md
 vocabulary; docs/effects.md gives every equation, parameter and realistic strength.
 
@@ -35,155 +34,12 @@ from typing import Any, ClassVar, Mapping
 import casadi as ca
 import numpy as np
 
-from .plant import KAPPA, R_AIR, choked_flow, mass_flow
+from .extension import Effect, ParamInfo, make_from, parse_spec, seal_friction_reference
+from .flow import KAPPA, R_AIR, choked_flow, mass_flow
 
-
-@dataclass(frozen=True)
-class ParamInfo:
-    unit: str
-    lower: float
-    upper: float
-    description: str
-
-
-def seal_friction_reference(cyl) -> float:
-    """A cylinder's seal friction level while moving: Fc + kp * 2 bar (N)."""
-    return cyl.friction.Fc + cyl.friction.kp * 2.0e5
-
-
-@dataclass(frozen=True)
-class Effect:
-    name: ClassVar[str]
-    subsystem: ClassVar[str]  # "mechanical" effects also apply to the pressure drive
-    description: ClassVar[str]
-    PARAMS: ClassVar[dict[str, ParamInfo]]
-    STATES: ClassVar[tuple[str, ...]] = ()
-    # bumped when an effect's equations (or class constants they use) change, so cached
-    # compiled code is rebuilt
-    REVISION: ClassVar[int] = 1
-    NEUTRAL: ClassVar[dict[str, float]]
-    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {}
-    SHAPE: ClassVar[frozenset[str]] = frozenset()
-    SIGNED: ClassVar[frozenset[str]] = frozenset()
-    # parameter -> (reference of the weak bound, of the strong bound), None: absolute
-    SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {}
-    # alternative identification starts (parameter values over the defaults) for shapes a
-    # fit from the defaults cannot reach; the diagnosis tries them all and keeps the start
-    # that fits TRAIN best
-    STARTS: ClassVar[tuple[dict[str, float], ...]] = ()
-
-    def param_names(self) -> tuple[str, ...]:
-        return tuple(self.PARAMS)
-
-    def values(self) -> list[float]:
-        return [float(getattr(self, n)) for n in self.PARAMS]
-
-    def as_dict(self) -> dict[str, float]:
-        return dict(zip(self.PARAMS, self.values()))
-
-    def state_names(self) -> tuple[str, ...]:
-        return self.STATES
-
-    def structure(self) -> tuple:
-        """What changes the symbolic form: every field is a parameter (an input, not baked
-        in), so only the effect and the revision of its equations."""
-        return (self.name, self.REVISION)
-
-    def initial_states(self, cyl, p1: float, p2: float, v0: float = 0.0) -> list[float]:
-        return [0.0] * len(self.STATES)
-
-    def key(self, state: str) -> str:
-        return f"{self.name}.{state}"
-
-    # ------------------------------------------------------------ strengths
-    @staticmethod
-    def reference(what: str | None, cyl) -> float:
-        """Cylinder-dependent scales of strength bounds.
-
-        seal_friction      Fc + kp * 2 bar (N): the seal friction level while moving
-        per_seal_friction  1 / seal_friction (1/N): a force threshold as a relative change
-        per_viscous_force  1 / (Fv * 0.1 m/s) (1/N): the same for the viscous term
-        valve_conductance  Cmax (m^3/(s Pa))
-        """
-        if what is None:
-            return 1.0
-        seal = seal_friction_reference(cyl)
-        refs = {"seal_friction": seal, "per_seal_friction": 1.0 / max(seal, 1e-9),
-                "per_viscous_force": 1.0 / max(cyl.friction.Fv * 0.1, 1e-9),
-                "valve_conductance": cyl.valve.sonic_conductance}
-        try:
-            return refs[what]
-        except KeyError:
-            raise ValueError(f"unknown strength reference {what!r}") from None
-
-    @classmethod
-    def strength(cls, cyl) -> dict[str, tuple[float, float]]:
-        """(weak, strong) of every parameter in its own unit, for this cylinder (weak at
-        most half of strong, both inside the bounds)."""
-        out = {}
-        for n, (lo, hi) in cls.STRENGTH.items():
-            ref_lo, ref_hi = cls.SCALED.get(n, (None, None))
-            lo, hi = lo * cls.reference(ref_lo, cyl), hi * cls.reference(ref_hi, cyl)
-            if n not in cls.SHAPE:
-                lo = min(lo, 0.5 * hi)
-            info = cls.PARAMS[n]
-            out[n] = (min(max(lo, info.lower), info.upper), min(max(hi, info.lower), info.upper))
-        return out
-
-    @classmethod
-    def typical(cls, cyl, level: float = 0.5, sign: float = 1.0) -> "Effect":
-        """The effect at a strength `level` between weak (0) and strong (1), geometric in
-        between; shapes at the middle of their range; signed parameters with `sign`."""
-        vals = {}
-        for n, (lo, hi) in cls.strength(cyl).items():
-            if n in cls.SHAPE:
-                v = math.sqrt(lo * hi) if _logscale(lo, hi) else 0.5 * (lo + hi)
-            else:
-                v = lo * (hi / lo) ** level
-                if n in cls.SIGNED:
-                    v *= math.copysign(1.0, sign)
-            vals[n] = v
-        return cls(**_clip(cls, vals))
-
-    # random, typical, neutral and strength are the API of the diagnosis benchmark (random
-    # truths, candidates at neutral and typical strengths); the tests exercise them meanwhile.
-    @classmethod
-    def random(cls, rng: np.random.Generator, cyl) -> "Effect":
-        """The effect with random realistic strengths: log-uniform between weak and strong
-        (barely visible to strong), random sign where either is physical; shapes uniform
-        over their span (log-uniform when it covers more than a factor 4)."""
-        vals = {}
-        for n, (lo, hi) in cls.strength(cyl).items():
-            if n in cls.SHAPE and not _logscale(lo, hi):
-                v = float(rng.uniform(lo, hi))
-            else:
-                v = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
-            if n in cls.SIGNED and n not in cls.SHAPE and rng.random() < 0.5:
-                v = -v
-            vals[n] = v
-        return cls(**_clip(cls, vals))
-
-    @classmethod
-    def neutral(cls) -> "Effect":
-        return cls(**cls.NEUTRAL)
-
-    # hooks: (signals, own parameter symbols, own state symbols); default: no change.
-    # Stages and what each may change: see sim.plant.Signals.
-    def on_command(self, sig, q, s) -> None: ...
-    def on_supply(self, sig, q, s) -> None: ...
-    def on_flows(self, sig, q, s) -> None: ...
-    def on_friction_terms(self, sig, q, s) -> None: ...
-    def on_friction(self, sig, q, s) -> None: ...
-    def on_piston(self, sig, q, s) -> None: ...
-    def on_chambers(self, sig, q, s) -> None: ...
-
-
-def _logscale(lo: float, hi: float) -> bool:
-    return lo > 0 and hi >= 4 * lo
-
-
-def _clip(cls, vals: Mapping[str, float]) -> dict[str, float]:
-    return {n: min(max(float(v), cls.PARAMS[n].lower), cls.PARAMS[n].upper) for n, v in vals.items()}
+__all__ = ["EFFECTS", "Effect", "ParamInfo", "make_effect", "parse_effect_spec", "seal_friction_reference",
+           "Stiction", "FrictionAsymmetry", "FrictionPosition", "FrictionDynamics", "Mass", "ValveDeadzone",
+           "ValveDelay", "Leakage", "HeatTransfer", "SupplyDroop"]
 
 
 # ================================================================ mechanical effects
@@ -197,6 +53,7 @@ class Stiction(Effect):
 
     name: ClassVar[str] = "stiction"
     subsystem: ClassVar[str] = "mechanical"
+    FRICTION: ClassVar[str | None] = "reshapes"
     description: ClassVar[str] = "breakaway friction above the Coulomb level at low speed"
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "Fs_excess": ParamInfo("N", 0.0, 1e4, "static minus Coulomb friction"),
@@ -231,6 +88,7 @@ class FrictionAsymmetry(Effect):
 
     name: ClassVar[str] = "friction_asymmetry"
     subsystem: ClassVar[str] = "mechanical"
+    FRICTION: ClassVar[str | None] = "reshapes"
     description: ClassVar[str] = "friction differs between extension and retraction"
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "a_coulomb": ParamInfo("1", -1.0, 1.0, "relative excess of the seal (Coulomb + pressure) friction "
@@ -266,6 +124,7 @@ class FrictionPosition(Effect):
 
     name: ClassVar[str] = "friction_position"
     subsystem: ClassVar[str] = "mechanical"
+    FRICTION: ClassVar[str | None] = "reshapes"
     description: ClassVar[str] = "friction changes along the stroke"
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "slope": ParamInfo("1", -1.9, 1.9, "relative change of the seal friction from x = 0 to x = L"),
@@ -315,6 +174,7 @@ class FrictionDynamics(Effect):
 
     name: ClassVar[str] = "friction_dynamics"
     subsystem: ClassVar[str] = "mechanical"
+    FRICTION: ClassVar[str | None] = "reshapes"
     description: ClassVar[str] = "friction with memory: pre-sliding displacement, hysteresis (LuGre)"
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "share": ParamInfo("1", 0.0, 1.0, "share of the seal friction with memory (bristles)"),
@@ -573,45 +433,9 @@ EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
     ValveDeadzone, ValveDelay, Leakage, HeatTransfer, SupplyDroop)}
 
 
-def make_from(registry: Mapping[str, type[Effect]], kind: str, name: str,
-              values: Mapping[str, Any] | None = None) -> Effect:
-    """An effect (or friction model: `kind` names it in messages) of `registry` by name,
-    with parameter values (others default), checked against the bounds."""
-    try:
-        cls = registry[name]
-    except KeyError:
-        raise ValueError(f"unknown {kind} '{name}' (available: {', '.join(registry)})") from None
-    values = dict(values or {})
-    unknown = set(values) - set(cls.PARAMS)
-    if unknown:
-        raise ValueError(f"{kind} '{name}' has no parameter {', '.join(sorted(unknown))} "
-                         f"(parameters: {', '.join(cls.PARAMS)})")
-    for k, v in values.items():
-        info = cls.PARAMS[k]
-        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and info.lower <= v <= info.upper):
-            raise ValueError(f"{kind} parameter {name}.{k} = {v!r} is outside [{info.lower:g}, {info.upper:g}] {info.unit}"
-                             f" ({info.description})")
-    return cls(**{k: float(v) for k, v in values.items()})
-
-
 def make_effect(name: str, values: Mapping[str, Any] | None = None) -> Effect:
     """An effect by its vocabulary word, with parameter values (others default)."""
     return make_from(EFFECTS, "effect", name, values)
-
-
-def parse_spec(spec: str, make, kind: str = "effect") -> Effect:
-    """'name:k=v,k=v' (command-line form) -> make(name, {k: v})."""
-    name, _, rest = spec.partition(":")
-    values: dict[str, float] = {}
-    for item in filter(None, rest.split(",")):
-        k, eq, v = item.partition("=")
-        if not eq:
-            raise ValueError(f"{kind} parameter '{item}' must be written name=value")
-        try:
-            values[k.strip()] = float(v)
-        except ValueError:
-            raise ValueError(f"{kind} parameter {k.strip()} = '{v}' is not a number") from None
-    return make(name.strip(), values)
 
 
 def parse_effect_spec(spec: str) -> Effect:

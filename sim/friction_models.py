@@ -27,7 +27,7 @@ Conventions:
 - A friction model REPLACES the nominal friction: its `on_friction` hook overwrites
   sig.Ff, so the nominal Fc, Fv, kp no longer act (set them to 0, `without_nominal_friction`,
   and do not estimate them). Do not combine a friction model with another one or with the
-  friction effects of sim.effects (`check_combination` says so).
+  friction effects of sim.effects (`sim.extension.check_combination` says so).
 - pc, the counter pressure, is the gauge pressure of the chamber the piston pushes
   against: p2 - pa while extending, p1 - pa while retracting (Belforte's P2).
 - Fn, the normal load of seed 003, has no signal in the plant: there it is a constant
@@ -45,17 +45,15 @@ from typing import Any, Callable, ClassVar, Mapping, Sequence
 import casadi as ca
 import numpy as np
 
-from .effects import EFFECTS, Effect, ParamInfo, make_from, parse_effect_spec, parse_spec
+from .effects import EFFECTS, parse_effect_spec
+from .extension import Effect, ParamInfo, make_from, parse_spec
 
 __all__ = ["FrictionModel", "CV", "Karnopp", "Threlfall", "CVS", "LuGre", "CVLoad", "CVSLoad", "Belforte",
-           "FRICTION_MODELS", "DIRECTIONS", "make_friction_model", "parse_friction_spec", "check_combination",
-           "without_nominal_friction"]
+           "FRICTION_MODELS", "DIRECTIONS", "make_friction_model", "parse_friction_spec",
+           "parameter_unit", "without_nominal_friction"]
 
 # direction name -> parameter suffix, sign of v
 DIRECTIONS: dict[str, tuple[str, float]] = {"extension": ("pos", 1.0), "retraction": ("neg", -1.0)}
-
-# friction effects of sim.effects that reshape the nominal friction a model replaces
-_FRICTION_EFFECTS = frozenset({"stiction", "friction_asymmetry", "friction_position", "friction_dynamics"})
 
 # Threlfall: 1 - exp(-3) = 0.9502, the plateau factor of seed 003 Eq. (7)
 _THRELFALL_PLATEAU = 0.95
@@ -103,6 +101,7 @@ class FrictionModel(Effect):
     """
 
     subsystem: ClassVar[str] = "mechanical"
+    FRICTION: ClassVar[str | None] = "replaces"
     # a friction model replaces the nominal friction: no value makes it vanish
     NEUTRAL: ClassVar[dict[str, float]] = {}
     BASE: ClassVar[tuple[str, ...]]
@@ -560,16 +559,12 @@ def parse_truth_spec(spec: str) -> Effect:
     return parse_effect_spec(spec)
 
 
-def check_combination(effects: Sequence[Effect]) -> None:
-    """Refuse effect lists in which a friction model would silently override or be
-    overridden: two friction models, or a friction model with a friction effect."""
-    models = [e.name for e in effects if isinstance(e, FrictionModel)]
-    if len(models) > 1:
-        raise ValueError(f"only one friction model at a time (given: {', '.join(models)})")
-    clash = [e.name for e in effects if e.name in _FRICTION_EFFECTS]
-    if models and clash:
-        raise ValueError(f"friction model {models[0]} replaces the nominal friction, which "
-                         f"{', '.join(clash)} would reshape; use the model's own parameters instead")
+def parameter_unit(family: str, base: str) -> str:
+    """The unit of a parameter of the model `family` ('Fc' for Fc_pos and Fc_neg, or a shared
+    one), '' when dimensionless."""
+    params = FRICTION_MODELS[family].PARAMS
+    info = params.get(f"{base}_pos") or params.get(base)
+    return "" if info is None or info.unit == "1" else info.unit
 
 
 def without_nominal_friction(cyl):

@@ -2,78 +2,26 @@
 
 Everything that simulates or identifies builds on `build_plant`: the simulator and the
 virtual rig (command drive, with effects as truth), the identifier (either drive, with
-effects as candidates). Unmodelled effects (sim.effects) are composable extensions
-that hook into named stages of the signal flow; the nominal equations below never fork.
+effects as candidates). Unmodelled effects (sim.effects) and friction models (sim.friction_models) are composable
+extensions (sim.extension) that hook into named stages of the signal flow; the nominal
+equations below never fork. The flow laws live in sim.flow.
 """
 from __future__ import annotations
 
 import hashlib
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import casadi as ca
 
 from .cylinder import PARAMETERS, Cylinder
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .effects import Effect
-
-# MODEL.md constants
-RHO0 = 1.185  # kg/m^3, ISO 6358 reference density
-T0 = 293.15  # K, ISO 6358 reference temperature
-R_LAM = 0.995  # start of the laminar end of the flow function
-KAPPA = 1.4
-R_AIR = 287.0  # J/(kg K)
-G = 9.81
+from .extension import Effect, Signals, check_combination
+from .flow import G, KAPPA, R_AIR, mass_flow
 
 NOMINAL_PARAMS: tuple[str, ...] = tuple(PARAMETERS)
 
 DRIVES = ("command", "pressure")
-
-
-def flow_function(r, b):
-    """ISO 6358 flow function phi(r) with the short laminar end of MODEL.md (0 <= r <= 1)."""
-    a = (r - b) / (1 - b)
-    phi_turb = ca.sqrt(ca.fmax(1 - a * a, 1e-300))
-    a_lam = (R_LAM - b) / (1 - b)
-    phi_lam = ca.sqrt(1 - a_lam * a_lam) * (1 - r) / (1 - R_LAM)
-    return ca.if_else(r <= b, 1.0, ca.if_else(r <= R_LAM, phi_turb, phi_lam))
-
-
-def choked_flow(conductance, p_up, temperature):
-    """ISO 6358 mass flow through a path at the upstream pressure p_up when choked (phi = 1)."""
-    return conductance * p_up * RHO0 * ca.sqrt(T0 / temperature)
-
-
-def mass_flow(conductance, p_from, p_to, b, temperature):
-    """Signed mass flow p_from -> p_to through one valve path (negative when p_to > p_from)."""
-    pu = ca.fmax(p_from, p_to)
-    pd = ca.fmin(p_from, p_to)
-    m = choked_flow(conductance, pu, temperature) * flow_function(pd / pu, b)
-    return ca.if_else(p_from >= p_to, m, -m)
-
-
-class Signals:
-    """The symbolic quantities of one evaluation of the plant, passed through effect hooks.
-
-    Hooks read and overwrite attributes and set derivatives of their own states in `deriv`.
-    Stages, in order (the command drive only: on_command, on_supply, on_flows, on_chambers):
-
-    on_command         u (clipped valve command, read by the valve)
-    on_supply          ps (supply pressure at the valve inlet)
-    on_flows           mdot1, mdot2 (net into each chamber); read mdot_s1, mdot_s2,
-                       mdot_supply (drawn from the supply through the valve)
-    on_friction_terms  Fseal (seal level Fc + kp|p1-p2|, >= 0), sgn (direction function
-                       tanh(v/v_smooth)), Fvisc (Fv v); afterwards Ff = Fseal*sgn + Fvisc
-    on_friction        Ff (total friction force, opposing motion)
-    on_piston          M (moving mass used in the piston equation and the weight)
-    on_chambers        dp1, dp2 (V1, V2, A1, A2 are available)
-    """
-
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
-        self.deriv: dict[str, ca.SX] = {}
 
 
 @dataclass(frozen=True)
@@ -86,7 +34,7 @@ class Plant:
     """
 
     drive: str
-    effects: tuple["Effect", ...]
+    effects: tuple[Effect, ...]
     state_names: tuple[str, ...]
     input_names: tuple[str, ...]
     output_names: tuple[str, ...]
@@ -120,19 +68,17 @@ class Plant:
 MODEL_REVISION = 1
 
 
-def _applies(effect: "Effect", drive: str) -> bool:
+def _applies(effect: Effect, drive: str) -> bool:
     return drive == "command" or effect.subsystem == "mechanical"
 
 
-def build_plant(drive: str = "command", effects: Sequence["Effect"] = ()) -> Plant:
+def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant:
     if drive not in DRIVES:
         raise ValueError(f"unknown drive {drive!r} (expected one of {DRIVES})")
     effects = tuple(effects)
     names = [e.name for e in effects]
     if len(set(names)) != len(names):
         raise ValueError(f"an effect is listed twice: {names}")
-    from .friction_models import check_combination  # imported here: friction_models builds on effects
-
     check_combination(effects)
     active = [e for e in effects if _applies(e, drive)]
 

@@ -18,6 +18,7 @@ import pytest
 from conftest import CONFIGS, assert_refused
 
 from combined_reality import batch
+from combined_reality.batch import execution as batch_execution
 from combined_reality.batch import ManifestError, load_manifest, read_results_csv, run_batch
 from combined_reality.cli import main
 
@@ -100,8 +101,8 @@ def _no_temporary_files(out: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory, cyl_a) -> Path:
     """A 4 s run of cylinder A recorded by the virtual rig, tagged with its cylinder."""
-    from combined_reality.cli import simulate_run
-    from combined_reality.runs import cylinder_tag, write_run
+    from combined_reality.live import simulate_run
+    from combined_reality.files import cylinder_tag, write_run
 
     p = tmp_path_factory.mktemp("recorded") / "a.csv"
     write_run(p, simulate_run(cyl_a, SHORT, seed=5), comments=[cylinder_tag(cyl_a)])
@@ -302,7 +303,7 @@ def test_bad_files_fail_their_rows_and_the_batch_finishes(folder, tmp_path, caps
         for k in ("Fc", "Fv", "kp", "rmse_x"):
             assert s.get(k) == r[k]
     # the simulated run is kept, tagged with its cylinder
-    from combined_reality.runs import read_run, recorded_cylinder
+    from combined_reality.files import read_run, recorded_cylinder
 
     kept = read_run(out / "runs" / "sim_ok_1.csv")
     assert recorded_cylinder(kept).startswith("seed 002 cylinder A")
@@ -337,7 +338,7 @@ def test_unchanged_cylinders_are_reused_and_changed_ones_recomputed(folder, tmp_
         calls.append(job.name)
         return real(job)
 
-    monkeypatch.setattr(batch, "run_job", spy)
+    monkeypatch.setattr(batch_execution, "run_job", spy)
     out = tmp_path / "out"
 
     def run():

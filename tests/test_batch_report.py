@@ -9,7 +9,7 @@ import re
 import numpy as np
 import pytest
 
-from combined_reality.batch_report import efficiency, friction_curve, render_batch_report, write_batch_report
+from combined_reality.batch.report import efficiency, friction_curve, render_batch_report, write_batch_report
 from sim.friction_models import FRICTION_MODELS
 
 PA, PS = 1.013e5, 7.013e5  # atmosphere, supply (6 bar gauge, seed 004 section 3)

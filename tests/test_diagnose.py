@@ -4,9 +4,10 @@ import json
 import numpy as np
 import pytest
 
-from combined_reality.cli import main, simulate_run
-from combined_reality.diagnose import Validation, validate, validation_gain, validation_segments
-from combined_reality.runs import cylinder_tag, read_run, write_run
+from combined_reality.cli import main
+from combined_reality.live import simulate_run
+from combined_reality.identify import Validation, validate, validation_gain, validation_segments
+from combined_reality.files import cylinder_tag, read_run, write_run
 from sim.effects import parse_effect_spec
 
 CANDIDATES = "stiction,valve_delay,leakage"

@@ -7,10 +7,12 @@ import re
 import numpy as np
 import pytest
 
-from combined_reality.diagnose import (Candidate, DiagnoseOptions, Diagnosis, Validation, regions,
-                                       whiteness)
-from combined_reality.diagnose_report import _params_text, format_value, headline, render_report, write_report
-from combined_reality.runs import Run
+from combined_reality.diagnose import Candidate, DiagnoseOptions, Diagnosis, regions, whiteness
+from combined_reality.diagnose.report import render_report, write_report
+from combined_reality.diagnose.text import headline, params_text
+from combined_reality.identify import Validation
+from combined_reality.report.text import format_value
+from combined_reality.files import Run
 
 N, DT = 4000, 1e-3
 SEGMENTS = [(0, 1000), (1000, 2100), (2100, 3000), (3000, N)]
@@ -134,7 +136,7 @@ def test_none_verdict_says_so_in_plain_words(cyl_a):
 
 
 def test_write_is_atomic(diag, tmp_path, monkeypatch):
-    import combined_reality.diagnose_report as rep
+    import combined_reality.diagnose.report as rep
 
     monkeypatch.setattr(rep, "_make_plots", lambda d: {})  # the plots are not the point here
     path = tmp_path / "r.html"
@@ -194,8 +196,8 @@ def _read_rrd(path):
 
 @pytest.mark.parametrize("verdict", ["valve_delay", "none"])
 def test_rerun_recording_holds_the_diagnosis(cyl_a, tmp_path, verdict):
-    from combined_reality.diagnose_rerun import log_diagnosis
-    from combined_reality.visual import open_recording
+    from combined_reality.diagnose.rerun import log_diagnosis
+    from combined_reality.report.rerun import open_recording
 
     d = _diagnosis(cyl_a, verdict=verdict)
     rrd = tmp_path / "d.rrd"
@@ -231,16 +233,16 @@ def test_rerun_recording_holds_the_diagnosis(cyl_a, tmp_path, verdict):
 def test_a_small_parameter_far_inside_its_range_is_not_marked_at_its_bound():
     # a leak conductance of 1.9e-11 in a range of 0 to 1e-7: tiny, yet far from the bound 0
     inside = Candidate(effect="leakage", params={"conductance": 1.9e-11}, std={"conductance": 6e-16})
-    assert "(at its bound)" not in _params_text(inside, bounds=True)
+    assert "(at its bound)" not in params_text(inside, bounds=True)
     at_zero = Candidate(effect="leakage", params={"conductance": 0.0}, std={"conductance": 6e-16})
-    assert "(at its bound)" in _params_text(at_zero, bounds=True)
+    assert "(at its bound)" in params_text(at_zero, bounds=True)
 
 
 def test_an_undetermined_parameter_says_so_instead_of_printing_its_std():
     # a fit the data do not constrain: std 1e26 for a parameter whose range is -0.9 .. 10
     c = Candidate(effect="friction_position", params={"bump": -0.9, "slope": 0.5},
                   std={"bump": 9.87e25, "slope": 0.02})
-    text = _params_text(c, bounds=True)
+    text = params_text(c, bounds=True)
     assert "bump = -0.9000 (not determined by the data) (at its bound)" in text
     assert "slope = 0.500 ± 0.020" in text
     assert format_value(-0.9, 9.87e25, "1") == "-0.900 ± 9.9e+25"  # never a 26-digit integer
@@ -250,7 +252,7 @@ def test_an_undetermined_parameter_says_so_instead_of_printing_its_std():
 def test_a_regime_of_a_handful_of_samples_is_not_singled_out():
     from types import SimpleNamespace
 
-    from combined_reality.diagnose_report import _regions_sentence
+    from combined_reality.diagnose.report import _regions_sentence
 
     d = SimpleNamespace(regions=[
         {"where": "high flow (|u| > 0.5)", "share_of_error": 0.001, "fraction_of_samples": 5e-5, "concentration": 18.4},

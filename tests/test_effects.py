@@ -15,7 +15,8 @@ from sim.compiled import shooting_functions
 from sim.effects import (EFFECTS, FrictionAsymmetry, FrictionDynamics, FrictionPosition, HeatTransfer, Leakage,
                          Mass, Stiction, SupplyDroop, ValveDeadzone, ValveDelay, make_effect, parse_effect_spec)
 from sim.integrator import IntegratorOptions
-from sim.plant import R_AIR, build_plant
+from sim.flow import R_AIR
+from sim.plant import build_plant
 
 # FORMATS.md, "The effect vocabulary" (without `none`)
 VOCABULARY = ("stiction", "friction_asymmetry", "friction_position", "friction_dynamics", "mass",
@@ -51,7 +52,7 @@ def replay(cyl, effects, w, state0=None, drive="command", x0=None, p1=4.0e5, p2=
 @pytest.fixture(scope="module")
 def command_a(cyl_a):
     """A recorded closed-loop command of the virtual rig: moves, reversals, rests (1.5 s)."""
-    from combined_reality.cli import simulate_run
+    from combined_reality.live import simulate_run
 
     run = simulate_run(cyl_a, 1.5, seed=3, noise=False)
     assert np.ptp(run.x) > 0.02  # it moves
@@ -508,7 +509,7 @@ def test_spec_errors_are_clear():
 def test_simulate_command_line_takes_every_word(tmp_path, cyl_a):
     """`combined-reality simulate --effect name:k=v` runs the virtual rig with a new effect as truth."""
     from combined_reality.cli import main
-    from combined_reality.runs import read_run
+    from combined_reality.files import read_run
     from conftest import CONFIGS
 
     out = tmp_path / "run.csv"
@@ -533,7 +534,7 @@ def test_identifier_recovers_a_medium_effect(name, cyl_a):
     as candidate (Fc, Fv, kp and all its parameters), started from the effect's defaults:
     every effect parameter within 4 reported standard deviations or 1 % of the truth, and
     the fit down to the sensor noise."""
-    from combined_reality.cli import simulate_run
+    from combined_reality.live import simulate_run
     from combined_reality.identify import IdentifyOptions, identify
 
     cls = EFFECTS[name]

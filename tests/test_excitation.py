@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from combined_reality.excitation import ProgramOptions, make_program
+from combined_reality.live import ProgramOptions, make_program
 
 
 @pytest.mark.parametrize("name", ["mixed", "steps", "ramps", "sines", "pulses", "file"])

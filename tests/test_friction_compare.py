@@ -11,11 +11,12 @@ import math
 import pytest
 from conftest import CONFIGS, assert_refused
 
-from combined_reality.cli import main, simulate_run
-from combined_reality.friction_identify import (compare_friction_models, estimated_parameters, fit_spec,
+from combined_reality.cli import main
+from combined_reality.live import simulate_run
+from combined_reality.friction.dynamic import (compare_friction_models, estimated_parameters, fit_spec,
                                                 identify_friction_model, model_parameters)
 from combined_reality.identify import IdentifyOptions
-from combined_reality.runs import cylinder_tag, write_run
+from combined_reality.files import cylinder_tag, write_run
 from sim.friction_models import make_friction_model, without_nominal_friction
 
 CONFIG = CONFIGS / "ind4_norgren_50x400.toml"
@@ -134,7 +135,7 @@ def test_command_writes_the_ranking(run_files, capsys):
 
 def test_default_models_include_the_load_models_only_with_a_load():
     from combined_reality.cli import build_parser
-    from combined_reality.cli_friction import _compare_models
+    from combined_reality.cli.friction_compare import _compare_models
 
     base = ["friction-compare", "--config", "c.toml", "t.csv", "--validate", "v.csv"]
     names = _compare_models(build_parser().parse_args(base))

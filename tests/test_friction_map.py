@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from scipy.optimize import curve_fit
 
-from combined_reality import cli_friction
-from combined_reality.cli import UsageError
-from combined_reality.friction_map import (FIT_SPECS, MapPoint, PointsFormatError, SegmentOptions, TooFewPointsError,
+from combined_reality.cli import friction_map as cli_friction
+from combined_reality.cli.common import UsageError
+from combined_reality.friction.map import (FIT_SPECS, MapPoint, PointsFormatError, SegmentOptions, TooFewPointsError,
                                            build_map, fit_model, linear_fit, points_from_run, read_points)
-from combined_reality.runs import Run, write_run
+from combined_reality.files import Run, write_run
 from sim.friction_models import (CV, CVS, DIRECTIONS, Belforte, CVLoad, CVSLoad, Karnopp, LuGre,
                                  Threlfall, without_nominal_friction)
 
@@ -235,7 +235,7 @@ def test_breakaway_rows_are_not_fitted_as_sliding_points():
         assert "Fs" in {f["param"] for f in ref.fits["karnopp"].flags}  # without rows: no breakaway
         assert [p.breakaway for p in d.points] == [True] + [False] * 8
     # pooled: rows and single breakaways of runs together, as one sample of all trials
-    from combined_reality.friction_map import StickBand
+    from combined_reality.friction.map import StickBand
     band = StickBand("extension", 0.01, False, (21.5, 22.4), None, None, breakaway_rows=((22.05, 0.129, 4),))
     everything = np.concatenate([[21.5, 22.4], trials[1]])
     assert band.breakaway_count == 6 and band.breakaway_mean == pytest.approx(everything.mean(), rel=1e-12)
@@ -441,7 +441,7 @@ def test_constructed_run_makes_the_map_with_its_band(cyl_a):
 def cvs_rig_run(tmp_path_factory):
     """20 s of the default closed-loop excitation on the virtual rig, whose friction is seed
     004's Table 3 curve of actuator 2 (cylinder file ind2, nominal friction off)."""
-    from combined_reality.cli import simulate_run
+    from combined_reality.live import simulate_run
     from sim.cylinder import load_cylinder
     from conftest import CONFIGS
 

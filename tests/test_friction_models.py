@@ -14,9 +14,9 @@ from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 
 from sim.effects import EFFECTS, Effect, Stiction
+from sim.extension import check_combination
 from sim.friction_models import (CV, CVS, DIRECTIONS, FRICTION_MODELS, Belforte, CVLoad, CVSLoad, Karnopp, LuGre,
-                                  Threlfall, check_combination, make_friction_model, parse_friction_spec,
-                                  without_nominal_friction)
+                                  Threlfall, make_friction_model, parse_friction_spec, without_nominal_friction)
 from sim.plant import build_plant
 
 # seed 004 Table 3, actuator 2 (Norgren 32 x 100), SI, magnitudes

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from combined_reality.cli import simulate_run
+from combined_reality.live import simulate_run
 from combined_reality.identify import IdentifyOptions, equation_error_friction, identify
 
 POOR_START = {"Fc": 0.4, "Fv": 3.0, "kp": 0.2}  # factors on the truth
@@ -120,7 +120,7 @@ def test_reported_std_is_honest_over_20_seeds(which, request):
 
 
 def test_offline_identification_never_bridges_lost_samples(cyl_a, run_a):
-    from combined_reality.runs import Run
+    from combined_reality.files import Run
 
     keep = np.ones(run_a.n, bool)
     keep[[3000, 3001, 11111]] = False

@@ -73,7 +73,7 @@ def test_sixty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, 
 def test_faulty_link_is_counted_reported_and_recorded_honestly(cyl_a, tmp_path, capsys):
     """Corrupted bytes and dropped frames: rejected and counted, each reported, never
     interpolated; the recording holds exactly the samples that arrived intact."""
-    from combined_reality.runs import read_run
+    from combined_reality.files import read_run
 
     rig, path = _start_rig("--config", str(cyl_a.source), "--serial", "--corrupt", "0.01", "--drop", "0.01")
     rec, out = tmp_path / "run.csv", tmp_path / "live.json"
@@ -103,7 +103,7 @@ def test_faulty_link_is_counted_reported_and_recorded_honestly(cyl_a, tmp_path, 
 
 
 def test_a_vanished_serial_rig_is_reported_and_picked_up_again(cyl_a, tmp_path, capsys):
-    from combined_reality.runs import read_run
+    from combined_reality.files import read_run
 
     link_path = tmp_path / "rig0"
     rig, _ = _start_rig("--config", str(cyl_a.source), "--serial", "--link", str(link_path),
@@ -125,7 +125,7 @@ def test_a_vanished_serial_rig_is_reported_and_picked_up_again(cyl_a, tmp_path, 
 
 
 def test_a_rig_that_vanishes_for_good_ends_the_session_with_one_clear_line(cyl_a, tmp_path, capsys):
-    from combined_reality.runs import read_run
+    from combined_reality.files import read_run
 
     rig, path = _start_rig("--config", str(cyl_a.source), "--serial", "--vanish-at", "3")
     rec = tmp_path / "run.csv"

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from combined_reality.identify import IdentifyOptions, identify
-from combined_reality.online import MovingHorizonEstimator, OnlineOptions
+from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
 
 
 def _stream(mhe, run, chunk=100):
@@ -73,7 +73,7 @@ def test_rejects_unknown_parameters(cyl_a):
 def test_no_window_bridges_lost_samples(cyl_a, run_a):
     """A lost sample hides the command held over its period; windows stop before a gap and
     start again after it, keeping what they learnt, so the fit stays at the noise."""
-    from combined_reality.runs import Run
+    from combined_reality.files import Run
 
     keep = np.ones(run_a.n, bool)
     keep[[4321, 9876]] = False  # two lost samples

@@ -7,7 +7,8 @@ import pytest
 from model_reference import ReferenceModel
 from sim.compiled import shooting_functions
 from sim.effects import Leakage, Stiction, ValveDelay, make_effect, parse_effect_spec
-from sim.plant import build_plant, flow_function, mass_flow
+from sim.flow import flow_function, mass_flow
+from sim.plant import build_plant
 
 
 def test_rhs_matches_independent_transcription(cyl_a):

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from combined_reality import cli
-from combined_reality.procedures import (TABLE_COLUMNS, BreakawayOptions, ProcedureError, SafetyOptions,
+from combined_reality.friction.procedures import (TABLE_COLUMNS, BreakawayOptions, ProcedureError, SafetyOptions,
                                          SweepOptions, breakaway_test, speed_sweep, target_speeds, write_points)
-from combined_reality.runs import read_run
+from combined_reality.files import read_run
 from conftest import assert_refused
 from hw.rig import Sample
 from hw.virtual_rig import VirtualRig
@@ -116,7 +116,7 @@ def test_sweep_gives_coulomb_and_viscous_friction(cyl, stiction, tmp_path):
 
 
 def test_the_points_tables_are_what_the_friction_map_reads(cyl, stiction, tmp_path):
-    from combined_reality import friction_map as fm
+    from combined_reality.friction import map as fm
 
     b = breakaway_test(VirtualRig(cyl, [stiction], seed=5), cyl, BreakawayOptions(trials=2))
     s = speed_sweep(VirtualRig(cyl, [stiction], seed=6), cyl, SweepOptions(speeds=2, v_min=0.05, v_max=0.15))
@@ -134,7 +134,7 @@ def test_the_static_procedures_recover_the_truth_through_the_friction_map(cyl, s
     """Issue 5: sweep and breakaway tables, fed to the map together, give the breakaway force, Fc
     and Fv within 5 % and the Stribeck velocity with an interval that holds the truth (and a flag:
     no steady sliding exists below the Stribeck dip, so vs lies below the slowest sliding point)."""
-    from combined_reality.friction_map import build_map, read_points as read_map_points
+    from combined_reality.friction.map import build_map, read_points as read_map_points
 
     b = breakaway_test(VirtualRig(cyl, [stiction], seed=11), cyl, BreakawayOptions(trials=3))
     s = speed_sweep(VirtualRig(cyl, [stiction], seed=12), cyl, SweepOptions(speeds=8))

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from combined_reality.cli import main
-from combined_reality.excitation import PositionProgram
+from combined_reality.live import PositionProgram
 from hw.can_rig import CanRig
 from hw.rig import Status, bounded
 from hw.serial_rig import SerialRig

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from combined_reality.runs import REQUIRED_COLUMNS, Run, RunFormatError, RunRecorder, read_run, write_run
+from combined_reality.files import REQUIRED_COLUMNS, Run, RunFormatError, RunRecorder, read_run, write_run
 
 HEADER = "t,u,x,p1,p2"
 ROW = "{t},0.1,0.05,300000,200000"
@@ -405,7 +405,7 @@ def test_recorder_lines_reach_the_file_at_once(tmp_path: Path) -> None:
 def _child(path: Path, body: str) -> subprocess.Popen[str]:
     script = textwrap.dedent("""
         import os, sys, time
-        from combined_reality.runs import RunRecorder
+        from combined_reality.files import RunRecorder
         rec = RunRecorder(sys.argv[1])
     """) + textwrap.dedent(body)
     return subprocess.Popen([sys.executable, "-c", script, str(path)], stdout=subprocess.PIPE, text=True)

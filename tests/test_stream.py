@@ -10,11 +10,12 @@ import time
 import numpy as np
 import pytest
 
-from combined_reality.cli import main, simulate_run
-from combined_reality.online import OnlineOptions
-from combined_reality.runs import read_run, write_run
+from combined_reality.cli import main
+from combined_reality.live import simulate_run
+from combined_reality.identify import OnlineOptions
+from combined_reality.files import read_run, write_run
 from conftest import assert_refused
-from combined_reality.stream import InlineEstimator, LockstepSimulator, ReplayRig, run_session
+from combined_reality.live import InlineEstimator, LockstepSimulator, ReplayRig, run_session
 
 
 @pytest.fixture(scope="module")

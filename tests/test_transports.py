@@ -12,7 +12,7 @@ import can
 import numpy as np
 import pytest
 
-from combined_reality.excitation import PositionProgram
+from combined_reality.live import PositionProgram
 from hw.can_rig import CanRig
 from hw.protocol import Command, ErrorCode, ErrorFrame, FrameDecoder, SampleFrame, Start, Stop, encode
 from hw.rig import LinkLost, Rig, RigError, Status, bounded

@@ -1,4 +1,4 @@
-"""Batch identification of many cylinders: a manifest of cylinders in, one row per cylinder
+"""Batch identification of many cylinders: the jobs of a manifest in, one row per cylinder
 out, on local processes or on a dask.distributed cluster.
 
 Every cylinder is one task (`run_job`), a pure function of its inputs: it loads the cylinder
@@ -14,189 +14,33 @@ options, the source code); an unchanged cylinder is not recomputed. results.csv 
 results.parquet are rewritten atomically after every finished cylinder, so an interrupted
 batch leaves valid files holding what was done.
 """
-
 from __future__ import annotations
 
 import csv
-import functools
-import hashlib
 import io
 import json
 import math
-import os
 import time
-import tomllib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future, as_completed
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from .runs import atomic_write
+from sim.cylinder import ConfigError, load_cylinder
+from sim.extension import check_combination
+from sim.friction_models import FrictionModel, parse_truth_spec
 
-MODELS_HELP = "nominal (the cylinder file's Fc + Fv v + kp |dp|) or a friction model of the family"
+from ..diagnose import DiagnoseOptions, diagnose
+from ..files import RunFormatError, atomic_write, cylinder_tag, read_run, recorded_elsewhere, write_run
+from ..friction import identify_model, model_parameters
+from ..identify import IdentificationError, IdentifyOptions, velocity_estimate
+from ..live import simulate_run
+from .manifest import CylinderJob
+from .report import write_batch_report
 
-
-class ManifestError(ValueError):
-    """The manifest cannot be read as a whole (its rows cannot even be listed)."""
-
-
-@dataclass(frozen=True)
-class SimulateSpec:
-    """Runs made by the virtual rig: `runs` runs of `duration` s with seeds seed, seed+1, ...,
-    with `effects` (effect words or a friction model, 'name:k=v,...') as the truth."""
-
-    duration: float = 20.0
-    seed: int = 1
-    effects: tuple[str, ...] = ()
-    runs: int = 1
-    rate: float = 1000.0
-    noise: bool = True
-
-
-@dataclass(frozen=True)
-class CylinderJob:
-    name: str
-    config: str  # absolute path
-    runs: tuple[str, ...] = ()  # absolute paths
-    simulate: SimulateSpec | None = None
-    model: str = "nominal"
-    diagnose: bool = False
-    runs_dir: str = ""  # where simulated runs are kept (DIR/runs)
-
-    def content_hash(self) -> str:
-        """Everything the row depends on; a missing file hashes as missing (and fails)."""
-        h = hashlib.sha256()
-        recipe = {"code": _code_fingerprint(), "name": self.name, "model": self.model,
-                  "diagnose": self.diagnose, "simulate": asdict(self.simulate) if self.simulate else None}
-        h.update(json.dumps(recipe, sort_keys=True).encode())
-        for p in (self.config, *self.runs):
-            h.update(b"\0" + Path(p).name.encode() + b"\0")
-            try:
-                h.update(hashlib.sha256(Path(p).read_bytes()).digest())
-            except OSError:
-                h.update(b"missing")
-        return h.hexdigest()[:24]
-
-
-@functools.lru_cache(maxsize=1)
-def _code_fingerprint() -> str:
-    """The source of the model and application packages: a row computed by other code is not
-    reused (an upgrade, a fix of the identification)."""
-    import sim
-
-    h = hashlib.sha256()
-    for pkg in (Path(sim.__file__).parent, Path(__file__).parent):
-        for f in sorted(pkg.glob("*.py")):
-            h.update(f.name.encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
-
-
-# ------------------------------------------------------------------ the manifest
-
-_CYLINDER_KEYS = {"name", "config", "runs", "simulate", "model"}
-_SIMULATE_KEYS = {"duration", "seed", "effect", "runs", "rate", "noise"}
-
-
-def load_manifest(path: str | os.PathLike[str], runs_dir: Path | None = None,
-                  diagnose: bool = False) -> list[CylinderJob]:
-    """The manifest's cylinders as jobs. Structural faults (TOML syntax, a missing name, an
-    unknown key, duplicate names, an unknown model) raise ManifestError with one sentence;
-    files that are missing or bad fail their own row later, not the batch."""
-    from .friction_identify import check_model
-
-    path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise ManifestError(f"cannot read the manifest {path}: {e.strerror or e}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ManifestError(f"{path} is not valid TOML: {e}") from None
-    unknown = set(doc) - {"cylinder", "model", "simulate"}
-    if unknown:
-        raise ManifestError(f"{path}: unknown top-level key(s) {', '.join(sorted(unknown))} "
-                            "(expected [[cylinder]] tables, and optionally model = ... and [simulate] defaults).")
-    entries = doc.get("cylinder")
-    if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
-        raise ManifestError(f"{path} lists no cylinders: add [[cylinder]] tables with name, config and runs "
-                            "(or simulate).")
-    default_model = doc.get("model", "nominal")
-    default_sim = doc.get("simulate", {})
-    if not isinstance(default_sim, dict):
-        raise ManifestError(f"{path}: the top-level simulate must be a table of defaults.")
-    base = path.resolve().parent
-    jobs, seen = [], set()
-    for i, e in enumerate(entries, 1):
-        where = f"{path}, cylinder {i}"
-        name = e.get("name")
-        if not isinstance(name, str) or not name.strip():
-            raise ManifestError(f"{where}: every cylinder needs a name (a non-empty string).")
-        where = f"{path}, cylinder '{name}'"
-        if name in seen:
-            raise ManifestError(f"{where}: the name is used twice; names identify rows and must be unique.")
-        seen.add(name)
-        bad = set(e) - _CYLINDER_KEYS
-        if bad:
-            raise ManifestError(f"{where}: unknown key(s) {', '.join(sorted(bad))} "
-                                f"(known: {', '.join(sorted(_CYLINDER_KEYS))}).")
-        config = e.get("config")
-        if not isinstance(config, str):
-            raise ManifestError(f"{where}: config must name a cylinder file.")
-        model = e.get("model", default_model)
-        try:
-            check_model(model)
-        except (ValueError, TypeError):
-            raise ManifestError(f"{where}: unknown model {model!r} ({MODELS_HELP}: "
-                                f"{', '.join(_dynamic_specs())}).") from None
-        runs, sim = e.get("runs"), e.get("simulate")
-        if (runs is None) == (sim is None):
-            raise ManifestError(f"{where}: give either runs = [...] (recorded runs) or simulate = {{...}}, "
-                                "exactly one of them.")
-        if runs is not None and (not isinstance(runs, list) or not runs or not all(isinstance(r, str) for r in runs)):
-            raise ManifestError(f"{where}: runs must be a non-empty list of run CSV paths.")
-        spec = None
-        if sim is not None:
-            if not isinstance(sim, dict):
-                raise ManifestError(f"{where}: simulate must be a table, e.g. {{duration = 20, seed = 1}}.")
-            spec = _simulate_spec({**default_sim, **sim}, where, diagnose)
-        jobs.append(CylinderJob(name=name, config=str((base / config).resolve()),
-                                runs=tuple(str((base / r).resolve()) for r in runs or ()),
-                                simulate=spec, model=model, diagnose=diagnose,
-                                runs_dir=str(runs_dir) if runs_dir is not None else ""))
-    return jobs
-
-
-def _dynamic_specs() -> tuple[str, ...]:
-    from .friction_identify import DYNAMIC_SPECS
-
-    return DYNAMIC_SPECS
-
-
-def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
-    bad = set(sim) - _SIMULATE_KEYS
-    if bad:
-        raise ManifestError(f"{where}: unknown simulate key(s) {', '.join(sorted(bad))} "
-                            f"(known: {', '.join(sorted(_SIMULATE_KEYS))}).")
-    eff = sim.get("effect", [])
-    effects = tuple(eff) if isinstance(eff, list) else (eff,)
-    if not all(isinstance(x, str) for x in effects):
-        raise ManifestError(f"{where}: simulate.effect must be a string 'name:k=v,...' or a list of them.")
-    # TOML has types: a seed of 1.5 or a duration of true is a slip, not something to round
-    raw = {"duration": sim.get("duration", 20.0), "rate": sim.get("rate", 1000.0), "seed": sim.get("seed", 1),
-           "runs": sim.get("runs", 2 if diagnose else 1)}
-    for k, v in raw.items():
-        whole = k in ("seed", "runs")
-        if isinstance(v, bool) or not isinstance(v, int if whole else (int, float)):
-            raise ManifestError(f"{where}: simulate.{k} must be {'a whole number' if whole else 'a number'}, "
-                                f"not {v!r}.")
-    duration, rate, seed, runs = float(raw["duration"]), float(raw["rate"]), raw["seed"], raw["runs"]
-    if not (duration > 0 and math.isfinite(duration)) or not 10 <= rate <= 100_000 or runs < 1:
-        raise ManifestError(f"{where}: simulate needs duration > 0 s, 10 <= rate <= 100000 Hz and runs >= 1.")
-    noise = sim.get("noise", True)
-    if not isinstance(noise, bool):
-        raise ManifestError(f"{where}: simulate.noise must be true or false.")
-    return SimulateSpec(duration=duration, seed=seed, effects=effects, runs=runs, rate=rate, noise=noise)
+__all__ = ["run_job", "run_batch", "BatchSummary", "columns", "write_results", "read_results_csv"]
 
 
 # ------------------------------------------------------------------ one cylinder (the task)
@@ -206,12 +50,6 @@ class _RowError(Exception):
 
 
 def _load_inputs(job: CylinderJob):
-    from sim.cylinder import ConfigError, load_cylinder
-    from sim.friction_models import FrictionModel, check_combination, parse_truth_spec
-
-    from .cli import simulate_run
-    from .runs import RunFormatError, cylinder_tag, read_run, recorded_elsewhere, write_run
-
     try:
         cyl = load_cylinder(job.config)
     except FileNotFoundError:
@@ -264,10 +102,8 @@ def _safe(name: str) -> str:
 def _run_statistics(cyl, runs) -> dict:
     """The operating conditions of the runs: what the report evaluates pressure-dependent
     curves at, and how far the curves reach."""
-    from .identify import _velocity_estimate
-
     pa = cyl.supply.atmosphere
-    v = [_velocity_estimate(r.t, r.x) for r in runs]
+    v = [velocity_estimate(r.t, r.x) for r in runs]
     pc = np.concatenate([np.where(vi >= 0, r.p2 - pa, r.p1 - pa) for vi, r in zip(v, runs)])
     return {"mean_dp": float(np.concatenate([np.abs(r.p1 - r.p2) for r in runs]).mean()),
             "mean_pc": float(pc.mean()),
@@ -288,8 +124,6 @@ def run_job(job: CylinderJob) -> dict:
     except _RowError as e:
         row["error"] = str(e)
     except Exception as e:  # a solver failure must not end the batch; its row says what happened
-        from .identify import IdentificationError
-
         kind = "identification failed" if isinstance(e, IdentificationError) else type(e).__name__
         row["error"] = f"{kind}: {e}"
     row["wall_s"] = time.perf_counter() - t0
@@ -297,9 +131,6 @@ def run_job(job: CylinderJob) -> dict:
 
 
 def _identify_row(job: CylinderJob) -> dict:
-    from .friction_identify import identify_model, model_parameters
-    from .identify import IdentifyOptions
-
     cyl, runs, truth = _load_inputs(job)
     g = cyl.geometry
     out: dict = {"cylinder": cyl.name, "bore": g.bore, "rod": g.rod, "stroke": g.stroke,
@@ -321,8 +152,6 @@ def _identify_row(job: CylinderJob) -> dict:
 
 
 def _diagnose_row(cyl, runs) -> dict:
-    from .diagnose import DiagnoseOptions, diagnose
-
     if len(runs) < 2:
         return {"verdict": None, "diagnosis_error": "a diagnosis needs two runs (TRAIN and VALID); give two runs "
                                                     "or simulate.runs = 2"}
@@ -531,8 +360,6 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
                 raise
     final = [r for r in rows if r is not None]  # written as they came
     if report:
-        from .batch_report import write_batch_report
-
         write_batch_report(final, out_dir / "report.html", png_dir=out_dir / "report")
     ok = sum(1 for r in final if r.get("status") == "ok")
     summary = BatchSummary(out_dir=str(out_dir), total=len(jobs), ok=ok, failed=len(final) - ok, cached=n_cached,
@@ -541,53 +368,4 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
     return summary
 
 
-# ------------------------------------------------------------------ dask
 
-def cache_files() -> dict[str, Path]:
-    """The compiled model code of this machine's cache (shipped to cluster workers)."""
-    from sim.compiled import cache_dir
-
-    d = cache_dir()
-    return {p.name: p for p in sorted(d.glob("cr_*.so"))} if d.is_dir() else {}
-
-
-def missing_cache_files(names: Iterable[str]) -> list[str]:
-    """Run on a worker: which of these compiled files its cache lacks."""
-    from sim.compiled import cache_dir
-
-    d = cache_dir()
-    return [n for n in names if not (d / n).exists()]
-
-
-def install_cache_files(files: dict[str, bytes]) -> int:
-    """Run on a worker: store compiled model code in its cache (atomically; existing kept)."""
-    from sim.compiled import cache_dir
-
-    d = cache_dir()
-    d.mkdir(parents=True, exist_ok=True)
-    n = 0
-    for name, data in files.items():
-        target = d / name
-        if not target.exists():
-            atomic_write(target, data)
-            target.chmod(0o755)
-            n += 1
-    return n
-
-
-def share_compiled_code(client) -> int:
-    """Give every worker the compiled model code this machine has, so that no worker
-    rebuilds a model structure that was compiled once already (workers on the same machine
-    share its cache; a task loads the compiled library from there). Returns the number of
-    files installed."""
-    files = cache_files()
-    if not files:
-        return 0
-    missing = client.run(missing_cache_files, list(files))
-    installed = 0
-    for worker, names in missing.items():
-        if names:
-            # read here, for the workers that lack them: usually none, or one new structure
-            res = client.run(install_cache_files, {n: files[n].read_bytes() for n in names}, workers=[worker])
-            installed += sum(res.values())
-    return installed

@@ -30,8 +30,10 @@ import numpy as np
 from sim.cylinder import PARAMETERS
 from sim.friction_models import DIRECTIONS, FRICTION_MODELS
 
-from .diagnose_report import _CSS, _e, _img, _new_figure, _png, _sig, _wrap, format_value, write_html_and_plots
-from .friction_map import FIT_SPECS
+from ..friction import FIT_SPECS
+from ..report.figures import new_figure, png_bytes, wrap_lines
+from ..report.html import CSS, escape, img_tag, write_html_and_plots
+from ..report.text import format_value, sig
 
 __all__ = ["write_batch_report", "render_batch_report", "friction_curve", "efficiency", "REF_SPEED",
            "RULE_OF_THUMB", "CATALOGUE_FACTORS"]
@@ -252,7 +254,7 @@ _DASH = '<span class="no">—</span>'
 
 
 def _num_cell(v: float | None, k: float = 1.0, digits: int = 3) -> str:
-    return f'<td class="num">{_sig(v * k, digits) if v is not None else _NA}</td>'
+    return f'<td class="num">{sig(v * k, digits) if v is not None else _NA}</td>'
 
 
 def _mpl(s: str, width: int = 0) -> str:
@@ -270,7 +272,7 @@ def _label(c: _Cyl, width: int = 0) -> str:
 
 def _wrapped(s: str, width: int = 30, lines: int = 2) -> str:
     """A name on at most `lines` lines of about `width` characters (shortened beyond)."""
-    parts = _wrap(s, width)
+    parts = wrap_lines(s, width)
     if len(parts) > lines:
         parts = parts[:lines]
         parts[-1] = parts[-1][:width - 1] + "…"
@@ -292,7 +294,7 @@ def _param_text(c: _Cyl, p: str, k: float = 1.0) -> str:
     if p not in c.given:
         return _NA
     s = c.std(p)
-    return _e(format_value(c.values[p] * k, s * k if s is not None else None, ""))
+    return escape(format_value(c.values[p] * k, s * k if s is not None else None, ""))
 
 
 # ------------------------------------------------------------------ plots
@@ -322,7 +324,7 @@ def _plot_maps(cs: Sequence[_Cyl]):
     """seed 004 Fig. 7: every curve over -max_speed..max_speed (retraction at negative v and
     F); below, the low-speed region per direction on a logarithmic speed axis."""
     v_low = _low_speed_limit(cs)
-    fig = _new_figure(11, 7.6 + 0.21 * math.ceil(len(cs) / 2))
+    fig = new_figure(11, 7.6 + 0.21 * math.ceil(len(cs) / 2))
     top, bottom = fig.subfigures(2, 1, height_ratios=[1.25, 1])
     ax = top.subplots()
     axe, axr = bottom.subplots(1, 2, sharey=True)
@@ -361,13 +363,13 @@ def _plot_maps(cs: Sequence[_Cyl]):
 
 def _plot_efficiency(cs: Sequence[_Cyl], effs: Sequence[_Efficiency], ref_speed: float):
     n = len(cs)
-    fig = _new_figure(11, 2.3 + 0.45 * n)
+    fig = new_figure(11, 2.3 + 0.45 * n)
     axes = fig.subplots(1, 2, sharey=True)
     y = np.arange(n)[::-1]
     top = max([RULE_OF_THUMB[1] * 1.25] + [v * 1.1 for e in effs for m in (e.m_break, e.m_ref)
                                              for v in m.values() if v is not None])
     for ax, which, title in ((axes[0], "m_break", "at breakaway (Fs; Fc where the model has none)"),
-                             (axes[1], "m_ref", f"at {_sig(ref_speed * 1e3)} mm/s")):
+                             (axes[1], "m_ref", f"at {sig(ref_speed * 1e3)} mm/s")):
         first = ax is axes[0]
         ax.axvspan(*RULE_OF_THUMB, color="#d3f9d8", zorder=0,
                    label=f"catalogue rule of thumb {_RULE_TEXT}" if first else None)
@@ -411,9 +413,9 @@ def _make_plots(effs: Mapping[_Cyl, _Efficiency], ref_speed: float) -> dict[str,
     if not effs:
         return {}
     drawn, effs = list(effs), list(effs.values())
-    out = {"a_friction_maps": _png(_plot_maps(drawn))}
+    out = {"a_friction_maps": png_bytes(_plot_maps(drawn))}
     if any(v is not None for e in effs for m in (e.m_break, e.m_ref) for v in m.values()):
-        out["b_efficiency"] = _png(_plot_efficiency(drawn, effs, ref_speed))
+        out["b_efficiency"] = png_bytes(_plot_efficiency(drawn, effs, ref_speed))
     return out
 
 
@@ -439,32 +441,32 @@ def _headline(cs: Sequence[_Cyl], effs_of: Mapping[_Cyl, _Efficiency], ref_speed
         parts.append(f"{len(skipped)} skipped")
     if other:
         parts.append(f"{len(other)} without a known status")
-    out = [_e(f"{n} cylinder{'s' if n != 1 else ''} in the batch: {', '.join(parts)}.")]
+    out = [escape(f"{n} cylinder{'s' if n != 1 else ''} in the batch: {', '.join(parts)}.")]
     cls = "fail" if failed or other else "clean"
     if not ok:
         out.append("No cylinder was identified, so there is nothing to compare"
                    + (": see why below." if failed or skipped or other else "."))
         return out, "fail"
     effs = [(c.name, e) for c, e in effs_of.items()]  # names may repeat
-    ref = f"{_sig(ref_speed * 1e3)} mm/s"
+    ref = f"{sig(ref_speed * 1e3)} mm/s"
     at_ref = [(max(v for v in e.m_ref.values() if v is not None), name) for name, e in effs
               if any(v is not None for v in e.m_ref.values())]
     brk = [(v, name, d) for name, e in effs for d, v in e.m_break.items() if v is not None]
     if brk:
         lo, hi = min(brk), max(brk)
-        out.append(_e(f"At breakaway, friction takes m = {_sig(lo[0], 2)} ({lo[1]}, {lo[2]}) to {_sig(hi[0], 2)} "
+        out.append(escape(f"At breakaway, friction takes m = {sig(lo[0], 2)} ({lo[1]}, {lo[2]}) to {sig(hi[0], 2)} "
                       f"({hi[1]}, {hi[2]}) of the piston force p·A."))
     if len(at_ref) > 1:
         lo, hi = min(at_ref), max(at_ref)
         inside = sum(1 for _n, e in effs if all(v is not None and RULE_OF_THUMB[0] <= v <= RULE_OF_THUMB[1]
                                                      for v in e.m_ref.values()))
-        out.append(_e(f"At {ref}, {lo[1]} has the least friction (m = {_sig(lo[0], 2)}, the larger of its two "
-                      f"directions) and {hi[1]} the most (m = {_sig(hi[0], 2)}); {inside} of {len(at_ref)} stay "
+        out.append(escape(f"At {ref}, {lo[1]} has the least friction (m = {sig(lo[0], 2)}, the larger of its two "
+                      f"directions) and {hi[1]} the most (m = {sig(hi[0], 2)}); {inside} of {len(at_ref)} stay "
                       f"within the catalogues' rule of thumb {_RULE_TEXT} in both directions."))
     rm = [(c.num("rmse_x"), c.name) for c in ok if c.num("rmse_x") is not None]
     if rm:
         lo, hi = min(rm), max(rm)
-        out.append(_e(f"Position error of the fits (RMSE) from {_sig(lo[0] * 1e6)} µm to {_sig(hi[0] * 1e6)} µm "
+        out.append(escape(f"Position error of the fits (RMSE) from {sig(lo[0] * 1e6)} µm to {sig(hi[0] * 1e6)} µm "
                       f"({hi[1]})."))
     truth = [_truth_errors(c) for c in ok]
     checked = [t for t in truth if t]
@@ -473,12 +475,12 @@ def _headline(cs: Sequence[_Cyl], effs_of: Mapping[_Cyl, _Efficiency], ref_speed
                if rel is not None and abs(rel) > REL_TOL]
         total = sum(len(t) for t in checked)
         if bad:
-            out.append(_e(f"Against the truth of the simulated cylinders, {len(bad)} of {total} parameters "
+            out.append(escape(f"Against the truth of the simulated cylinders, {len(bad)} of {total} parameters "
                           f"{'is' if len(bad) == 1 else 'are'} off by more than {_TOL_TEXT}: "
                           + "; ".join(bad[:6]) + ("; …" if len(bad) > 6 else "")
                           + "."))
         else:
-            out.append(_e(f"All {total} parameters of the simulated cylinders with a known truth are within "
+            out.append(escape(f"All {total} parameters of the simulated cylinders with a known truth are within "
                           f"{_TOL_TEXT} of it."))
     return out, cls
 
@@ -488,9 +490,9 @@ def _not_identified_html(cs: Sequence[_Cyl]) -> str:
     if not bad:
         return ""
     rows = "".join(
-        f'<tr><td class="name">{_e(c.name)}</td><td>{_e(c.status or "unknown")}</td><td>{_e(c.model) or _DASH}</td>'
-        f'<td class="small">{_e(_text(c.row, "config")) or _DASH}</td>'
-        f'<td class="err">{_e(_text(c.row, "error")) or "<i>no reason given</i>"}</td></tr>' for c in bad)
+        f'<tr><td class="name">{escape(c.name)}</td><td>{escape(c.status or "unknown")}</td><td>{escape(c.model) or _DASH}</td>'
+        f'<td class="small">{escape(_text(c.row, "config")) or _DASH}</td>'
+        f'<td class="err">{escape(_text(c.row, "error")) or "<i>no reason given</i>"}</td></tr>' for c in bad)
     return f"""<h2>Not identified</h2>
 <table><tr><th>cylinder</th><th>status</th><th>model</th><th>config</th><th>why</th></tr>{rows}</table>"""
 
@@ -503,8 +505,8 @@ def _cylinders_html(cs: Sequence[_Cyl]) -> str:
         runs = c.num("n_runs")
         about = [t for t in (_text(c.row, "cylinder"), _text(c.row, "config")) if t and t != c.name]
         rows.append(
-            f'<tr><td class="name">{_e(c.name)}<br><span class="small">{"<br>".join(_e(t) for t in about)}</span></td>'
-            f'<td>{_e(_text(c.row, "source")) or _NA}</td><td class="num">{int(runs) if runs is not None else _NA}</td>'
+            f'<tr><td class="name">{escape(c.name)}<br><span class="small">{"<br>".join(escape(t) for t in about)}</span></td>'
+            f'<td>{escape(_text(c.row, "source")) or _NA}</td><td class="num">{int(runs) if runs is not None else _NA}</td>'
             + _num_cell(c.num("duration_s"), 1.0) + _num_cell(c.num("bore"), 1e3) + _num_cell(c.num("rod"), 1e3) + _num_cell(c.num("stroke"), 1e3)
             + _num_cell(c.supply_gauge(), 1e-5) + _num_cell(c.num("mean_dp"), 1e-5) + _num_cell(c.num("mean_pc"), 1e-5)
             + _num_cell(c.num("max_speed"), 1e3) + "</tr>")
@@ -537,7 +539,7 @@ def _maps_html(ok: Sequence[_Cyl], img: Mapping[str, str]) -> str:
             f"{c.name}: {', '.join(c.defaulted)}" for c in dflt) + ".")
     nospeed = [c.name for c in drawn if c.num("max_speed") is None]
     if nospeed:
-        notes.append(f"Fastest speed not in the results, curve drawn up to {_sig(_DEFAULT_MAX_SPEED * 1e3)} mm/s: "
+        notes.append(f"Fastest speed not in the results, curve drawn up to {sig(_DEFAULT_MAX_SPEED * 1e3)} mm/s: "
                      + ", ".join(nospeed) + ".")
     return f"""<h2>Friction against velocity</h2>
 <p class="explain">The static friction of each identified cylinder, as its model computes it (seed 004 Eq. 3 for the
@@ -545,7 +547,7 @@ Stribeck models; Fc + Fv·v + kp·|p1 − p2| for the nominal model), in both di
 and force, as in seed 004 Fig. 7. Each curve runs up to the fastest speed of its cylinder's runs. Below, the low-speed
 region of each direction on a logarithmic speed axis, where static friction (breakaway) and the Stribeck dip show.</p>
 {img.get("a_friction_maps", "")}
-{''.join(f'<p class="small">{_e(n)}</p>' for n in notes)}"""
+{''.join(f'<p class="small">{escape(n)}</p>' for n in notes)}"""
 
 
 def _undrawn_reason(c: _Cyl) -> str:
@@ -556,11 +558,11 @@ def _undrawn_reason(c: _Cyl) -> str:
 
 def _conditions_text(c: _Cyl) -> str:
     cond = c.conditions()
-    parts = [f"|p1 − p2| = {_sig(cond['dp'] / 1e5)} bar"] if "dp" in cond else []
+    parts = [f"|p1 − p2| = {sig(cond['dp'] / 1e5)} bar"] if "dp" in cond else []
     if "pc" in cond:
-        parts.append(f"counter pressure {_sig(cond['pc'] / 1e5)} bar gauge")
+        parts.append(f"counter pressure {sig(cond['pc'] / 1e5)} bar gauge")
     if "load" in cond:
-        parts.append(f"normal load Fn = {_sig(cond['load'])} N")
+        parts.append(f"normal load Fn = {sig(cond['load'])} N")
     miss = c.missing_conditions()
     return ", ".join(parts) + (f" ({', '.join(miss)} not in the results: taken as 0)" if miss else "")
 
@@ -583,13 +585,13 @@ def _other_params(c: _Cyl) -> str:
             parts.append(f"{p} = {format_value(c.values[p], c.std(p), unit)}")
         else:
             parts.append(f"{p} n/a")
-    return "<br>".join(_e(s) for s in parts) or _DASH
+    return "<br>".join(escape(s) for s in parts) or _DASH
 
 
 def _table3_html(ok: Sequence[_Cyl]) -> str:
     if not ok:
         return ""
-    head1 = "".join(f'<th colspan="2">{h} ({_e(u)})</th>' for _q, h, u, _k in _TABLE3)
+    head1 = "".join(f'<th colspan="2">{h} ({escape(u)})</th>' for _q, h, u, _k in _TABLE3)
     head2 = '<th class="sub">extension</th><th class="sub">retraction</th>' * len(_TABLE3)
     rows = []
     for c in ok:
@@ -598,10 +600,10 @@ def _table3_html(ok: Sequence[_Cyl]) -> str:
             for _d, sfx, _g in _DIRS:
                 p = _table3_param(c, q, sfx)
                 cells.append(f'<td class="num">{_param_text(c, p, k) if p else _DASH}</td>')
-        model = _e(c.model) if c.model else _NA
+        model = escape(c.model) if c.model else _NA
         if c.family is None and c.model:
             model += ' <span class="small">(unknown)</span>'
-        rows.append(f'<tr><td class="name">{_e(c.name)}</td><td>{model}</td>{"".join(cells)}'
+        rows.append(f'<tr><td class="name">{escape(c.name)}</td><td>{model}</td>{"".join(cells)}'
                     f'<td class="small">{_other_params(c)}</td></tr>')
     return f"""<h2>Friction parameters (as seed 004 Table 3)</h2>
 <table><tr><th rowspan="2">cylinder</th><th rowspan="2">model</th>{head1}<th rowspan="2">other parameters</th></tr>
@@ -637,15 +639,15 @@ def _truth_html(ok: Sequence[_Cyl]) -> str:
             v, t = c.values[p], c.num(f"truth_{p}")
             bad = rel is not None and abs(rel) > REL_TOL
             nbad += bad
-            rel_txt = f"{100 * rel:+.1f} %" if rel is not None else f"{_sig(v - t)} (truth 0)"
+            rel_txt = f"{100 * rel:+.1f} %" if rel is not None else f"{sig(v - t)} (truth 0)"
             z_txt = f"{z:+.1f} σ" if z is not None else "n/a"
-            tip = f"identified {_sig(v, 4)}, truth {_sig(t, 4)} ({c.units.get(p, '')})"
-            cells.append(f'<tr><td>{_e(p)}</td><td class="num{" bad" if bad else ""}" title="{_e(tip)}">{rel_txt}'
+            tip = f"identified {sig(v, 4)}, truth {sig(t, 4)} ({c.units.get(p, '')})"
+            cells.append(f'<tr><td>{escape(p)}</td><td class="num{" bad" if bad else ""}" title="{escape(tip)}">{rel_txt}'
                          f'</td><td class="num">{z_txt}</td></tr>')
         summary = (f'<b>{nbad} of {len(errs)}</b> beyond {_TOL_TEXT}' if nbad
                    else f'all {len(errs)} within {_TOL_TEXT}')
-        rows.append(f'<tr><td class="name">{_e(c.name)}<br><span class="small">{summary}</span></td>'
-                    f'<td>{_e(c.model)}</td>'
+        rows.append(f'<tr><td class="name">{escape(c.name)}<br><span class="small">{summary}</span></td>'
+                    f'<td>{escape(c.model)}</td>'
                     f'<td><table style="margin:0"><tr><th>parameter</th><th>error</th><th>in std</th></tr>'
                     f'{"".join(cells)}</table></td></tr>')
     if not rows:
@@ -675,23 +677,23 @@ def _efficiency_html(effs: Mapping[_Cyl, _Efficiency], img: Mapping[str, str], r
         any_star |= e.extrapolated
         if e.atmosphere_assumed:
             assumed.append(c.name)
-        rows.append(f'<tr><td class="name">{_e(c.name)}</td><td>{_e(c.model)}</td>' + _num_cell(p, 1e-5)
+        rows.append(f'<tr><td class="name">{escape(c.name)}</td><td>{escape(c.model)}</td>' + _num_cell(p, 1e-5)
                     + _num_cell(area, 1e4) + _num_cell(e.pA)
                     + "".join(_m_cell(e.m_break[d]) for d, _s, _g in _DIRS)
                     + "".join(_m_cell(e.m_ref[d], e.extrapolated) for d, _s, _g in _DIRS) + "</tr>")
-    ref = f"{_sig(ref_speed * 1e3)} mm/s"
+    ref = f"{sig(ref_speed * 1e3)} mm/s"
     quotes = ", ".join(f"{who} {lo:.2f}" + (f"–{hi:.2f}" if hi != lo else "") for who, lo, hi in CATALOGUE_FACTORS)
     notes = []
     if any_star:
         notes.append(f"* {ref} is beyond the fastest speed of this cylinder's runs: the curve is extrapolated.")
     if assumed:
-        notes.append(f"Atmosphere not in the results, {_sig(_DEFAULT_ATMOSPHERE / 1e5, 4)} bar assumed: "
+        notes.append(f"Atmosphere not in the results, {sig(_DEFAULT_ATMOSPHERE / 1e5, 4)} bar assumed: "
                      + ", ".join(assumed) + ".")
     return f"""<h2>Efficiency factor (seed 004 Eq. 1)</h2>
 <p class="explain">Catalogues state friction as a share m of the piston force: F = m·p·A, with p the working pressure
 (here the supply pressure, gauge) and A the bore area πD²/4, in both directions as Eq. 1 has one area (on retraction
 the rod leaves a smaller annulus, so m understates the share of the force that direction really has). Seed 004 quotes
-{_e(quotes)}: the shaded band {_RULE_TEXT} spans the manufacturers' values and Bollmann's, Pinches and Callear's lower
+{escape(quotes)}: the shaded band {_RULE_TEXT} spans the manufacturers' values and Bollmann's, Pinches and Callear's lower
 range is hatched in the chart. m at breakaway uses the static friction Fs (Fc where the model has none; the
 pressure term at the runs' mean |p1 − p2|), m at {ref} the friction curve at that speed. Blue cells: less friction than
 the rules of thumb assume, orange: more.</p>
@@ -700,7 +702,7 @@ the rules of thumb assume, orange: more.</p>
 <th colspan="2">m at {ref}</th></tr>
 <tr><th class="sub">extension</th><th class="sub">retraction</th><th class="sub">extension</th>
 <th class="sub">retraction</th></tr>{''.join(rows)}</table>
-{''.join(f'<p class="small">{_e(n)}</p>' for n in notes)}
+{''.join(f'<p class="small">{escape(n)}</p>' for n in notes)}
 {img.get("b_efficiency", "")}"""
 
 
@@ -722,16 +724,16 @@ def _fit_html(ok: Sequence[_Cyl]) -> str:
     for c in ok:
         it = c.num("iterations")
         r2 = c.num("r2_x")
-        row = (f'<tr><td class="name">{_e(c.name)}</td><td>{_e(c.model) or _NA}</td>'
+        row = (f'<tr><td class="name">{escape(c.name)}</td><td>{escape(c.model) or _NA}</td>'
                + _num_cell(c.num("rmse_x"), 1e6)
                + f'<td class="num">{_r2(r2)}</td>'
                + _num_cell(c.num("rmse_p1"), 1e-3) + _num_cell(c.num("rmse_p2"), 1e-3)
-               + f'<td>{_e(_text(c.row, "solver_status")) or _NA}</td>'
+               + f'<td>{escape(_text(c.row, "solver_status")) or _NA}</td>'
                + f'<td class="num">{int(it) if it is not None else _NA}</td>'
                + _num_cell(c.num("wall_s"), 1.0, 2))
         if diagnosed:
             shrink = c.num("verdict_shrink")
-            row += (f'<td>{_e(_text(c.row, "verdict")) or _DASH}</td>'
+            row += (f'<td>{escape(_text(c.row, "verdict")) or _DASH}</td>'
                     f'<td class="num">{f"{100 * shrink:.0f} %" if shrink is not None else _DASH}</td>')
         rows.append(row + "</tr>")
     diag_head = "<th>diagnosis verdict</th><th>its shrink of the error</th>" if diagnosed else ""
@@ -756,13 +758,13 @@ def render_batch_report(rows: Sequence[Mapping[str, Any]], *, title: str = "Batc
 
 def _render(cs: Sequence[_Cyl], effs: Mapping[_Cyl, _Efficiency], title: str, ref_speed: float,
             plots: Mapping[str, bytes]) -> str:
-    img = {k: _img(v, alt) for k, alt in _PLOTS if (v := plots.get(k)) is not None}
+    img = {k: img_tag(v, alt) for k, alt in _PLOTS if (v := plots.get(k)) is not None}
     ok = [c for c in cs if c.ok]
     lines, cls = _headline(cs, effs, ref_speed)
     return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>
-<meta name="viewport" content="width=device-width, initial-scale=1"><style>{_CSS}{_MORE_CSS}</style></head><body>
-<h1>{_e(title)}</h1>
+<html lang="en"><head><meta charset="utf-8"><title>{escape(title)}</title>
+<meta name="viewport" content="width=device-width, initial-scale=1"><style>{CSS}{_MORE_CSS}</style></head><body>
+<h1>{escape(title)}</h1>
 <div class="headline {cls}">{''.join(f'<p>{s}</p>' for s in lines)}</div>
 {_not_identified_html(cs)}
 {_cylinders_html(cs)}

@@ -6,7 +6,6 @@
 The manifest and the outputs: combined_reality.batch, docs/batch.md. Exit status 0 when every
 cylinder was identified, 1 when some failed (their rows say why), 2 for a bad manifest.
 """
-
 from __future__ import annotations
 
 import argparse
@@ -17,6 +16,8 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+
+from .common import UsageError, eprint
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -29,7 +30,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                     "Relative paths are relative to the manifest. Writes DIR/results.csv, DIR/results.parquet, "
                     "DIR/report.html and DIR/summary.json; re-running skips cylinders whose inputs and options "
                     "are unchanged. Exit status 1 if some cylinders failed.")
-    p.add_argument("manifest", metavar="MANIFEST.toml")
+    p.add_argument("manifest", metavar="MANIFEST.toml", help="the manifest: [[cylinder]] tables (docs/batch.md)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
     p.add_argument("--workers", type=int, default=None,
                    help="local worker processes (default: all cores); with --scheduler, ignored")
@@ -93,8 +94,6 @@ class _Progress:
 
 
 def _connect(address: str):
-    from .cli import UsageError
-
     try:
         from distributed import Client
     except ImportError:
@@ -106,8 +105,8 @@ def _connect(address: str):
 
 
 def run(args) -> int:
-    from .batch import ManifestError, load_manifest, run_batch, share_compiled_code
-    from .cli import UsageError, _eprint, _write_json_atomic
+    from ..batch import ManifestError, load_manifest, run_batch, share_compiled_code
+    from ..files import write_json_atomic
 
     out = Path(args.out)
     try:
@@ -119,7 +118,7 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} exists and is not a folder.")
     progress = _Progress(args.quiet)
-    say = (lambda m: None) if args.quiet else _eprint
+    say = (lambda m: None) if args.quiet else eprint
     with contextlib.ExitStack() as stack:
         stack.callback(progress.close)
         if args.scheduler:
@@ -142,7 +141,7 @@ def run(args) -> int:
         json.dump(doc, sys.stdout, indent=1)
         print()
     elif args.json:
-        _write_json_atomic(args.json, doc)
+        write_json_atomic(args.json, doc)
     if not args.quiet:
         print(f"{summary.ok} of {summary.total} cylinders identified, {summary.failed} failed "
               f"({_fmt_s(summary.wall_s)}); results in {out / 'results.csv'}"

@@ -3,15 +3,19 @@
     combined-reality procedure sweep --serial /dev/ttyACM0 --config cyl.toml --record sweep.csv \\
         --out points.csv --json sweep.json
 
-`add_parser(sub)` registers the subcommand on the main parser's subparsers; `run(args)` runs it.
 Exit status as for every subcommand: 0 success, 2 bad input (UsageError, one sentence),
 1 the procedure failed (the rig never moved, went silent, ...), 130 interrupted.
 """
 from __future__ import annotations
 
 import math
+import re
+import signal
+import threading
 import time
 from pathlib import Path
+
+from .common import UsageError, eprint, load_config, open_rig, parse_effects
 
 KINDS = ("breakaway", "sweep")
 _DIRECTIONS = {"both": (1, -1), "extension": (1,), "retraction": (-1,)}
@@ -50,7 +54,8 @@ def add_parser(sub) -> None:
     p.add_argument("--vmin", type=float, metavar="V", help="sweep: slowest target speed, m/s (default vmax / 20)")
     p.add_argument("--vmax", type=float, metavar="V",
                    help="sweep: fastest target speed, m/s (default: the working travel in 0.4 s, at most 0.5)")
-    p.add_argument("--directions", choices=tuple(_DIRECTIONS), default="both", help="default both")
+    p.add_argument("--directions", choices=tuple(_DIRECTIONS), default="both",
+                   help="which directions to test: both (default), extension or retraction")
     p.add_argument("--u-max", type=float, default=0.8, help="command bound (default 0.8)")
     p.add_argument("--margin", type=float, default=0.1,
                    help="soft stroke limits: keep this fraction of the stroke from each end (default 0.1)")
@@ -66,41 +71,39 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from . import cli
-    from .procedures import ProcedureError
-
-    cyl = cli._load_config(args.config)
-    opts = _options(args, cyl)
-    effects = cli._parse_effects(args.effect)
-    if (effects or args.realtime) and not args.virtual:
-        raise cli.UsageError(f"{'--effect' if effects else '--realtime'} applies to the virtual rig; it needs "
-                             "--virtual.")
-    _check_paths(args)
     from hw.rig import RigError
 
-    rig = _open_rig(args, cyl, effects)
+    from ..files import cylinder_tag
+    from ..friction.procedures import ProcedureError
+
+    cyl = load_config(args.config)
+    opts = _options(args, cyl)
+    effects = parse_effects(args.effect)
+    if (effects or args.realtime) and not args.virtual:
+        raise UsageError(f"{'--effect' if effects else '--realtime'} applies to the virtual rig; it needs "
+                         "--virtual.")
+    _check_paths(args)
+    rig = open_rig(args, cyl, effects, paced=args.realtime)
     where = f"serial {args.serial}" if args.serial else f"CAN {args.can} ({args.interface})" if args.can \
         else "virtual rig" + (f" with {', '.join(args.effect)}" if args.effect else "")
-    from .runs import cylinder_tag
-
     comments = [cylinder_tag(cyl), f"combined-reality procedure {args.kind}: cylinder {cyl.name!r} ({cyl.source}), {where}",
                 f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
-    progress = None if args.quiet else cli._eprint
+    progress = None if args.quiet else eprint
     t_wall = time.perf_counter()
     try:
         result = _with_sigterm(lambda: _run_procedure(args.kind, rig, cyl, opts, args.record, comments, progress))
     except (ProcedureError, RigError) as e:  # the procedure has centred the valve already
-        cli._eprint(f"combined-reality procedure: {e}" + (f" (recorded so far: {args.record})" if args.record else ""))
+        eprint(f"combined-reality procedure: {e}" + (f" (recorded so far: {args.record})" if args.record else ""))
         return 1
     except KeyboardInterrupt:
-        cli._eprint("combined-reality procedure: interrupted: valve centred"
+        eprint("combined-reality procedure: interrupted: valve centred"
                     + (f", recording {args.record} closed." if args.record else "."))
         return 130
     wall = time.perf_counter() - t_wall
     _write_outputs(args, cyl, result, comments, where, wall)
     print(_summary(args.kind, result))
     if args.kind == "sweep" and not result.table():
-        cli._eprint("combined-reality procedure: no steady point: every stroke stuck, slipped or was too short "
+        eprint("combined-reality procedure: no steady point: every stroke stuck, slipped or was too short "
                     "(see the lines above; try other --vmin/--vmax).")
         return 1
     return 0
@@ -109,8 +112,7 @@ def run(args) -> int:
 # ------------------------------------------------------------------ pieces
 
 def _options(args, cyl):
-    from .cli import UsageError
-    from .procedures import BreakawayOptions, SafetyOptions, SweepOptions, target_speeds
+    from ..friction.procedures import BreakawayOptions, SafetyOptions, SweepOptions, target_speeds
 
     given = {f: getattr(args, f) for f in ("trials", "force_rate", "start", "speeds", "vmin", "vmax")
              if getattr(args, f) is not None}
@@ -135,15 +137,11 @@ def _options(args, cyl):
         target_speeds(cyl, opts)  # checks --vmin against the default --vmax of this cylinder
         return opts
     except ValueError as e:  # the library checks the options; its messages name them as fields
-        import re
-
         msg = re.sub(r"(?<![\w/.-])[a-z_]+(?![\w/.-])", lambda m: _FLAGS.get(m[0], m[0]), str(e))
         raise UsageError(f"{msg}.") from None
 
 
 def _check_paths(args) -> None:
-    from .cli import UsageError
-
     if args.record:
         record = Path(args.record)
         if record.exists() and not args.overwrite:
@@ -159,18 +157,8 @@ def _check_paths(args) -> None:
         raise UsageError("--record and --out/--json must be different files.")
 
 
-def _open_rig(args, cyl, effects):
-    """The rig named on the command line (as `live` opens it)."""
-    from .cli import open_rig
-
-    return open_rig(args, cyl, effects, paced=args.realtime)
-
-
 def _with_sigterm(fn):
     """Run fn with SIGTERM ending it like Ctrl-C (valve centred, files complete)."""
-    import signal
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         return fn()
 
@@ -185,7 +173,7 @@ def _with_sigterm(fn):
 
 
 def _run_procedure(kind, rig, cyl, opts, record, comments, progress):
-    from .procedures import breakaway_test, speed_sweep
+    from ..friction.procedures import breakaway_test, speed_sweep
 
     fn = breakaway_test if kind == "breakaway" else speed_sweep
     try:
@@ -195,8 +183,8 @@ def _run_procedure(kind, rig, cyl, opts, record, comments, progress):
 
 
 def _write_outputs(args, cyl, result, comments, where: str, wall: float) -> None:
-    from .cli import _clean_json, _eprint, _write_json_atomic
-    from .procedures import write_points
+    from ..files import clean_json, write_json_atomic
+    from ..friction.procedures import write_points
 
     if args.kind == "breakaway":
         what = [f"breakaway (static) friction, one row per direction, mean of {result.options.trials} trial(s): "
@@ -217,15 +205,15 @@ def _write_outputs(args, cyl, result, comments, where: str, wall: float) -> None
     out = {**result.to_json(), "config": str(cyl.source), "rig": where, "record": args.record, "out": args.out,
            "wall_s": round(wall, 3)}
     if args.json:
-        _write_json_atomic(args.json, _clean_json(out))
+        write_json_atomic(args.json, clean_json(out))
     if not args.quiet:
         c = result.counters
-        _eprint(f"{c['samples']} samples in {wall:.1f} s, longest host pause {1e3 * c['longest_host_pause_s']:.0f} ms"
+        eprint(f"{c['samples']} samples in {wall:.1f} s, longest host pause {1e3 * c['longest_host_pause_s']:.0f} ms"
                 + (f"; recorded to {args.record}" if args.record else "") + f"; points in {args.out}")
 
 
 def _summary(kind: str, result) -> str:
-    from .procedures import DIRECTION_NAMES
+    from ..friction.procedures import DIRECTION_NAMES
 
     if kind == "breakaway":
         lines = [f"breakaway force, mean ± std of {result.options.trials} trial(s):"]

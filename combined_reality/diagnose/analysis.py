@@ -25,15 +25,17 @@ import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 
 from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
 
-from .identify import IdentificationError, IdentifyOptions, _velocity_estimate, identify, sensor_noise
-from .runs import Run, split_at_gaps
+from ..files import Run
+from ..identify import (IdentificationError, IdentifyOptions, Validation, equation_error_friction,
+                        friction_from_newton, identify, savgol_kernels, derivative_kernels, validate, validation_gain,
+                        validation_segments, velocity_estimate)
 
 
 @dataclass(frozen=True)
@@ -51,121 +53,9 @@ class DiagnoseOptions:
     workers: int = max(1, os.cpu_count() or 1)
 
 
-# ------------------------------------------------------------------ validation
-
-def validation_segments(run: Run, horizon_s: float) -> list[tuple[int, int]]:
-    """(start, stop) sample ranges of about `horizon_s`, cut where the piston moves fastest
-    within a quarter horizon of the nominal cut (a piston at rest hides its friction state,
-    so an initial state fitted there is ill-determined); never across a gap."""
-    out = []
-    offset = 0
-    for piece in split_at_gaps(run):
-        n = max(10, int(round(horizon_s / piece.sample_period)))
-        v = np.abs(_velocity_estimate(piece.t, piece.x)) if piece.n > 30 else np.zeros(piece.n)
-        cuts = [0]
-        for c in range(n, piece.n - n // 2, n):
-            lo, hi = c - n // 4, min(piece.n - 1, c + n // 4)
-            cuts.append(lo + int(np.argmax(v[lo:hi])))
-        cuts.append(piece.n)
-        out.extend((offset + a, offset + b) for a, b in zip(cuts[:-1], cuts[1:]) if b - a >= 10)
-        offset += piece.n
-    return out
-
-
-@dataclass
-class Validation:
-    """A model scored on VALID: simulated outputs, residuals and per-segment costs."""
-
-    outputs: tuple[str, ...]
-    simulated: np.ndarray  # (n_outputs, n), NaN outside the segments
-    residual: np.ndarray  # measured - simulated
-    segments: list[tuple[int, int]]
-    segment_cost: np.ndarray  # sum of (residual / noise)^2 per segment, all outputs
-    noise: np.ndarray  # sensor noise per output
-    status: str  # the worst of the segments' fits
-    nodes: list = field(default_factory=list, repr=False)  # per segment: the fitted node states
-
-    def rmse(self, output: str = "x", mask: np.ndarray | None = None) -> float:
-        r = self.residual[self.outputs.index(output)]
-        r = r[np.isfinite(r) if mask is None else (mask & np.isfinite(r))]
-        return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
-
-    def normalized_rms(self) -> float:
-        """RMS of the noise-weighted residuals of all outputs (1 = sensor noise)."""
-        n = sum(b - a for a, b in self.segments) * len(self.outputs)
-        return float(math.sqrt(self.segment_cost.sum() / max(n, 1)))
-
-
-def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: float = 1.0, drive: str = "command",
-             segments: list[tuple[int, int]] | None = None, fallback: "Validation | None" = None) -> Validation:
-    """Score a model on `run`: every segment simulated from its own fitted initial state.
-
-    The initial-state fit starts from the measured state; a segment that stays well above
-    the noise is fitted again from `fallback`'s trajectory there (another model's validation,
-    e.g. the nominal one), and the better fit is kept: stick-slip and friction memory give
-    the initial-state fit local minima. Only states are fitted, never parameters."""
-    segments = segments or validation_segments(run, horizon_s)
-    # one problem per segment: they share nothing, and one line search for all would let the
-    # hardest segment set the step of every other
-    opts = IdentifyOptions(drive=drive, estimate=(), prefit=False, max_iter=30, threads=1)
-    sims, statuses, nodes, costs = [], [], [], []
-    for j, (a, b) in enumerate(segments):
-        piece = run.slice(a, b)
-        tries = [None]
-        if fallback is not None and fallback.nodes[j] is not None:
-            tries.append(fallback.nodes[j])
-        best = None
-        for warm in tries:
-            try:
-                res = identify(cyl, [piece], opts, effects=effects, nodes=warm)
-            except IdentificationError:
-                continue
-            meas = np.vstack([getattr(piece, o) for o in res.output_names])
-            cost = float(np.sum(((meas - res.simulated[0]) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
-            if not math.isfinite(cost):
-                continue
-            if best is None or cost < best[0]:
-                best = (cost, res)
-            if cost < 1.5 * meas.size:  # near the noise: nothing to gain from another start
-                break
-        if best is None:
-            raise IdentificationError(f"the model cannot be simulated on the validation segment "
-                                      f"{run.t[a]:.2f}-{run.t[b - 1]:.2f} s")
-        cost, res = best
-        sims.append(res.simulated[0])
-        statuses.append(res.solver["status"])
-        nodes.append(res.nodes)
-        costs.append(cost)
-    outputs = res.output_names
-    meas = np.vstack([getattr(run, o) for o in outputs])
-    sim = np.full_like(meas, np.nan)
-    for (a, b), s in zip(segments, sims):
-        sim[:, a:b] = s
-    noise = sensor_noise(cyl, outputs)
-    worst = next((st for st in ("line_search_failed", "time_limit", "max_iterations") if st in statuses), "converged")
-    return Validation(outputs, sim, meas - sim, segments, np.array(costs), noise, worst, nodes)
-
-
 def _rmse(r: np.ndarray) -> float:
     r = r[np.isfinite(r)]
     return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
-
-
-def validation_gain(base: Validation, cand: Validation) -> tuple[float, float]:
-    """(shrink of the all-output normalised RMS, z statistic of the gain): how much better the
-    candidate predicts VALID, and how sure that is.
-
-    With d the difference of the two models' predictions (in noise units) and J their
-    validation costs, were the baseline the truth with white sensor noise, the gain
-    J_base - J_cand would have mean -|d|^2 and standard deviation 2|d|. z = gain / (2|d|)
-    above 3 therefore says that no noise makes the baseline look this bad next to the
-    candidate; it does not need the gain to be spread evenly over the segments."""
-    shrink = 1.0 - cand.normalized_rms() / base.normalized_rms()
-    d = (cand.simulated - base.simulated) / base.noise[:, None]
-    d2 = float(np.nansum(d * d))
-    gain = float(base.segment_cost.sum() - cand.segment_cost.sum())
-    z = gain / (2.0 * math.sqrt(d2)) if d2 > 0 else 0.0
-    return shrink, z
 
 
 # ------------------------------------------------------------------ where
@@ -173,7 +63,7 @@ def validation_gain(base: Validation, cand: Validation) -> tuple[float, float]:
 def operating_regions(cyl: Cylinder, run: Run) -> dict[str, np.ndarray]:
     """Boolean masks of the operating regimes of a run: direction, speed bands, reversals,
     stroke zones, valve near centre, high flow, time spans."""
-    v = _velocity_estimate(run.t, run.x)
+    v = velocity_estimate(run.t, run.x)
     L = cyl.geometry.stroke
     moving = np.abs(v) > 0.005
     sgn = np.sign(np.where(moving, v, 0.0))
@@ -416,7 +306,7 @@ class Diagnosis:
 
     @property
     def velocity(self) -> np.ndarray:
-        return _velocity_estimate(self.valid.t, self.valid.x)
+        return velocity_estimate(self.valid.t, self.valid.x)
 
     def to_json(self) -> dict:
         return {
@@ -541,7 +431,6 @@ def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np
     rates, which follow the command sample by sample, are smoothed by the same filter."""
     from sim.plant import build_plant
 
-    from .identify import _savgol_kernels, equation_error_friction, friction_from_newton
 
     idx, v, F = friction_from_newton(nominal, run, half)
     if len(idx) == 0:
@@ -550,7 +439,7 @@ def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np
     fr = nominal.with_values(fitted).friction if fitted else nominal.friction
     dp = np.abs(run.p1[idx] - run.p2[idx])
     eF = F - ((fr.Fc + fr.kp * dp) * np.tanh(v / fr.v_smooth) + fr.Fv * v)
-    k0, k1, _ = _savgol_kernels(half)
+    k0, k1, _ = savgol_kernels(half)
     full = {n: np.convolve(getattr(run, n), k0, mode="same") for n in ("x", "p1", "p2")}
     v_full = np.convolve(run.x, k1, mode="same") / run.sample_period
     dt = run.sample_period
@@ -633,14 +522,12 @@ def regressor_correlations(nominal: Cylinder, run: Run) -> list[dict]:
     Reported, never deciding. There is no regressor for `mass` or the effects with their own
     states: the acceleration correlated with the force error at about -0.5 on every run,
     clean ones too (the derivative filter's lag), so it hinted at nothing."""
-    from .identify import _derivative_kernels
-
     ee = equation_errors(nominal, run)
     if not ee or len(ee["index"]) < 100:
         return []
     idx, v = ee["index"], ee["v"]
     half = 15
-    k1, _ = _derivative_kernels(half)
+    k1, _ = derivative_kernels(half)
     dt = run.sample_period
     g = nominal.geometry
     V1 = g.dead_volume_cap + g.area_cap * run.x[idx]

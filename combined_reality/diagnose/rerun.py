@@ -27,7 +27,8 @@ import math
 import numpy as np
 import rerun as rr
 
-from .diagnose_report import _friction_text, _params_text, _pct, _sig, _subsystem_value, _um, _z_text, headline
+from ..report.text import pct, sig, um
+from .text import friction_text, headline, params_text, subsystem_value, z_text
 
 __all__ = ["log_diagnosis", "summary_markdown", "regions_markdown"]
 
@@ -54,19 +55,19 @@ def summary_markdown(d) -> str:
         f"- cylinder: {_md(d.cylinder.name)} ({_md(d.cylinder.source) if d.cylinder.source else 'in memory'})",
         f"- TRAIN: {src(d.train)}, {d.train.duration:.2f} s",
         f"- VALID: {src(d.valid)}, {d.valid.duration:.2f} s, {len(d.base_validation.segments)} segments of about "
-        f"{_sig(d.options.horizon_s)} s",
-        f"- nominal friction (TRAIN): {_md(_friction_text(b.get('friction') or {}, b.get('friction_std') or {}))}",
-        f"- nominal model on VALID: x {_um(b.get('rmse_x_validation'))}, "
-        f"all outputs {_sig(b.get('normalized_rms'))} x the sensor noise",
+        f"{sig(d.options.horizon_s)} s",
+        f"- nominal friction (TRAIN): {_md(friction_text(b.get('friction') or {}, b.get('friction_std') or {}))}",
+        f"- nominal model on VALID: x {um(b.get('rmse_x_validation'))}, "
+        f"all outputs {sig(b.get('normalized_rms'))} x the sensor noise",
         "", "## Ranking", "", *_RANK_HEAD,
     ]
 
     def row(c, rank) -> str:
         fit = _md(c.status) + (f": {_md(c.error)}" if c.error else "")
         name = f"**{_md(c.effect)}**" if c.effect == d.verdict else _md(c.effect)
-        return (f"| {rank} | {name} | {_pct(c.shrink)} | {_pct(c.shrink_all)} | {_z_text(c.z)} | "
-                f"{'yes' if c.significant else 'no'} | {_um(c.rmse_x_validation)} | "
-                f"{_md(_params_text(c, '; ', bounds=True)) or '-'} | {fit} |")
+        return (f"| {rank} | {name} | {pct(c.shrink)} | {pct(c.shrink_all)} | {z_text(c.z)} | "
+                f"{'yes' if c.significant else 'no'} | {um(c.rmse_x_validation)} | "
+                f"{_md(params_text(c, '; ', bounds=True)) or '-'} | {fit} |")
 
     lines += [row(c, i + 1) for i, c in enumerate(d.ranking)]
     if d.pair is not None:
@@ -79,14 +80,14 @@ def summary_markdown(d) -> str:
             if "error" in r:
                 lines.append(f"| {_md(r.get('subsystem', '?'))} | failed: {_md(r['error'])} | | |")
                 continue
-            rmse, floor = _subsystem_value(r)
+            rmse, floor = subsystem_value(r)
             lines.append(f"| {_md(r.get('subsystem', '?'))} | {rmse} | {floor} | "
-                         + ("within noise" if r.get("within_noise") else _pct(r.get("share_of_error"))) + " |")
+                         + ("within noise" if r.get("within_noise") else pct(r.get("share_of_error"))) + " |")
     w = d.whiteness or {}
     if w:
         lines += ["", "## Whiteness of the nominal model's position error", "",
-                  f"Ljung-Box Q {_sig(w.get('ljung_box_q'))} over {w.get('lags', '?')} lags, p = "
-                  f"{_sig(w.get('p_value'), 2)}, lag-1 autocorrelation {_sig(w.get('acf_1'), 2)}: "
+                  f"Ljung-Box Q {sig(w.get('ljung_box_q'))} over {w.get('lags', '?')} lags, p = "
+                  f"{sig(w.get('p_value'), 2)}, lag-1 autocorrelation {sig(w.get('acf_1'), 2)}: "
                   + ("random like noise." if w.get("white") else "structured (p < 0.001): the model misses something.")]
     return "\n".join(lines) + "\n"
 
@@ -98,12 +99,12 @@ def regions_markdown(d) -> str:
              + (" before -> after |" if has_after else " |"),
              "|---|---|---|---|---|---|"]
     for i, r in enumerate(d.regions or []):
-        rm = _um(r.get("rmse_x"))
+        rm = um(r.get("rmse_x"))
         if has_after and "rmse_x_after" in r:
-            rm += f" -> {_um(r['rmse_x_after'])}"
+            rm += f" -> {um(r['rmse_x_after'])}"
         c = r.get("concentration", math.nan)
-        lines.append(f"| {i} | {_md(r.get('where', '?'))} | {_pct(r.get('share_of_error'))} | "
-                     f"{_pct(r.get('fraction_of_samples'))} | {c:.2f} | {rm} |")
+        lines.append(f"| {i} | {_md(r.get('where', '?'))} | {pct(r.get('share_of_error'))} | "
+                     f"{pct(r.get('fraction_of_samples'))} | {c:.2f} | {rm} |")
     return "\n".join(lines) + "\n"
 
 

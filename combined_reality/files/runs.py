@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import os
-import secrets
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
@@ -18,7 +17,10 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["REQUIRED_COLUMNS", "RunFormatError", "Run", "read_run", "write_run", "RunRecorder"]
+from .atomic import atomic_write
+
+__all__ = ["REQUIRED_COLUMNS", "RunFormatError", "Run", "read_run", "write_run", "RunRecorder", "split_at_gaps",
+           "cylinder_identity", "cylinder_tag", "recorded_cylinder", "recorded_elsewhere"]
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("t", "u", "x", "p1", "p2")
 _PRESSURES = ("p1", "p2", "ps")
@@ -405,41 +407,6 @@ def _comment_lines(comments: Iterable[str]) -> str:
         for line in c.splitlines() or [""]:  # a multi-line comment must not break the file
             out.append(f"# {line}".rstrip() + "\n")
     return "".join(out)
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write via a temporary file, fsync and rename: readers see the old file or the whole new one."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    # os.open with 0o666 lets the umask decide the permissions, as for an ordinary new file
-    # (tempfile would leave the result readable by its owner only).
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    # Makes the rename itself durable; not possible on every platform, hence best effort.
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 class RunRecorder:

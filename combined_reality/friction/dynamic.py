@@ -27,9 +27,10 @@ from sim.cylinder import Cylinder
 from sim.friction_models import DIRECTIONS, FRICTION_MODELS, FrictionModel, make_friction_model, \
     without_nominal_friction
 
-from .friction_map import FIT_SPECS, FitSpec, FrictionMapError, MapPoint, fit_model
-from .identify import IdentificationError, IdentifyOptions, IdentifyResult, friction_from_newton, identify
-from .runs import Run
+from ..files import Run
+from ..identify import (IdentificationError, IdentifyOptions, IdentifyResult, friction_from_newton, identify,
+                        validate)
+from .map import FIT_SPECS, FitSpec, FrictionMapError, MapPoint, fit_model
 
 # models whose dynamic identification is offered (the map's "cvs_delta" is cvs with a free exponent)
 DYNAMIC_SPECS: tuple[str, ...] = ("cv", "karnopp", "threlfall", "cvs", "cvs_delta", "lugre", "cv_load",
@@ -294,8 +295,6 @@ class ModelComparison:
 
 
 def _compare_one(args) -> ModelComparison:
-    from .diagnose import validate
-
     cyl, train, valid, name, opts, horizon, penalty, load = args
     t0 = time.perf_counter()
     try:

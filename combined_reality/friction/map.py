@@ -39,7 +39,8 @@ import numpy as np
 from sim.cylinder import Cylinder
 from sim.friction_models import DIRECTIONS, FRICTION_MODELS, FrictionModel
 
-from .runs import Run, split_at_gaps
+from ..files import Run, split_at_gaps
+from ..identify import derivative_kernels, friction_from_newton
 
 __all__ = ["FrictionMapError", "PointsFormatError", "TooFewPointsError", "SegmentOptions", "MapPoint",
            "Breakaway", "RunPoints", "StickBand", "LinearFit", "ModelFit", "FitSpec", "FIT_SPECS",
@@ -156,12 +157,11 @@ def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 def _segments(v: np.ndarray, dt: float, opts: SegmentOptions, stuck: float) -> list[tuple[int, int]]:
     """[start, end) of the constant-velocity segments (indices into v)."""
-    from .identify import _derivative_kernels  # Savitzky-Golay: its first-derivative kernel is the LS slope
-
     n_min = max(3, int(math.ceil(opts.min_duration / dt)))
     w = max(1, n_min // 2)  # trend: average over min_duration
     trend = np.convolve(v, np.full(2 * w + 1, 1.0 / (2 * w + 1)), mode="same")
-    slope = np.convolve(trend, _derivative_kernels(w)[0], mode="same") / dt
+    # Savitzky-Golay: its first-derivative kernel is the least-squares slope
+    slope = np.convolve(trend, derivative_kernels(w)[0], mode="same") / dt
     slope[:2 * w] = slope[len(slope) - 2 * w:] = np.inf  # no trend at the ends: never steady there
     speed = np.abs(trend)
     steady = (speed >= opts.min_speed) & (np.abs(slope) * opts.min_duration <= opts.spread * speed)
@@ -187,8 +187,6 @@ def points_from_run(cyl: Cylinder, run: Run, options: SegmentOptions = SegmentOp
     """Constant-velocity points and breakaway forces of a recorded run (Newton's law with the
     measured pressures: identify.friction_from_newton). `load`: a constant normal load (N)
     to attach to the points (the load models need one)."""
-    from .identify import friction_from_newton
-
     name = str(run.source) if run.source is not None else "run"
     pa = cyl.supply.atmosphere
     points: list[MapPoint] = []

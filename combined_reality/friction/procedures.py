@@ -33,11 +33,12 @@ import numpy as np
 
 from hw.rig import Rig, Sample, Status
 from sim.cylinder import Cylinder
-from sim.plant import G, KAPPA, R_AIR, RHO0, T0, build_plant
+from sim.flow import G, KAPPA, R_AIR, RHO0, T0
+from sim.plant import build_plant
 
-from .excitation import ProgramOptions, guarded
-from .identify import friction_from_newton
-from .runs import Run, RunRecorder, atomic_write
+from ..files import Run, RunRecorder, atomic_write
+from ..identify import friction_from_newton
+from ..live import ProgramOptions, guarded
 
 __all__ = ["ProcedureError", "SafetyOptions", "BreakawayOptions", "SweepOptions", "BreakawayTrial",
            "DirectionSummary", "BreakawayResult", "SweepPoint", "SweepResult", "breakaway_test", "speed_sweep",

@@ -23,13 +23,14 @@ import numpy as np
 
 from sim.compiled import shooting_functions
 from sim.cylinder import Cylinder
-from sim.effects import Effect
+from sim.extension import Effect
 from sim.integrator import IntegratorOptions
 from sim.plant import build_plant
 
-from .identify import (ShootingProblem, _bounds, _layout, _linearize, _reduce, _solve_bounded, _unit,
-                       equation_error_friction, free_parameters, line_search, residual_scales, scaled_inverse)
-from .runs import Run
+from ..files import Run
+from .newton import equation_error_friction
+from .shooting import (ShootingProblem, free_parameters, line_search, linearize, parameter_bounds, parameter_unit,
+                       reduce_nodes, residual_scales, run_layout, scaled_inverse, solve_bounded)
 
 
 @dataclass(frozen=True)
@@ -84,7 +85,7 @@ class MovingHorizonEstimator:
         self.sf = shooting_functions(plant, M, self.free, options.integrator, progress=progress)
         self.wts, self.sscale = residual_scales(plant, cyl, self.dt)
         self.p = np.array(plant.parameter_vector(cyl), float)
-        self.lower, self.upper = _bounds(plant, self.names)
+        self.lower, self.upper = parameter_bounds(plant, self.names)
         self.theta = np.clip(self.p[self.free], self.lower, self.upper)
         # a weak prior (ten times the starting value) keeps an unexcited first window solvable
         typical = np.maximum(np.abs(self.theta), 1e-3 * (self.upper - self.lower))
@@ -101,7 +102,7 @@ class MovingHorizonEstimator:
         self._fitted = False
         self._seen = 0  # stream index one past the newest row
         self._prev: dict | None = None  # the last update's window start, nodes, trajectory, Jacobians
-        self.units = {n: _unit(plant, n) for n in self.names}
+        self.units = {n: parameter_unit(plant, n) for n in self.names}
 
     # ------------------------------------------------------------ data
     def add(self, t, u, x, p1, p2, lost_before=None) -> None:
@@ -175,7 +176,7 @@ class MovingHorizonEstimator:
             i0 = prev["i0"] + left * M
         rows = self._buf[:, i0 - self._base: i0 - self._base + N]
         run = Run(t=rows[0], u=rows[1], x=rows[2], p1=rows[3], p2=rows[4])
-        lay = _layout(run, self.plant, self.cyl, M, 0)
+        lay = run_layout(run, self.plant, self.cyl, M, 0)
         if self._problem is None:
             self._problem = ShootingProblem(self.sf, K, self._threads, lay.W, lay.H, lay.Y, lay.mask,
                                             self.wts, self.sscale, self.nxt)
@@ -231,7 +232,7 @@ class MovingHorizonEstimator:
                 raise RuntimeError(f"online estimate: the simulation of the window at t = {run.t[0]:.3f} s "
                                    "is not finite; check the cylinder file against the rig")
             E, D, X = ev[0], ev[1], ev[2]
-            P, Q, q, Js, Jt, r0 = _reduce(_linearize(ev, prob.out_idx, self.wts, lay.mask, M, nx, len(self.wts), nth),
+            P, Q, q, Js, Jt, r0 = reduce_nodes(linearize(ev, prob.out_idx, self.wts, lay.mask, M, nx, len(self.wts), nth),
                                           E, D * self.sscale[:, None], self.has_next, nx, nth)
             js, jt, r = Js.reshape(-1, nx), Jt.reshape(-1, nth), r0.reshape(-1)
             dev = theta - self.prior_mean
@@ -244,7 +245,7 @@ class MovingHorizonEstimator:
             # a bounded line search: an update that cannot improve keeps the previous
             # estimate and tries again with the next data, instead of stalling the stream
             for lam in (lam, max(1e-2, 10 * lam)):
-                step = _solve_bounded(Nm, g, theta, self.lower, self.upper, nx, lam)
+                step = solve_bounded(Nm, g, theta, self.lower, self.upper, nx, lam)
                 if step is None:
                     continue
                 ds0, dth = step[:nx], step[nx:]

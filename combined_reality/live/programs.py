@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.cylinder import Cylinder
-from sim.plant import R_AIR, RHO0, T0
+from sim.flow import R_AIR, RHO0, T0
 
 
 @dataclass(frozen=True)

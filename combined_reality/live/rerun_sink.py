@@ -19,33 +19,13 @@ import rerun as rr
 from sim.cylinder import Cylinder
 from sim.plant import build_plant
 
-from .identify import friction_from_newton
-from .online import OnlineEstimate
-from .runs import Run
-
-APP_ID = "combined_reality"
-
-
-def open_recording(mode: str, target: str | None = None) -> rr.RecordingStream | None:
-    """`spawn` a viewer, `connect` to one at ADDR (rerun+http://host:port/proxy), `save` to a
-    .rrd file, or `off`."""
-    if mode == "off":
-        return None
-    rec = rr.RecordingStream(APP_ID)
-    if mode == "spawn":
-        rec.spawn()
-    elif mode == "connect":
-        rec.connect_grpc(target) if target else rec.connect_grpc()
-    elif mode == "save":
-        if not target:
-            raise ValueError("--rerun save needs a file name")
-        rec.save(target)
-    else:
-        raise ValueError(f"unknown Rerun mode '{mode}' (spawn, connect ADDR, save FILE, off)")
-    return rec
+from ..files import Run
+from ..identify import OnlineEstimate, friction_from_newton
 
 
 class RerunSink:
+    """A session sink that logs to a Rerun recording (see the entity paths above)."""
+
     def __init__(self, rec: rr.RecordingStream, cyl: Cylinder, window_s: float = 2.0):
         self.rec, self.cyl, self.window_s = rec, cyl, window_s
         self._plant = build_plant("command")

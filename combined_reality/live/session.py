@@ -24,11 +24,11 @@ from hw.rig import Rig, Sample
 from hw.virtual_rig import VirtualRig
 from sim.compiled import shooting_functions
 from sim.cylinder import Cylinder
-from sim.effects import Effect
+from sim.extension import Effect
 from sim.plant import build_plant
 
-from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
-from .runs import Run, RunRecorder
+from ..files import Run, RunRecorder
+from ..identify import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
 
 
 class EndOfRun(Exception):

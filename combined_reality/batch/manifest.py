@@ -1,0 +1,174 @@
+"""The batch manifest: which cylinders to identify, from which runs (or simulated by the
+virtual rig), with which friction model. A manifest that cannot be read as a whole is
+refused with one sentence (ManifestError); a bad file of one cylinder fails only its row."""
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+import os
+import tomllib
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from ..friction import DYNAMIC_SPECS, check_model
+
+__all__ = ["MODELS_HELP", "ManifestError", "SimulateSpec", "CylinderJob", "load_manifest"]
+
+
+MODELS_HELP = "nominal (the cylinder file's Fc + Fv v + kp |dp|) or a friction model of the family"
+
+
+class ManifestError(ValueError):
+    """The manifest cannot be read as a whole (its rows cannot even be listed)."""
+
+
+@dataclass(frozen=True)
+class SimulateSpec:
+    """Runs made by the virtual rig: `runs` runs of `duration` s with seeds seed, seed+1, ...,
+    with `effects` (effect words or a friction model, 'name:k=v,...') as the truth."""
+
+    duration: float = 20.0
+    seed: int = 1
+    effects: tuple[str, ...] = ()
+    runs: int = 1
+    rate: float = 1000.0
+    noise: bool = True
+
+
+@dataclass(frozen=True)
+class CylinderJob:
+    name: str
+    config: str  # absolute path
+    runs: tuple[str, ...] = ()  # absolute paths
+    simulate: SimulateSpec | None = None
+    model: str = "nominal"
+    diagnose: bool = False
+    runs_dir: str = ""  # where simulated runs are kept (DIR/runs)
+
+    def content_hash(self) -> str:
+        """Everything the row depends on; a missing file hashes as missing (and fails)."""
+        h = hashlib.sha256()
+        recipe = {"code": _code_fingerprint(), "name": self.name, "model": self.model,
+                  "diagnose": self.diagnose, "simulate": asdict(self.simulate) if self.simulate else None}
+        h.update(json.dumps(recipe, sort_keys=True).encode())
+        for p in (self.config, *self.runs):
+            h.update(b"\0" + Path(p).name.encode() + b"\0")
+            try:
+                h.update(hashlib.sha256(Path(p).read_bytes()).digest())
+            except OSError:
+                h.update(b"missing")
+        return h.hexdigest()[:24]
+
+
+@functools.lru_cache(maxsize=1)
+def _code_fingerprint() -> str:
+    """The source of the model, rig and application packages: a row computed by other code is
+    not reused (an upgrade, a fix of the identification)."""
+    import hw
+    import sim
+
+    h = hashlib.sha256()
+    for pkg in (Path(sim.__file__).parent, Path(hw.__file__).parent, Path(__file__).parent.parent):
+        for f in sorted(pkg.rglob("*.py")):
+            h.update(f.relative_to(pkg).as_posix().encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+_CYLINDER_KEYS = {"name", "config", "runs", "simulate", "model"}
+
+
+_SIMULATE_KEYS = {"duration", "seed", "effect", "runs", "rate", "noise"}
+
+
+def load_manifest(path: str | os.PathLike[str], runs_dir: Path | None = None,
+                  diagnose: bool = False) -> list[CylinderJob]:
+    """The manifest's cylinders as jobs. Structural faults (TOML syntax, a missing name, an
+    unknown key, duplicate names, an unknown model) raise ManifestError with one sentence;
+    files that are missing or bad fail their own row later, not the batch."""
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise ManifestError(f"cannot read the manifest {path}: {e.strerror or e}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ManifestError(f"{path} is not valid TOML: {e}") from None
+    unknown = set(doc) - {"cylinder", "model", "simulate"}
+    if unknown:
+        raise ManifestError(f"{path}: unknown top-level key(s) {', '.join(sorted(unknown))} "
+                            "(expected [[cylinder]] tables, and optionally model = ... and [simulate] defaults).")
+    entries = doc.get("cylinder")
+    if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
+        raise ManifestError(f"{path} lists no cylinders: add [[cylinder]] tables with name, config and runs "
+                            "(or simulate).")
+    default_model = doc.get("model", "nominal")
+    default_sim = doc.get("simulate", {})
+    if not isinstance(default_sim, dict):
+        raise ManifestError(f"{path}: the top-level simulate must be a table of defaults.")
+    base = path.resolve().parent
+    jobs, seen = [], set()
+    for i, e in enumerate(entries, 1):
+        where = f"{path}, cylinder {i}"
+        name = e.get("name")
+        if not isinstance(name, str) or not name.strip():
+            raise ManifestError(f"{where}: every cylinder needs a name (a non-empty string).")
+        where = f"{path}, cylinder '{name}'"
+        if name in seen:
+            raise ManifestError(f"{where}: the name is used twice; names identify rows and must be unique.")
+        seen.add(name)
+        bad = set(e) - _CYLINDER_KEYS
+        if bad:
+            raise ManifestError(f"{where}: unknown key(s) {', '.join(sorted(bad))} "
+                                f"(known: {', '.join(sorted(_CYLINDER_KEYS))}).")
+        config = e.get("config")
+        if not isinstance(config, str):
+            raise ManifestError(f"{where}: config must name a cylinder file.")
+        model = e.get("model", default_model)
+        try:
+            check_model(model)
+        except (ValueError, TypeError):
+            raise ManifestError(f"{where}: unknown model {model!r} ({MODELS_HELP}: "
+                                f"{', '.join(DYNAMIC_SPECS)}).") from None
+        runs, sim = e.get("runs"), e.get("simulate")
+        if (runs is None) == (sim is None):
+            raise ManifestError(f"{where}: give either runs = [...] (recorded runs) or simulate = {{...}}, "
+                                "exactly one of them.")
+        if runs is not None and (not isinstance(runs, list) or not runs or not all(isinstance(r, str) for r in runs)):
+            raise ManifestError(f"{where}: runs must be a non-empty list of run CSV paths.")
+        spec = None
+        if sim is not None:
+            if not isinstance(sim, dict):
+                raise ManifestError(f"{where}: simulate must be a table, e.g. {{duration = 20, seed = 1}}.")
+            spec = _simulate_spec({**default_sim, **sim}, where, diagnose)
+        jobs.append(CylinderJob(name=name, config=str((base / config).resolve()),
+                                runs=tuple(str((base / r).resolve()) for r in runs or ()),
+                                simulate=spec, model=model, diagnose=diagnose,
+                                runs_dir=str(runs_dir) if runs_dir is not None else ""))
+    return jobs
+
+
+def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
+    bad = set(sim) - _SIMULATE_KEYS
+    if bad:
+        raise ManifestError(f"{where}: unknown simulate key(s) {', '.join(sorted(bad))} "
+                            f"(known: {', '.join(sorted(_SIMULATE_KEYS))}).")
+    eff = sim.get("effect", [])
+    effects = tuple(eff) if isinstance(eff, list) else (eff,)
+    if not all(isinstance(x, str) for x in effects):
+        raise ManifestError(f"{where}: simulate.effect must be a string 'name:k=v,...' or a list of them.")
+    # TOML has types: a seed of 1.5 or a duration of true is a slip, not something to round
+    raw = {"duration": sim.get("duration", 20.0), "rate": sim.get("rate", 1000.0), "seed": sim.get("seed", 1),
+           "runs": sim.get("runs", 2 if diagnose else 1)}
+    for k, v in raw.items():
+        whole = k in ("seed", "runs")
+        if isinstance(v, bool) or not isinstance(v, int if whole else (int, float)):
+            raise ManifestError(f"{where}: simulate.{k} must be {'a whole number' if whole else 'a number'}, "
+                                f"not {v!r}.")
+    duration, rate, seed, runs = float(raw["duration"]), float(raw["rate"]), raw["seed"], raw["runs"]
+    if not (duration > 0 and math.isfinite(duration)) or not 10 <= rate <= 100_000 or runs < 1:
+        raise ManifestError(f"{where}: simulate needs duration > 0 s, 10 <= rate <= 100000 Hz and runs >= 1.")
+    noise = sim.get("noise", True)
+    if not isinstance(noise, bool):
+        raise ManifestError(f"{where}: simulate.noise must be true or false.")
+    return SimulateSpec(duration=duration, seed=seed, effects=effects, runs=runs, rate=rate, noise=noise)

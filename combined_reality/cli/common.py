@@ -1,0 +1,128 @@
+"""What every subcommand shares (the application itself is imported by a subcommand when it
+runs, so that `--help` and process start stay fast): the bad-input error, output on stderr, the cylinder file
+(or the built-in one), the --effect and --estimate lists, the --rerun mode, and the rig a
+subcommand drives (--serial, --can or the virtual rig).
+
+Exit status of every subcommand: 0 success, 2 bad input (files, options: one sentence),
+1 a failure of the tool, 130 interrupted.
+"""
+from __future__ import annotations
+
+import math
+import sys
+from importlib import resources
+from pathlib import Path
+from typing import Callable, Sequence
+
+from sim.cylinder import Cylinder, load_cylinder
+
+__all__ = ["UsageError", "eprint", "progress_printer", "default_config_path", "load_config", "parse_effects",
+           "estimate_list", "positive_float", "rerun_mode", "open_rig", "EFFECT_HELP"]
+
+EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 (repeatable; any word of the "
+               "vocabulary, see docs/effects.md), or a friction model of the family as the friction, e.g. "
+               "cvs:Fc_pos=1.59,Fs_pos=6 (docs/friction.md)")
+
+
+class UsageError(ValueError):
+    """Bad input from the command line (exit status 2)."""
+
+
+def eprint(msg: str) -> None:
+    """One line on stderr, at once (progress, warnings, errors)."""
+    print(msg, file=sys.stderr, flush=True)
+
+
+def progress_printer(quiet: bool) -> Callable[[str], None] | None:
+    """Where progress lines go: stderr, or nowhere with -q."""
+    return None if quiet else eprint
+
+
+def default_config_path() -> Path:
+    """The built-in cylinder A (32 mm x 100 mm) of the combined-reality paper."""
+    return Path(str(resources.files("combined_reality") / "data" / "cyl_a_32x100.toml"))
+
+
+def load_config(path: str | None) -> Cylinder:
+    """The cylinder file given with --config, else the built-in one."""
+    return load_cylinder(path if path else default_config_path())
+
+
+def parse_effects(specs: Sequence[str] | None) -> list:
+    """--effect values: words of the effect vocabulary, or a friction model of the family
+    (which replaces the cylinder file's friction), each as 'name:k=v,k=v'."""
+    from sim.extension import check_combination
+    from sim.friction_models import parse_truth_spec
+
+    effects = []
+    for spec in specs or ():
+        try:
+            effects.append(parse_truth_spec(spec))
+        except ValueError as e:
+            raise UsageError(f"--effect {spec}: {e}.") from None
+    try:
+        check_combination(effects)
+    except ValueError as e:
+        raise UsageError(f"--effect: {e}.") from None
+    return effects
+
+
+def estimate_list(arg: str | None, cyl: Cylinder) -> tuple[str, ...]:
+    """--estimate NAME,NAME: the parameters to estimate (default: the cylinder file's [identify])."""
+    if arg is None:
+        return cyl.identify.estimate
+    names = tuple(s.strip() for s in arg.split(",") if s.strip())
+    if not names:
+        raise UsageError("--estimate needs at least one parameter name.")
+    return names
+
+
+def positive_float(text: str, what: str) -> float:
+    """A positive, finite number given as text, or a UsageError naming the option."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise UsageError(f"{what} {text}: give a number or max.") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise UsageError(f"{what} must be positive, not {text}.")
+    return v
+
+
+def rerun_mode(words: Sequence[str]) -> tuple[str, str | None]:
+    """--rerun spawn | connect [ADDR] | save FILE | off, as (mode, target)."""
+    mode, *rest = words
+    if mode not in ("spawn", "connect", "save", "off"):
+        raise UsageError(f"--rerun {mode}: use spawn, connect ADDR, save FILE or off.")
+    if mode == "save" and len(rest) != 1:
+        raise UsageError("--rerun save needs exactly one file name (--rerun save session.rrd).")
+    if mode in ("spawn", "off") and rest or len(rest) > 1:
+        raise UsageError(f"--rerun {' '.join(words)}: too many arguments.")
+    return mode, (rest[0] if rest else None)
+
+
+def open_rig(args, cyl: Cylinder, effects: Sequence = (), *, rate: float = 1000.0, paced: bool = True):
+    """The rig named by --serial PORT, --can CH [--interface], else the virtual rig in this
+    process (paced to real time, or as fast as the CPU allows)."""
+    from hw.rig import RigError
+
+    try:
+        if args.serial:
+            from hw.serial_rig import SerialRig
+
+            return SerialRig(args.serial, on_event=eprint)
+        if args.can:
+            from hw.can_rig import CanRig
+
+            # python-can's slcan waits 2 s after opening unless told otherwise
+            extra = {"sleep_after_open": 0.1} if args.interface == "slcan" else {}
+            return CanRig(args.can, interface=args.interface, on_event=eprint, **extra)
+    except RigError as e:
+        raise UsageError(f"{e}.") from None
+    from hw.virtual_rig import VirtualRig
+
+    rig = VirtualRig(cyl, effects, rate=rate, seed=args.seed)
+    if paced:
+        from ..live import PacedRig
+
+        return PacedRig(rig)
+    return rig

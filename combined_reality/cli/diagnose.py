@@ -1,0 +1,95 @@
+"""`combined-reality diagnose`: why the simulation still differs from the rig."""
+from __future__ import annotations
+
+import math
+import os
+
+from .common import UsageError, eprint, load_config, progress_printer, rerun_mode
+
+
+def add_parser(sub) -> None:
+    dg = sub.add_parser("diagnose",
+                        help="explain the sim-to-real gap: where, which unmodelled effect, how far it shrinks",
+                        description="Identify the nominal model on TRAIN and score it on VALID, a run no fit sees; "
+                                    "then add every effect of the vocabulary in turn, re-identify it on TRAIN and "
+                                    "score it on VALID. Prints the verdict (the effect that best explains the gap, "
+                                    "or none), the ranking with each candidate's shrink of the validation error, "
+                                    "and where the gap lies (operating regimes, subsystems).")
+    dg.add_argument("train", help="run CSV the models are identified on")
+    dg.add_argument("--validate", required=True, help="run CSV the models are scored on (never fitted)")
+    dg.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
+    dg.add_argument("--json", help="write the diagnosis (docs/formats.md)")
+    dg.add_argument("--report", metavar="REPORT.html", help="write a self-contained HTML report with plots")
+    dg.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
+                    help="show the diagnosis in Rerun: spawn | connect ADDR | save FILE.rrd | off (default)")
+    dg.add_argument("--candidates", help="comma-separated effects to try (default: the whole vocabulary)")
+    dg.add_argument("--horizon", type=float, default=1.0, help="validation simulation horizon, s (default 1)")
+    dg.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                    help="parallel processes for the candidates (default: the number of CPUs)")
+    dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    dg.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from sim.effects import EFFECTS
+
+    from ..diagnose import DiagnoseOptions, diagnose
+    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
+
+    cyl = load_config(args.config)
+    train, valid = read_run(args.train), read_run(args.validate)
+    check_train_and_valid(cyl, train, valid, args.train, args.validate, "diagnose")
+    names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
+    unknown = [n for n in names if n not in EFFECTS]
+    if unknown:
+        raise UsageError(f"--candidates: unknown effect {', '.join(unknown)} (known: {', '.join(EFFECTS)}).")
+    if not (args.horizon > 0 and math.isfinite(args.horizon)):
+        raise UsageError(f"--horizon must be a positive number of seconds, not {args.horizon}.")
+    mode, target = rerun_mode(args.rerun)
+    if args.report and not args.report.lower().endswith((".html", ".htm")):
+        raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
+    opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers))
+    diagnosis = diagnose(cyl, train, valid, opts, progress=progress_printer(args.quiet))
+    result = diagnosis.to_json()
+    print(format_summary(result, args.horizon))
+    if args.json:
+        write_json_atomic(args.json, clean_json(result))
+    if args.report:
+        from ..diagnose.report import write_report
+
+        write_report(diagnosis, args.report)
+        if not args.quiet:
+            eprint(f"wrote the report {args.report}")
+    if mode != "off":
+        from ..diagnose.rerun import log_diagnosis
+        from ..report.rerun import open_recording
+
+        rec = open_recording(mode, target)
+        log_diagnosis(diagnosis, rec)
+        rec.flush()  # the .rrd (or the viewer) holds everything before the process ends
+        rec.disconnect()
+    return 0
+
+
+def format_summary(result: dict, horizon_s: float) -> str:
+    """The console view of a diagnosis (its JSON form): baseline, verdict, ranking, where."""
+    base = result["baseline"]
+    lines = [f"validation position RMSE of the nominal model: {base['rmse_x_validation'] * 1e6:.1f} um "
+             f"(segments of {horizon_s:g} s, all outputs {base['normalized_rms']:.2f} x the sensor noise)",
+             f"verdict: {result['verdict']}",
+             f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'z':>6s} {'rmse_x [um]':>12s}  parameters"]
+    for c in result["ranking"]:
+        pars = ", ".join(f"{k}={v:.4g}±{c['std'][k]:.2g}" for k, v in c["params"].items())
+        mark = "*" if c["significant"] else " "
+        lines.append(f"{c['effect']:20s} {c['shrink']:8.1%} {c['shrink_all']:8.1%} {c['z']:6.1f}{mark}"
+                     f"{c['rmse_x_validation'] * 1e6:12.1f}  {pars or c.get('error', '')}")
+    if result["pair"] is not None:
+        c = result["pair"]
+        lines.append(f"best pair {c['effect']}: shrink {c['shrink']:.1%}"
+                     + ("" if c["significant"] else " (no significant gain over the verdict alone)"))
+    lines.append("where the gap lies (share of the squared error / share of the samples):")
+    for r in result["regions"][:5]:
+        lines.append(f"  {r['where']:34s} {r['share_of_error']:6.1%} / {r['fraction_of_samples']:6.1%}")
+    for r in result["subsystems"]:
+        lines.append(f"  {r['subsystem']:62s} {r['share_of_error']:6.1%} of the excess error")
+    return "\n".join(lines)

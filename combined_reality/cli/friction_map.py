@@ -1,0 +1,199 @@
+"""`combined-reality friction-map`: the static friction map of recorded runs or points tables.
+
+    combined-reality friction-map INPUT [INPUT ...] [--model NAME ...] [--config CYL.toml]
+        --json OUT.json [--plot OUT.png] [-q]
+
+INPUT is a recorded run (t,u,x,p1,p2; the cylinder file gives areas and mass) or a points
+table (header with v,F). The map and its JSON: combined_reality.friction.map, docs/friction.md.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from sim.friction_models import parameter_unit
+
+from ..friction.map import FIT_SPECS, FrictionMap, FrictionMapError, SegmentOptions
+from .common import UsageError, default_config_path, eprint
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    """Register `friction-map` on the argparse subparsers `sub`."""
+    p = sub.add_parser(
+        "friction-map", help="static friction-velocity map of runs or points tables, fitted by the friction models",
+        description="Build the static friction map (seeds 000, 004): one point per constant-velocity stretch of "
+                    "each recorded run (friction from Newton's law with the measured pressures) or the rows of "
+                    "points tables (CSV with columns v,F in m/s and N, the sign of v giving the direction), "
+                    "and fit the friction models per direction with uncertainties and identifiability flags.")
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="recorded run CSV (t,u,x,p1,p2) or points table CSV (v,F[,F_std,count,dp,pc,load,breakaway]); "
+                        "rows with breakaway = 1 (procedure breakaway) are breakaway forces, not sliding points")
+    p.add_argument("--model", action="append", metavar="NAME",
+                   help=f"model to fit, repeatable or comma-separated (default: every model that the points "
+                        f"allow; known: {', '.join(FIT_SPECS)})")
+    p.add_argument("--config", help="cylinder TOML for recorded runs (default: the built-in cylinder A)")
+    p.add_argument("--json", required=True, metavar="OUT.json", help="write the map and the fits")
+    p.add_argument("--plot", metavar="OUT.png", help="plot the map with the fitted curves (needs matplotlib)")
+    p.add_argument("--min-duration", type=float, default=SegmentOptions.min_duration,
+                   help=f"shortest constant-velocity stretch of a run, s (default {SegmentOptions.min_duration:g})")
+    p.add_argument("--min-speed", type=float, default=SegmentOptions.min_speed,
+                   help=f"slowest sustained motion that makes a point, m/s (default {SegmentOptions.min_speed:g})")
+    p.add_argument("--spread", type=float, default=SegmentOptions.spread,
+                   help=f"largest relative change and spread of the velocity trend within a stretch "
+                        f"(default {SegmentOptions.spread:g})")
+    p.add_argument("--load", type=float, metavar="N",
+                   help="constant normal load of the runs, N (for the load models cv_load, cvs_load)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=run)
+    return p
+
+
+def _model_names(args) -> tuple[list[str] | None, bool]:
+    if not args.model:
+        return None, False
+    names = [n.strip() for item in args.model for n in item.split(",") if n.strip()]
+    unknown = [n for n in names if n not in FIT_SPECS]
+    if unknown or not names:
+        raise UsageError(f"--model: unknown model {', '.join(unknown) or '(none given)'} "
+                         f"(known: {', '.join(FIT_SPECS)}).")
+    return list(dict.fromkeys(names)), True
+
+
+def run(args) -> int:
+    from sim.cylinder import load_cylinder
+
+    from ..files import check_run_against_cylinder, clean_json, read_run, write_json_atomic
+    from ..friction.map import build_map, is_points_table, plot_map, points_from_run, read_points
+
+    models, explicit = _model_names(args)
+    try:
+        options = SegmentOptions(min_duration=args.min_duration, min_speed=args.min_speed, spread=args.spread)
+    except FrictionMapError as e:
+        raise UsageError(f"{str(e).rstrip('.').replace('min_', '--min-').replace('spread', '--spread')}.") from None
+    if args.load is not None and not (math.isfinite(args.load) and args.load >= 0):
+        raise UsageError(f"--load must be a non-negative force in N, not {args.load}.")
+    say = (lambda msg: None) if args.quiet else eprint
+
+    cyl = None
+    points, breakaways, runs_json = [], [], []
+    stuck_time = None
+    stuck_speeds = []
+    for path in args.inputs:
+        try:
+            table = is_points_table(path)
+            if table:
+                pts = read_points(path)
+                points.extend(pts)
+                nb = sum(p.breakaway for p in pts)
+                say(f"{path}: points table, {len(pts) - nb} sliding points" + (f", {nb} breakaway rows" if nb else ""))
+                continue
+        except FrictionMapError as e:
+            raise UsageError(str(e)) from None
+        if not Path(path).is_file():
+            raise UsageError(f"{path}: file not found.")
+        if cyl is None:
+            cyl = load_cylinder(args.config if args.config else default_config_path())
+        run_ = read_run(path)
+        check_run_against_cylinder(run_, cyl)
+        rp = points_from_run(cyl, run_, options, load=args.load)
+        points.extend(rp.points)
+        breakaways.extend(rp.breakaways)
+        stuck_time = (stuck_time or 0.0) + rp.stuck_time
+        stuck_speeds.append(rp.stuck_speed)
+        runs_json.append({"source": str(path), "duration_s": rp.duration, "points": len(rp.points),
+                          "breakaways": len(rp.breakaways), "stuck_time_s": rp.stuck_time,
+                          "moving_time_s": rp.moving_time})
+        say(f"{path}: run of {rp.duration:.1f} s, {len(rp.points)} constant-velocity points "
+            f"({sum(p.v > 0 for p in rp.points)} extending, {sum(p.v < 0 for p in rp.points)} retracting), "
+            f"{len(rp.breakaways)} breakaways")
+    inputs = ", ".join(str(p) for p in args.inputs)
+    if points and all(p.breakaway for p in points):
+        raise UsageError(f"{inputs}: only breakaway rows, no sliding points; give the map a sweep's points table "
+                         f"or a recorded run beside the breakaway table.")
+    if not points:
+        raise UsageError(f"{inputs}: no constant-velocity stretch found (at least {options.min_duration:g} s above "
+                         f"{options.min_speed:g} m/s within {options.spread:.0%} velocity spread); record moves at "
+                         f"constant speed or relax --min-duration / --spread.")
+    try:
+        fmap = build_map(points, models, breakaways, stuck_speed=max(stuck_speeds) if stuck_speeds else None,
+                         stuck_time=stuck_time, min_speed=options.min_speed if runs_json else None, strict=explicit)
+    except FrictionMapError as e:
+        raise UsageError(f"{inputs}: {e}") from None
+    if not any(d.fits for d in fmap.directions.values()):
+        # one reason per direction (they differ only in the model's name)
+        reasons = "; ".join(next(iter(d.skipped.values())).rstrip(".") for d in fmap.directions.values() if d.skipped)
+        raise UsageError(f"{inputs}: no model could be fitted ({reasons}).")
+
+    print(format_table(fmap))
+    out = fmap.to_json()
+    out["inputs"] = [str(p) for p in args.inputs]
+    if cyl is not None:
+        out["config"] = str(cyl.source) if cyl.source else None
+        out["runs"] = runs_json
+        out["segment_options"] = {"min_duration": options.min_duration, "min_speed": options.min_speed,
+                                  "spread": options.spread, "stuck_speed": max(stuck_speeds),
+                                  "stuck_duration": options.stuck_duration}
+    write_json_atomic(args.json, clean_json(out))
+    say(f"wrote {args.json}")
+    if args.plot:
+        try:
+            Path(args.plot).parent.mkdir(parents=True, exist_ok=True)  # as the JSON writer does
+            plot_map(fmap, args.plot, title=f"friction map: {inputs}")
+        except FrictionMapError as e:
+            eprint(f"combined-reality friction-map: {e}")
+            return 1
+        except OSError as e:
+            eprint(f"combined-reality friction-map: --plot {args.plot}: cannot be written ({e.strerror or e}); "
+                    f"the JSON is written.")
+            return 1
+        say(f"wrote {args.plot}")
+    return 0
+
+
+def _value(x: float | None, s: float | None) -> str:
+    if x is None:
+        return "-"
+    if s is None:
+        return f"{x:.4g}"
+    return f"{x:.4g}±{s:.2g}" if math.isfinite(s) else f"{x:.4g}±inf"
+
+
+def format_table(fmap: FrictionMap) -> str:
+    """Per direction: the points, the stick band, and every fit (metrics, parameters, flags)."""
+    lines = []
+    for direction, d in fmap.directions.items():
+        band = d.stick_band
+        speeds = sorted(abs(p.v) for p in d.points if not p.breakaway)
+        if speeds:
+            head = (f"{direction}: {len(speeds)} sliding points, {speeds[0] * 1e3:.3g} .. {speeds[-1] * 1e3:.3g} mm/s; "
+                    f"stick band: no steady sliding below {band.dv * 1e3:.3g} mm/s"
+                    + (" (the detector's min speed)" if band.at_detector_limit else ""))
+        else:
+            head = f"{direction}: no sliding points"
+        if band.breakaway_count:
+            std = f" ± {band.breakaway_std:.2g}" if band.breakaway_std is not None else ""
+            head += f"; {band.breakaway_count} breakaways, mean {band.breakaway_mean:.4g}{std} N"
+        lines.append(head)
+        rows = [("model", "RMSE [N]", "R2", "MAE [N]", "AICc", "parameters (value±std)", "flags")]
+        scores = {n: f.aicc for n, f in d.fits.items() if f.aicc is not None}
+        best = min(scores, key=scores.get) if scores else None
+        lin = d.linear
+        if lin is not None:
+            pars = f"Fc={_value(lin.Fc, lin.std['Fc'])} N, B={_value(lin.B, lin.std['B'])} N s/m"
+            rows.append(("linear", f"{lin.rmse:.3g}", f"{lin.r2:.5f}", f"{lin.mae:.3g}", "", pars, ""))
+        for name, f in d.fits.items():
+            pars = ", ".join(f"{k}={_value(v, f.std.get(k))}" + (f" {parameter_unit(f.family, k)}" if parameter_unit(f.family, k) else "")
+                             for k, v in f.params.items() if v is not None)
+            flagged = ", ".join(dict.fromkeys(fl["param"] for fl in f.flags))
+            aicc = "" if f.aicc is None else f"{f.aicc:.1f}" + (" *" if name == best else "")
+            rows.append((name, f"{f.rmse:.3g}", f"{f.r2:.5f}", f"{f.mae:.3g}", aicc, pars, flagged))
+        if len(rows) > 1:
+            widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+            lines.extend("  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+        for name, why in d.skipped.items():
+            lines.append(f"  skipped {name}: {why}")
+    lines.append("Per direction: RMSE, R2 (seed 000 Eq. 10), MAE (mean |F - F_model|, seed 003's mean error), AICc "
+                 "(* lowest: the best fit for its number of parameters); flags name the parameters the points do not "
+                 "determine (reasons in the JSON).")
+    return "\n".join(lines)

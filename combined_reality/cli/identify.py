@@ -1,0 +1,108 @@
+"""`combined-reality identify`: friction (or any estimable parameter) from recorded runs."""
+from __future__ import annotations
+
+from sim.cylinder import ESTIMABLE, Cylinder, cylinder_to_toml
+
+from .common import UsageError, eprint, estimate_list, load_config, parse_effects, progress_printer
+
+
+def add_parser(sub) -> None:
+    i = sub.add_parser("identify", help="identify friction parameters from recorded runs",
+                       description="Identify parameters (Fc, Fv, kp by default) from one or more recorded runs, "
+                                   "fitted jointly, by multiple-shooting least squares: the model is driven by the "
+                                   "recorded valve command and its parameters are adjusted until the simulated "
+                                   "position and pressures match the measured ones. Prints the estimates with "
+                                   "standard deviations and the fit; exit status 1 if the solver did not converge.")
+    i.add_argument("--config", required=True, help="cylinder TOML file (its values are the starting point)")
+    i.add_argument("runs", nargs="+", metavar="RUN.csv", help="recorded runs")
+    i.add_argument("--json", help="write the result as JSON (docs/formats.md)")
+    i.add_argument("--estimate", help=f"comma-separated parameters (default from the config, else Fc,Fv,kp; "
+                                      f"estimable: {', '.join(ESTIMABLE)})")
+    i.add_argument("--drive", choices=["command", "pressure"],
+                   help="command: full model driven by the recorded valve command (default); "
+                        "pressure: piston only, driven by the measured pressures")
+    i.add_argument("--effect", action="append", metavar="NAME[:k=v,...]",
+                   help="add an unmodelled effect to the model (its parameters may be estimated as NAME.param)")
+    i.add_argument("--interval", type=float, default=0.1, help="shooting interval in seconds (default 0.1)")
+    i.add_argument("--max-iter", type=int, default=40, help="Gauss-Newton iterations at most (default 40)")
+    i.add_argument("--no-prefit", action="store_true",
+                   help="start from the config's friction values, not from the equation-error fit")
+    i.add_argument("--write-config", metavar="OUT.toml", help="write the cylinder file with identified values")
+    i.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    i.set_defaults(func=run)
+
+
+def format_table(result, truth: Cylinder | None = None) -> str:
+    """The estimates of an IdentifyResult (value, std, unit, start; with `truth`, the true value and the error),
+    the fit and the solver's status, as printed by identify and demo."""
+    rows = [("parameter", "value", "std", "unit", "initial") + (("true", "error") if truth else ())]
+    for n, e in result.params.items():
+        row = (n, f"{e.value:.6g}", f"{e.std:.3g}" + (" (at bound)" if e.at_bound else ""), e.unit, f"{e.initial:.4g}")
+        if truth:
+            tv = truth.value(n) if "." not in n else float("nan")
+            err = (e.value - tv) / tv * 100 if tv else float("nan")
+            row += (f"{tv:.6g}", f"{err:+.2f} %")
+        rows.append(row)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    f = result.fit
+    fit = [f"rmse_x {f['rmse_x'] * 1e6:.2f} um (R2 {f['r2_x']:.6f})"]
+    if "rmse_p1" in f:
+        fit.append(f"rmse_p1 {f['rmse_p1']:.0f} Pa, rmse_p2 {f['rmse_p2']:.0f} Pa")
+    if "kp" in result.params:
+        kp = result.params["kp"]
+        lines.append(f"(kp = {kp.value * 1e5:.4g} +- {kp.std * 1e5:.2g} N/bar)")
+    s = result.solver
+    lines.append("fit: " + "; ".join(fit))
+    lines.append(f"solver: {s['status']} after {s['iterations']} iterations, {s['wall_s']:.2f} s "
+                 f"({result.drive} drive, {s['n_samples']} samples, residual sigma {s['residual_sigma']:.3g} x noise)")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from ..files import check_run_against_cylinder, clean_json, read_run, write_json_atomic, write_text_atomic
+    from ..identify import IdentificationError, IdentifyOptions, identify
+
+    cyl = load_config(args.config)
+    runs = [read_run(p) for p in args.runs]
+    for r in runs:
+        check_run_against_cylinder(r, cyl)
+    effects = parse_effects(args.effect)
+    estimate = estimate_list(args.estimate, cyl)
+    effect_params = {f"{e.name}.{n}" for e in effects for n in e.param_names()}
+    for n in estimate:
+        if n not in ESTIMABLE and n not in effect_params:
+            raise UsageError(f"--estimate: unknown parameter '{n}' (estimable: {', '.join(ESTIMABLE)}"
+                             + (f", {', '.join(sorted(effect_params))}" if effect_params else "") + ").")
+    drive = args.drive or cyl.identify.drive
+    if drive == "pressure":
+        bad = [n for n in estimate if n in ("conductance", "critical_ratio", "dead_volume_cap", "dead_volume_rod")]
+        if bad:
+            raise UsageError(f"--drive pressure uses the measured pressures, so it cannot estimate {', '.join(bad)}.")
+    if not args.interval > 0:
+        raise UsageError(f"--interval must be positive, not {args.interval}.")
+    opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
+                           prefit=not args.no_prefit)
+    prog = progress_printer(args.quiet)
+    if prog:
+        prog(f"identifying {', '.join(estimate)} from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
+             f"{drive} drive")
+    try:
+        result = identify(cyl, runs, opts, effects=effects, progress=prog)
+    except IdentificationError as e:
+        eprint(f"combined-reality identify: {e}")
+        return 1
+    out = result.to_json()
+    out["config"] = str(cyl.source)
+    out["inputs"] = [str(p) for p in args.runs]
+    if args.json:
+        write_json_atomic(args.json, clean_json(out))
+    if args.write_config:
+        write_text_atomic(args.write_config, cylinder_to_toml(result.cylinder))
+    print(format_table(result))
+    status = result.solver["status"]
+    if status != "converged":
+        eprint(f"combined-reality identify: the solver stopped without converging ({status}); "
+               "the estimates above are the last iterate.")
+        return 1
+    return 0

@@ -1,0 +1,194 @@
+"""`combined-reality live` (a rig driven by an experiment program, the model in lock-step,
+online estimation) and `combined-reality replay` (a recorded run through the same session)."""
+from __future__ import annotations
+
+import math
+import signal
+import time
+from pathlib import Path
+
+from .common import (EFFECT_HELP, UsageError, eprint, estimate_list, load_config, open_rig, parse_effects,
+                     positive_float, rerun_mode)
+
+
+def _add_online_arguments(a) -> None:
+    a.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
+    a.add_argument("--json", help="write the final online estimate (identify format, plus its history)")
+    a.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
+                   help="spawn | connect ADDR | save FILE | off (default off)")
+    a.add_argument("--estimate", help="comma-separated parameters (default Fc,Fv,kp)")
+    a.add_argument("--window", type=float, default=2.0, help="moving horizon, s (default 2)")
+    a.add_argument("--update", type=float, default=0.2, help="data between estimator updates, s (default 0.2)")
+    a.add_argument("--memory", type=float, default=math.inf,
+                   help="forgetting time constant of old data, s (default inf: keep all)")
+    a.add_argument("--give-up", type=float, default=5.0, help="end the session after this long without samples, s")
+    a.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+
+
+def add_parsers(sub) -> None:
+    lv = sub.add_parser("live", help="run an experiment on a rig with the model in lock-step and online estimation",
+                        description="Drive a rig with a safe experiment program, record every sample, simulate "
+                                    "the model with the same command and estimate the friction online.")
+    src = lv.add_mutually_exclusive_group(required=True)
+    src.add_argument("--serial", metavar="PORT", help="a rig on a serial port (docs/protocol.md)")
+    src.add_argument("--can", metavar="CHANNEL", help="a rig on CAN (hw/rig_can.dbc), via python-can")
+    src.add_argument("--virtual", action="store_true", help="the virtual rig in this process, in real time")
+    lv.add_argument("--interface", default="socketcan",
+                    help="python-can interface for --can (default socketcan; slcan, ...)")
+    lv.add_argument("--program", default="mixed",
+                    help="mixed | steps | ramps | sines (closed-loop position) | pulses (open loop) | file:CMD.csv")
+    lv.add_argument("--duration", type=float, required=True, help="seconds of rig time")
+    lv.add_argument("--record", required=True, help="run CSV written as samples arrive")
+    lv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
+    lv.add_argument("--seed", type=int, default=0, help="seed of the experiment program (and the virtual rig)")
+    lv.add_argument("--rate", type=float, default=1000.0, help="sample rate of the rig, Hz (default 1000)")
+    lv.add_argument("--effect", action="append", metavar="SPEC", help=f"with --virtual: {EFFECT_HELP}, as truth")
+    _add_online_arguments(lv)
+    lv.set_defaults(func=run_live)
+
+    rp = sub.add_parser("replay", help="replay a recorded run through the lock-step model and the online estimator",
+                        description="Feed a recorded run, sample by sample, through the same session as live: the "
+                                    "model simulated with the recorded command, the online estimate, the console "
+                                    "and Rerun views.")
+    rp.add_argument("run", help="recorded run CSV")
+    rp.add_argument("--speed", default="1", help="1 = real time, 2 = twice as fast, max = as fast as possible")
+    _add_online_arguments(rp)
+    rp.set_defaults(func=run_replay)
+
+
+def run_live(args) -> int:
+    from ..live import make_program
+
+    cyl = load_config(args.config)
+    if not (args.duration > 0 and math.isfinite(args.duration)):
+        raise UsageError(f"--duration must be a positive number of seconds, not {args.duration}.")
+    try:
+        program = make_program(args.program, cyl, args.duration, seed=args.seed)
+    except (ValueError, OSError) as e:
+        raise UsageError(f"--program {args.program}: {e}") from None
+    record = Path(args.record)
+    if record.exists() and not args.overwrite:
+        raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
+    if not record.parent.is_dir():
+        raise UsageError(f"--record {record}: the folder {record.parent} does not exist.")
+    effects = parse_effects(args.effect)
+    if effects and not args.virtual:
+        raise UsageError("--effect switches effects on in the virtual rig; it needs --virtual.")
+    rig = open_rig(args, cyl, effects, rate=args.rate, paced=True)
+    return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, inline=False)
+
+
+def run_replay(args) -> int:
+    from ..files import check_run_against_cylinder, read_run
+    from ..live import ReplayRig
+
+    cyl = load_config(args.config)
+    run = read_run(args.run)
+    check_run_against_cylinder(run, cyl)
+    if run.n < 3:
+        raise UsageError(f"{args.run}: a run needs at least 3 samples.")
+    speed = math.inf if args.speed == "max" else positive_float(args.speed, "--speed")
+    return _run_session(args, cyl, ReplayRig(run, speed), None, None, None, run.sample_period,
+                        inline=speed == math.inf)
+
+
+def _online_options(args, cyl):
+    from ..identify import OnlineOptions
+
+    names = estimate_list(args.estimate, cyl)
+    for name in ("window", "update"):
+        v = getattr(args, name)
+        if not (v > 0 and math.isfinite(v)):
+            raise UsageError(f"--{name} must be a positive number of seconds, not {v}.")
+    if args.update > args.window:
+        raise UsageError(f"--update ({args.update:g} s) must not exceed --window ({args.window:g} s).")
+    if not args.memory > 0:
+        raise UsageError(f"--memory must be a positive number of seconds (or inf), not {args.memory}.")
+    return OnlineOptions(window_s=args.window, update_s=args.update, memory_s=args.memory, estimate=names)
+
+
+def _rerun_sink(args, cyl, window_s: float):
+    mode, target = rerun_mode(args.rerun)
+    if mode == "off":
+        return None
+    from ..live.rerun_sink import RerunSink
+    from ..report.rerun import open_recording
+
+    return RerunSink(open_recording(mode, target), cyl, window_s)
+
+
+def _session_json(result, options, wall_s: float) -> dict:
+    import numpy as np
+
+    final = result.final
+    walls = np.array([e.wall_s for e in result.estimates]) * 1e3
+    out = {"params": {}, "fit": {}, "solver": {
+        "status": "online" if final else "no_estimate", "method": "moving-horizon multiple shooting",
+        "updates": len(result.estimates), "window_s": options.window_s, "wall_s": round(wall_s, 3),
+        "update_ms_p50": float(np.percentile(walls, 50)) if len(walls) else None,
+        "update_ms_p95": float(np.percentile(walls, 95)) if len(walls) else None,
+        "n_samples": int(result.run.n), "stop_reason": result.stop_reason},
+        "link": result.counters, "events": result.events,
+        "history": [{"t": e.t, "values": e.values, "std": e.std, "sigma": e.sigma} for e in result.estimates]}
+    if final:
+        out["params"] = {n: {"value": final.values[n], "std": final.std[n], "unit": final.units[n]} for n in final.values}
+        out["fit"] = {**final.rmse, "sigma": final.sigma, "window": list(final.window)}
+    return out
+
+
+def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, inline: bool) -> int:
+    from ..files import clean_json, cylinder_tag, write_json_atomic
+    from ..live import ConsoleSink, InlineEstimator, LockstepSimulator, ProcessEstimator, run_session
+
+    options = _online_options(args, cyl)
+    try:
+        rr_sink = _rerun_sink(args, cyl, options.window_s)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+    def link_counters() -> dict:
+        stats = getattr(rig, "stats", None)
+        return {} if stats is None else {"lost": stats.samples_lost, "corrupt": stats.frames_corrupt}
+
+    sinks = [s for s in (None if args.quiet else ConsoleSink(eprint, 1.0, link_counters), rr_sink) if s is not None]
+    if not args.quiet:
+        eprint("preparing the model (compiled once, then cached) ...")
+    simulator = LockstepSimulator(cyl)
+    estimator = (InlineEstimator if inline else ProcessEstimator)(cyl, sample_period, options)
+    comments = [cylinder_tag(cyl), f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
+                f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
+
+    # SIGTERM ends a session like Ctrl-C: valve centred, files complete
+    def _term(*_):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, _term)
+    t_wall = time.perf_counter()
+    try:
+        result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, record_to=record,
+                             record_comments=comments, sinks=sinks, simulator=simulator, on_event=eprint,
+                             give_up_s=args.give_up, expected_period=sample_period)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        estimator.close()
+    wall = time.perf_counter() - t_wall
+    c = result.counters
+    summary = (f"{result.stop_reason}: {c['samples']} samples in {wall:.1f} s"
+               + "".join(f", {c[k]} {k.replace('_', ' ')}" for k in ("samples_lost", "frames_corrupt", "gaps",
+                                                                     "reconnects", "rig_errors") if k in c))
+    eprint(summary)
+    if record:
+        eprint(f"recorded {result.run.n} samples to {record}")
+    final = result.final
+    if final:
+        print(f"online estimate at t = {final.t:.2f} s ({len(result.estimates)} updates, residual σ = "
+              f"{final.sigma:.2f} × noise):")
+        for n, v in final.values.items():
+            print(f"  {n:4s} = {v:.6g} ± {final.std[n]:.2g} {final.units[n]}")
+    else:
+        print("no online estimate: fewer samples than one estimation window.")
+    if args.json:
+        write_json_atomic(args.json, clean_json(_session_json(result, options, wall)))
+    if getattr(estimator, "error", None):
+        return 1
+    return 1 if result.stop_reason.startswith("no samples") else 0

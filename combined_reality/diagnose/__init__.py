@@ -1,0 +1,14 @@
+"""Why the simulation still differs from the rig: where the gap lies, which unmodelled
+effect causes it, how far it shrinks once that effect is added.
+
+- analysis: the diagnosis itself (`diagnose`), regions, subsystems, regressors
+- text: the diagnosis in words (console, report, Rerun)
+- report: the self-contained HTML report (`diagnose.report.write_report`; imports matplotlib)
+- rerun: the diagnosis on Rerun's time line (`diagnose.rerun.log_diagnosis`; imports rerun)
+"""
+from .analysis import (MIN_REGION_FRACTION, Candidate, DiagnoseOptions, Diagnosis, candidate_starts, diagnose,
+                       equation_errors, operating_regions, regions, regressor_correlations, subsystem_split, whiteness)
+
+__all__ = ["MIN_REGION_FRACTION", "Candidate", "DiagnoseOptions", "Diagnosis", "candidate_starts", "diagnose",
+           "equation_errors", "operating_regions", "regions", "regressor_correlations", "subsystem_split",
+           "whiteness"]

@@ -1,0 +1,145 @@
+"""A diagnosis in words: the verdict as sentences, parameters with their meaning and
+standard deviations, the z of a candidate, a subsystem's error against its floor. Shared
+by the HTML report, the console and the Rerun view."""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+from sim.cylinder import PARAMETERS
+from sim.effects import EFFECTS
+
+from ..identify import at_bounds
+from ..report.text import finite, format_value, pct, sig, um
+
+__all__ = ["WITHIN_NOISE", "param_info", "at_its_bound", "params_text", "friction_text", "effect_description",
+           "headline", "subsystem_value", "z_text"]
+
+
+def param_info(effect: str, name: str):
+    """ParamInfo of `name` (a parameter of `effect`, or `effect.param` for a pair) or None."""
+    if "." in name:
+        effect, name = name.split(".", 1)
+    cls = EFFECTS.get(effect)
+    return cls.PARAMS.get(name) if cls is not None else None
+
+
+def at_its_bound(v: float, info) -> bool:
+    if info is None or not finite(v):
+        return False
+    return bool(at_bounds(v, info.lower, info.upper))
+
+
+def params_text(c, sep: str = ", ", bounds: bool = False) -> str:
+    """`tau = 1.416 ms ± 0.0003 ms, share = ...`; with `bounds`, a parameter the fit left at
+    a bound of its range is marked (its std then means little)."""
+    parts = []
+    for n, v in (c.params or {}).items():
+        info = param_info(c.effect, n)
+        std = (c.std or {}).get(n)
+        if info is not None and finite(std) and std > info.upper - info.lower:
+            # a std wider than the whole range says the data do not determine the parameter
+            txt = f"{n} = {format_value(v, None, info.unit)} (not determined by the data)"
+        else:
+            txt = f"{n} = {format_value(v, std, info.unit if info else '')}"
+        if bounds and at_its_bound(v, info):
+            txt += " (at its bound)"
+        parts.append(txt)
+    return sep.join(parts)
+
+
+def friction_text(fr: dict, std: dict | None = None) -> str:
+    return ", ".join(f"{n} = {format_value(fr[n], (std or {}).get(n), PARAMETERS[n].unit)}"
+                     + (" (at its bound 0)" if fr[n] == 0 else "") for n in ("Fc", "Fv", "kp") if n in fr)
+
+
+def effect_description(name: str) -> str:
+    if "+" in name:
+        return " and ".join(effect_description(n) for n in name.split("+"))
+    cls = EFFECTS.get(name)
+    return cls.description if cls is not None else ""
+
+
+def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str], str] = lambda s: s) -> list[str]:
+    """The verdict in plain sentences (the first one is the headline). `strong` marks the
+    effect word (HTML <b>, markdown **), `esc` escapes the rest."""
+    b = d.baseline
+    noise_x = b["noise"]["x"]
+    before = b.get("rmse_x_validation", math.nan)
+    nrms = b.get("normalized_rms", math.nan)
+    best = d.best
+    out = []
+    if best is not None:
+        after = best.rmse_x_validation
+        params = params_text(best)
+        out.append(esc("The gap is best explained by ") + strong(best.effect)
+                   + esc(f" ({effect_description(best.effect)}): with it, the validation position error shrinks by "
+                         f"{pct(best.shrink)} ({um(before)} → {um(after)})" + (f"; {params}." if params else ".")))
+        meaning = [f"{n} is the {info.description}" for n in best.params if (info := param_info(best.effect, n))]
+        if meaning:  # a_coulomb or share mean nothing to a reader without it
+            out.append(esc("Its parameters: " + "; ".join(meaning) + "."))
+        rest = best.validation.normalized_rms()  # the verdict is significant, hence validated
+        if rest < WITHIN_NOISE:
+            out.append(esc(f"What remains is at the sensor noise ({sig(rest)} × the noise over all outputs; "
+                           f"it was {sig(nrms)} ×)."))
+        else:
+            out.append(esc(f"Part of the gap remains: {sig(rest)} × the sensor noise over all outputs "
+                           f"(it was {sig(nrms)} ×; 1 would be a perfect model)."))
+        others = [c.effect for c in d.ranking if c.significant and c.effect != best.effect]
+        if others:
+            out.append(esc("Other candidates that also help significantly (usually by imitating part of the same "
+                           "error): " + ", ".join(others) + "."))
+        p = d.pair
+        if p is not None:
+            if p.significant:
+                out.append(esc("Together with the runner-up, ") + strong(p.effect)
+                           + esc(f" shrinks the position error by {pct(p.shrink)} (to {um(p.rmse_x_validation)}), "
+                                 "significantly better than the verdict alone: both effects are likely present."))
+            elif p.status == "failed":
+                out.append(esc("The pair ") + strong(p.effect) + esc(" could not be fitted."))
+            elif not finite(p.shrink):  # screened out on TRAIN, or its simulation of VALID diverged
+                out.append(esc("The pair ") + strong(p.effect)
+                           + esc(f" was not scored on VALID: {p.error or p.status}."))
+            else:
+                out.append(esc("The pair ") + strong(p.effect) + esc(
+                    " is not significantly better than the verdict alone "
+                    f"(position error {um(p.rmse_x_validation)})."))
+        return out
+    tried = [c.effect for c in d.ranking]
+    if finite(nrms) and nrms < WITHIN_NOISE:
+        out.append(esc(f"The nominal model already fits VALID to within the sensor noise (position error {um(before)}"
+                       f" with {um(noise_x)} sensor noise; all outputs {sig(nrms)} × the noise): ") + strong("none")
+                   + esc(" of the candidate effects improves it significantly."))
+    else:
+        out.append(esc(f"No candidate effect explains the gap: the nominal model misses VALID by {um(before)} in "
+                       f"position ({sig(nrms)} × the sensor noise over all outputs), and none of the "
+                       f"{len(tried)} candidates tried removes a significant part of it (verdict ") + strong("none")
+                   + esc("). See where the error lies below, and consider effects that were not tried."))
+    if tried:
+        out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
+    screened = [c.effect for c in d.ranking if c.status == "no_gain_on_train"]
+    if screened and screened == tried:
+        out.append(esc("None of them fits TRAIN better than the nominal model, so none was validated (the fast "
+                       "screen)."))
+    elif screened:
+        out.append(esc("Not validated, as they fit TRAIN no better than the nominal model (the fast screen): "
+                       + ", ".join(screened) + "."))
+    return out
+
+
+def subsystem_value(r: dict) -> tuple[str, str]:
+    unit = r.get("unit", "")
+    if unit == "m":
+        return um(r.get("rmse")), um(r.get("floor"))
+    if unit == "Pa":
+        f = lambda v: f"{sig(float(v) / 1e3)} kPa" if finite(v) else "n/a"  # noqa: E731
+        return f(r.get("rmse")), f(r.get("floor"))
+    return f"{sig(r.get('rmse'))} {unit}", f"{sig(r.get('floor'))} {unit}"
+
+
+def z_text(z) -> str:
+    """The z statistic of a candidate's validation gain; n/a when it was not validated."""
+    return f"{float(z):.1f}" if finite(z) else "n/a"
+
+
+WITHIN_NOISE = 1.2  # all-output RMS in noise units below which the nominal model "fits"

@@ -1,0 +1,45 @@
+"""Checks of runs against the cylinder file they are to be fitted with: what a run may be
+read as on its own (files.runs) can still be the wrong unit, origin or cylinder for this
+file. Each check refuses with one sentence naming the file (RunFormatError: bad input)."""
+from __future__ import annotations
+
+from sim.cylinder import Cylinder
+
+from .runs import Run, RunFormatError, cylinder_identity, recorded_elsewhere
+
+__all__ = ["check_run_against_cylinder", "check_train_and_valid"]
+
+
+def check_run_against_cylinder(run: Run, cyl: Cylinder) -> None:
+    """Refuse a run whose positions cannot lie on this cylinder's stroke or whose pressures far
+    exceed its supply (a wrong unit, origin or cylinder)."""
+    L = cyl.geometry.stroke
+    lo, hi = float(run.x.min()), float(run.x.max())
+    if lo < -0.1 * L or hi > 1.1 * L:
+        raise RunFormatError(f"{run.source}: position spans {lo:.4g} to {hi:.4g} m but the stroke in "
+                             f"{cyl.source or 'the cylinder file'} is {L:g} m (wrong unit, wrong origin or wrong "
+                             "cylinder?).")
+    pmax = float(max(run.p1.max(), run.p2.max()))
+    if pmax > 1.5 * cyl.supply.pressure:
+        raise RunFormatError(f"{run.source}: chamber pressure reaches {pmax:.4g} Pa, far above the supply pressure "
+                             f"{cyl.supply.pressure:.4g} Pa of {cyl.source or 'the cylinder file'}.")
+
+
+def check_train_and_valid(cyl: Cylinder, train: Run, valid: Run, train_name: str, valid_name: str,
+                          verb: str = "diagnose") -> None:
+    """Refuse a TRAIN/VALID pair of which a run does not fit the cylinder file (stroke,
+    pressures), is shorter than 1 s at 1 kHz, or was recorded on another cylinder than the
+    file describes (its cylinder tag), or VALID sampled at another rate than TRAIN.
+    `verb` completes the advice: '... ; {verb} runs of the cylinder they were recorded on.'"""
+    for r, what in ((train, train_name), (valid, valid_name)):
+        check_run_against_cylinder(r, cyl)
+        if r.n < 1000:
+            raise RunFormatError(f"{what}: {r.n} samples are too few (at least 1 s at 1 kHz).")
+        theirs = recorded_elsewhere(r, cyl)
+        if theirs is not None:
+            raise RunFormatError(f"{what} was recorded on the cylinder '{theirs}', but the cylinder file "
+                                 f"{cyl.source or ''} describes '{cylinder_identity(cyl)}'; {verb} runs of the "
+                                 "cylinder they were recorded on.")
+    if abs(valid.sample_period / train.sample_period - 1) > 0.01:
+        raise RunFormatError(f"{valid_name} is sampled every {valid.sample_period * 1e3:.3g} ms but {train_name} "
+                             f"every {train.sample_period * 1e3:.3g} ms; validate with a run of the same rig and rate.")

@@ -1,0 +1,19 @@
+"""Identification: parameters of the one plant from recorded runs.
+
+- offline: multiple-shooting least squares over whole runs (`identify`)
+- online: the same problem over a moving horizon of a live stream (`MovingHorizonEstimator`)
+- validation: scoring a model on a run it was not fitted to (`validate`)
+- newton: friction from Newton's law with the measured pressures (the identifier's start)
+- shooting, smoothing: the shared machinery (intervals, Gauss-Newton, covariance; derivatives)
+"""
+from .newton import equation_error_friction, friction_from_newton
+from .offline import Estimate, IdentifyOptions, IdentifyResult, identify
+from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
+from .shooting import UNITS, IdentificationError, at_bounds, sensor_noise
+from .smoothing import derivative_kernels, savgol_kernels, velocity_estimate
+from .validation import Validation, validate, validation_gain, validation_segments
+
+__all__ = ["equation_error_friction", "friction_from_newton", "Estimate", "IdentifyOptions", "IdentifyResult",
+           "identify", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError",
+           "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",
+           "validate", "validation_gain", "validation_segments"]

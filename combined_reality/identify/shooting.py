@@ -1,0 +1,385 @@
+"""The multiple-shooting least-squares problem shared by the offline identifier and the
+moving-horizon estimator: the layout of runs into shooting intervals, the weighted
+residuals and defects, their linearisation, the condensing of node increments, the
+bounded Gauss-Newton step with its line search, and the covariance of the estimate.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from sim.compiled import NumpyCall, ShootingFunctions
+from sim.cylinder import ESTIMABLE, PARAMETERS, Cylinder
+from sim.extension import Effect
+from sim.plant import Plant
+
+from ..files import Run
+from .smoothing import velocity_estimate
+
+UNITS = {name: spec.unit for name, spec in PARAMETERS.items()}
+
+
+class IdentificationError(RuntimeError):
+    """The identification could not be carried out (the message says why)."""
+
+
+@dataclass
+class RunLayout:
+    """One run cut into K shooting intervals of M samples (the last one padded)."""
+
+    run: Run
+    K: int  # intervals
+    node0: int  # index of its first node among all nodes
+    W: np.ndarray  # (nw, K*(M+1)) inputs at both ends of every sample step
+    H: np.ndarray  # (1, K*M) step lengths (0 = padding)
+    Y: np.ndarray  # (K, M, ny) measured outputs
+    mask: np.ndarray  # (K, M) 1 where a sample exists
+    S0: np.ndarray  # (nx, K) initial node states
+
+
+def free_parameters(plant: Plant, estimate: Sequence[str]) -> list[int]:
+    """Indices of the estimated parameters in the plant's parameter vector (checked)."""
+    for name in estimate:
+        if name not in plant.param_names or (name in PARAMETERS and name not in ESTIMABLE):
+            raise IdentificationError(f"parameter '{name}' cannot be estimated (estimable: "
+                                      f"{', '.join(ESTIMABLE + tuple(n for n in plant.param_names if '.' in n))}).")
+    return [plant.param_names.index(n) for n in estimate]
+
+
+def sensor_noise(cyl: Cylinder, outputs: Sequence[str]) -> np.ndarray:
+    """Standard deviation of the sensor noise of each output (x, p1, p2)."""
+    sen = cyl.sensors
+    return np.array([sen.position_noise if o == "x" else sen.pressure_noise for o in outputs])
+
+
+def residual_scales(plant: Plant, cyl: Cylinder, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Output weights (1 / sensor noise) and defect scales (what a state can be trusted to
+    from the sensors)."""
+    sen = cyl.sensors
+    wts = 1.0 / sensor_noise(cyl, plant.output_names)
+    sscale = np.array([{"p1": sen.pressure_noise, "p2": sen.pressure_noise, "x": sen.position_noise,
+                        "v": sen.position_noise / dt}.get(n, 1e-3) for n in plant.state_names])
+    return wts, sscale
+
+
+def run_layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> RunLayout:
+    """The run's intervals, inputs, measurements and initial node states (from the measured
+    state and a smoothed velocity); `node0` is the index of its first node among all runs'."""
+    N = run.n
+    K = math.ceil(N / M)
+    pad = K * M + 1 - N
+    if plant.drive == "command":
+        w = run.u[None, :]
+    else:
+        w = np.vstack([run.p1, run.p2])
+    w_pad = np.hstack([w, np.repeat(w[:, -1:], pad, axis=1)])  # (nw, K*M+1)
+    idx = (np.arange(K)[:, None] * M + np.arange(M + 1)[None, :]).ravel()
+    W = w_pad[:, idx]
+    dt = np.diff(run.t)
+    H = np.concatenate([dt, np.zeros(K * M - len(dt))])[None, :]
+    meas = {"x": run.x, "p1": run.p1, "p2": run.p2}
+    ys = np.stack([meas[n] for n in plant.output_names], axis=-1)  # (N, ny)
+    ys = np.vstack([ys, np.zeros((K * M - N, ys.shape[1]))])
+    mask = (np.arange(K * M) < N).astype(float).reshape(K, M)
+    v = velocity_estimate(run.t, run.x)
+    nodes = np.arange(K) * M
+    S0 = np.array([plant.initial_state(cyl, run.x[i], run.p1[i], run.p2[i], v[i]) for i in nodes]).T
+    return RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask, S0)
+
+
+class ShootingProblem:
+    """Weighted output residuals and scaled continuity defects of K shooting intervals."""
+
+    def __init__(self, sf: ShootingFunctions, K: int, threads: int, W, H, Y, mask, wts, sscale, nxt):
+        plant = sf.plant
+        self.f_sens = NumpyCall(sf.sens.map(K, "thread", threads) if threads > 1 else sf.sens.map(K))
+        self.f_sim = NumpyCall(sf.interval.map(K, "thread", threads) if threads > 1 else sf.interval.map(K))
+        self.W, self.H, self.Y, self.mask, self.wts, self.sscale, self.nxt = W, H, Y, mask, wts, sscale, nxt
+        self.K, self.M = K, sf.interval_len
+        self.nx, self.nth = plant.nx, len(sf.free)
+        self.out_idx = [plant.state_names.index(n) for n in plant.output_names]
+
+    def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
+        """(E, D, X, Sens) or None when the simulation is not finite."""
+        nx, K, M = self.nx, self.K, self.M
+        if with_sens:
+            Xr, Sr = self.f_sens(S, self.W, p, self.H)
+            X = Xr.reshape(nx, K, M)
+            Sens = Sr.reshape(nx, K, M, nx + self.nth)
+        else:
+            X = self.f_sim(S, self.W, p, self.H)[0].reshape(nx, K, M)
+            Sens = None
+        if not np.all(np.isfinite(X)):
+            return None
+        E, D = self.residuals(S, X)
+        return E, D, X, Sens
+
+    def residuals(self, S: np.ndarray, X: np.ndarray):
+        """Weighted output residuals E (K, M, ny) and scaled defects D of trajectories X."""
+        M = self.M
+        # predicted outputs at the interval's own samples: node state, then the first M-1 steps
+        oi = self.out_idx
+        Ypred = np.concatenate([S[oi, :, None], X[oi][:, :, : M - 1]], axis=2).transpose(1, 2, 0)
+        E = (Ypred - self.Y) * self.wts * self.mask[:, :, None]  # (K, M, ny)
+        nxt = self.nxt
+        D = (X[:, nxt, M - 1] - S[:, nxt + 1]) / self.sscale[:, None]  # scaled defects (nx, n_links)
+        return E, D
+
+
+def warm_nodes(plant: Plant, cyl: Cylinder, S: np.ndarray, warm: np.ndarray) -> np.ndarray:
+    """Node states of an earlier solution on the same runs and intervals (a warm start, e.g.
+    another model's): its drive states are taken, the states this plant adds start from
+    their initial values at those nodes."""
+    nb = 4 if plant.drive == "command" else 2
+    if warm.ndim != 2 or warm.shape[1] != S.shape[1] or warm.shape[0] < nb:
+        raise ValueError(f"warm-start nodes of shape {warm.shape} do not fit {S.shape[1]} intervals")
+    out = S.copy()
+    out[:nb] = warm[:nb]
+    if plant.nx > nb:
+        names = plant.state_names
+        ix, iv = names.index("x"), names.index("v")
+        ip1 = names.index("p1") if "p1" in names else None
+        for k in range(S.shape[1]):
+            p1 = out[ip1, k] if ip1 is not None else 0.0
+            p2 = out[ip1 + 1, k] if ip1 is not None else 0.0
+            out[nb:, k] = plant.initial_state(cyl, out[ix, k], p1, p2, out[iv, k])[nb:]
+    return out
+
+
+def with_effect_values(e: Effect, values: Mapping[str, float]) -> Effect:
+    """The effect with some parameter values replaced (e.g. by their estimates)."""
+    return replace(e, **values) if values else e
+
+
+def parameter_unit(plant: Plant, name: str) -> str:
+    if name in UNITS:
+        return UNITS[name]
+    ename, pname = name.split(".", 1)
+    eff = next(e for e in plant.effects if e.name == ename)
+    return eff.PARAMS[pname].unit
+
+
+def at_bounds(value, lower, upper):
+    """Whether a value sits at a bound of its range. The tolerance is relative to the range,
+    not to the value's magnitude: a leak conductance of 1e-11 m^3/(s Pa) is far from its bound
+    0 in a range of 1e-7."""
+    value, lower, upper = (np.asarray(a, float) for a in (value, lower, upper))
+    tol = 1e-9 * (upper - lower)
+    return (value - lower <= tol) | (upper - value <= tol)
+
+
+def parameter_bounds(plant: Plant, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = [], []
+    for n in names:
+        if n in PARAMETERS:
+            lo.append(PARAMETERS[n].lower)
+            hi.append(PARAMETERS[n].upper)
+        else:
+            ename, pname = n.split(".", 1)
+            info = next(e for e in plant.effects if e.name == ename).PARAMS[pname]
+            lo.append(info.lower)
+            hi.append(info.upper)
+    return np.array(lo, float), np.array(hi, float)
+
+
+def line_search(evaluate, merit, S, dS, theta, dth, p, free, lower, upper, m0: float, slope: float,
+                min_alpha: float):
+    """Backtracking from the full step on an l1 merit (Armijo, or a tie at the numerical noise
+    floor): (alpha, S, theta, p, evaluation) of the first accepted trial, or None."""
+    alpha = 1.0
+    while alpha >= min_alpha:
+        th = np.clip(theta + alpha * dth, lower, upper)
+        p_try = p.copy()
+        p_try[free] = th
+        S_try = S + alpha * dS
+        ev = evaluate(S_try, p_try, False)
+        if ev is not None:
+            m1 = merit(ev, th)
+            if m1 <= m0 + 1e-4 * alpha * slope or abs(m1 - m0) <= 1e-12 * max(m0, 1.0):
+                return alpha, S_try, th, p_try, ev
+        alpha *= 0.5
+    return None
+
+
+def scaled_inverse(N: np.ndarray) -> np.ndarray:
+    """N^-1 computed on the unit-diagonal scaling of N (parameters differ by 10 decades)."""
+    scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    return np.linalg.inv(N / np.outer(scale, scale)) / np.outer(scale, scale)
+
+
+def solve_bounded(N: np.ndarray, g: np.ndarray, theta, lower, upper, n_state: int, lam: float):
+    """min 0.5 d'Nd + g'd with theta + d_theta kept in bounds (active set on the parameters)."""
+    n = len(g)
+    fixed = np.zeros(n, bool)
+    d = np.zeros(n)
+    for _ in range(len(theta) + 1):
+        free = ~fixed
+        scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+        Ns = N / np.outer(scale, scale)
+        Ns = Ns + lam * np.diag(np.diag(Ns))
+        rhs = -(g + N[:, fixed] @ d[fixed]) / scale
+        try:
+            sol = np.linalg.solve(Ns[np.ix_(free, free)], rhs[free])
+        except np.linalg.LinAlgError:
+            sol = np.linalg.lstsq(Ns[np.ix_(free, free)], rhs[free], rcond=1e-12)[0]
+        d[free] = sol / scale[free]
+        th_new = theta + d[n_state:]
+        viol = (th_new < lower) | (th_new > upper)
+        if not viol.any():
+            return d if np.all(np.isfinite(d)) else None
+        idx = np.flatnonzero(viol)
+        for i in idx:
+            d[n_state + i] = (lower[i] if th_new[i] < lower[i] else upper[i]) - theta[i]
+            fixed[n_state + i] = True
+    return d
+
+
+def linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
+    """Weighted residual Jacobians G = dE/ds_k, Hth = dE/dtheta and the transition
+    Jacobians A = ds_end/ds_k, B = ds_end/dtheta of every interval."""
+    E, D, X, Sens = ev
+    Ktot = E.shape[0]
+    G = np.empty((Ktot, M, ny, nx))
+    Hth = np.empty((Ktot, M, ny, nth))
+    G[:, 0] = np.eye(nx)[out_idx][None]  # the node state is itself the first prediction
+    Hth[:, 0] = 0.0
+    SensO = Sens[out_idx][:, :, : M - 1]  # (ny, K, M-1, nz)
+    G[:, 1:] = SensO[..., :nx].transpose(1, 2, 0, 3)
+    Hth[:, 1:] = SensO[..., nx:].transpose(1, 2, 0, 3)
+    wm = (wts[None, None, :] * mask[:, :, None])[..., None]
+    G *= wm
+    Hth *= wm
+    A = Sens[:, :, M - 1, :nx].transpose(1, 0, 2)  # (K, nx, nx)
+    B = Sens[:, :, M - 1, nx:].transpose(1, 0, 2)  # (K, nx, nth)
+    return G, Hth, A, B
+
+
+def reduce_nodes(lin, E, Draw, has_next, nx, nth):
+    """Eliminate the node increments: ds_k = P_k ds0 + Q_k dtheta + q_k within each run.
+
+    Returns P, Q, q and the reduced residual Jacobians Js = dr/ds0, Jt = dr/dtheta and the
+    linearised residual r0 (all per interval)."""
+    G, Hth, A, B = lin
+    Ktot = G.shape[0]
+    P = np.empty((Ktot, nx, nx))
+    Q = np.empty((Ktot, nx, nth))
+    q = np.empty((Ktot, nx))
+    eye = np.eye(nx)
+    link = 0
+    for k in range(Ktot):
+        if k == 0 or not has_next[k - 1]:
+            P[k], Q[k], q[k] = eye, 0.0, 0.0
+        else:
+            j = k - 1
+            P[k] = A[j] @ P[j]
+            Q[k] = A[j] @ Q[j] + B[j]
+            q[k] = A[j] @ q[j] + Draw[:, link]
+            link += 1
+    Js = np.einsum("kmoi,kij->kmoj", G, P)
+    Jt = np.einsum("kmoi,kij->kmoj", G, Q) + Hth
+    r0 = E + np.einsum("kmoi,ki->kmo", G, q)
+    return P, Q, q, Js, Jt, r0
+
+
+def condense(lin, E, Draw, layouts, has_next, nx, nth):
+    """The reduced normal equations (N, g) in (ds0 per run, dtheta), with P, Q, q of `reduce_nodes`
+    and the per-interval gradient contributions."""
+    P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, Draw, has_next, nx, nth)
+    Ktot, R = Js.shape[0], len(layouts)
+    nred = R * nx + nth
+    N = np.zeros((nred, nred))
+    g = np.zeros(nred)
+    # per-interval gradient contributions ("scores") for the cluster-robust covariance
+    scores = np.zeros((Ktot, nred))
+    for ri, l in enumerate(layouts):
+        sl = slice(l.node0, l.node0 + l.K)
+        scores[sl, ri * nx:(ri + 1) * nx] = np.einsum("kmoi,kmo->ki", Js[sl], r0[sl])
+    scores[:, R * nx:] = np.einsum("kmoi,kmo->ki", Jt, r0)
+    for ri, l in enumerate(layouts):
+        sl = slice(l.node0, l.node0 + l.K)
+        js = Js[sl].reshape(-1, nx)
+        jt = Jt[sl].reshape(js.shape[0], nth)  # explicit rows: nth may be 0 (states only)
+        rr = r0[sl].reshape(-1)
+        a = slice(ri * nx, (ri + 1) * nx)
+        N[a, a] = js.T @ js
+        N[a, R * nx:] = js.T @ jt
+        N[R * nx:, a] = N[a, R * nx:].T
+        N[R * nx:, R * nx:] += jt.T @ jt
+        g[a] = js.T @ rr
+        g[R * nx:] += jt.T @ rr
+    return N, g, P, Q, q, scores
+
+
+def covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndarray | None:
+    sigma2 = 2 * cost / max(1.0, nres - N.shape[0])
+    try:
+        inv = scaled_inverse(N)
+    except np.linalg.LinAlgError:
+        return None
+    return (sigma2 * inv)[n_state:, n_state:]
+
+
+def cluster_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int, block: int) -> np.ndarray | None:
+    """Sandwich covariance N^-1 (sum_b s_b s_b') N^-1 with clusters of `block` consecutive
+    intervals (about one second): honest when residuals are correlated in time."""
+    sums = []
+    for l in layouts:
+        for k0 in range(l.node0, l.node0 + l.K, block):
+            sums.append(scores[k0:min(k0 + block, l.node0 + l.K)].sum(axis=0))
+    S = np.array(sums)
+    nb = len(S)
+    if nb < 5:
+        return None
+    meat = S.T @ S * nb / (nb - 1)
+    try:
+        inv = scaled_inverse(N)
+    except np.linalg.LinAlgError:
+        return None
+    return (inv @ meat @ inv)[n_state:, n_state:]
+
+
+def standard_deviations(N, n_state, cost, nres) -> np.ndarray:
+    cov = covariance(N, n_state, cost, nres)
+    if cov is None:
+        return np.full(N.shape[0] - n_state, np.inf)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def simulate_layout(sf: ShootingFunctions, s0: np.ndarray, p: np.ndarray, l: RunLayout, M: int) -> np.ndarray:
+    """Single-shooting simulation of a whole run from its first node state: (n_outputs, N)."""
+    plant = sf.plant
+    out_idx = [plant.state_names.index(n) for n in plant.output_names]
+    nw = l.W.shape[0]
+    # the layout holds M+1 inputs per interval (both ends of each step): back to one per sample
+    w = np.hstack([l.W.reshape(nw, l.K, M + 1)[:, :, :M].reshape(nw, l.K * M), l.W[:, -1:]])
+    return sf.simulate(s0, w, p, l.H[0])[out_idx, : l.run.n]
+
+
+def rmse_r2(meas: np.ndarray, sim: np.ndarray) -> tuple[float, float]:
+    err = sim - meas
+    rmse = float(np.sqrt(np.mean(err * err)))
+    sst = float(np.sum((meas - meas.mean()) ** 2))
+    r2 = 1.0 - float(np.sum(err * err)) / sst if sst > 0 else float("nan")
+    return rmse, r2
+
+
+def fit_metrics(run: Run, sim: np.ndarray, outputs: Sequence[str]) -> dict[str, float]:
+    meas = {"x": run.x, "p1": run.p1, "p2": run.p2}
+    out: dict[str, float] = {"source": str(run.source) if run.source else None}
+    for i, n in enumerate(outputs):
+        rmse, r2 = rmse_r2(meas[n], sim[i])
+        out[f"rmse_{n}"], out[f"r2_{n}"] = rmse, r2
+    return out
+
+
+def pooled_fit(runs: Sequence[Run], sims: Sequence[np.ndarray], outputs: Sequence[str]) -> dict[str, float]:
+    meas_all = {n: np.concatenate([getattr(r, n) for r in runs]) for n in outputs}
+    fit = {}
+    for i, n in enumerate(outputs):
+        sim = np.concatenate([s[i] for s in sims])
+        fit[f"rmse_{n}"], fit[f"r2_{n}"] = rmse_r2(meas_all[n], sim)
+    return fit
+
