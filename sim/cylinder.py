@@ -1,10 +1,16 @@
-"""A cylinder as typed, frozen, SI parameters, loaded from the FORMATS.md TOML layout.
+"""A cylinder as typed, frozen, SI parameters, loaded from the cylinder TOML (docs/formats.md).
 
 Units are SI everywhere inside; the only conversion at this edge is the mounting
 angle, which the file gives in degrees and the model uses in radians.
+
+Beyond the nominal model's values, a cylinder file may state what a real rig needs
+calibrated (`combined-reality calibrate` writes them): the valve's flow characteristic
+per direction, the pressure sensors' offsets, a constant external force, and the end
+stops' stiffness and damping. A file that leaves them out describes the nominal model.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import tomllib
 from dataclasses import MISSING, dataclass, field, fields, replace
@@ -37,6 +43,9 @@ class Geometry:
 class Mechanics:
     moving_mass: float  # kg
     angle: float = 0.0  # rad (file: deg), positive when extension lifts the load
+    external_force: float = 0.0  # N, a constant force on the piston, positive towards extension
+    end_stiffness: float = 1.0e6  # N/m, of the end stops at x = 0 and x = stroke
+    end_damping: float = 2.0e3  # N s/m, of the end stops (while in contact)
 
 
 @dataclass(frozen=True)
@@ -46,10 +55,37 @@ class Supply:
     temperature: float = 293.15  # K
 
 
+# The valve's flow characteristic is given at these openings, as fractions of the command range
+# beyond the overlap (the last is full opening); between them it is linear. Denser at small
+# openings, where closed-loop position control spends most of its time.
+OPENING_GRID: tuple[float, ...] = (0.05, 0.15, 0.3, 0.5, 0.75, 1.0)
+VALVE_DIRECTIONS: tuple[str, ...] = ("extend", "retract")  # u > 0, u < 0
+
+
 @dataclass(frozen=True)
 class Valve:
+    """A 5/3 proportional valve. In direction D (extend: u > 0, retract: u < 0) each path has
+    the sonic conductance C = sonic_conductance * flow_D(s) at the opening s = (|u| - overlap_D)
+    / (1 - overlap_D) (closed for |u| <= overlap_D); flow_D is piecewise linear through
+    (0, 0) and (OPENING_GRID[k], flow_D[k]), non-decreasing. The defaults are the linear law
+    C = sonic_conductance * |u| of the nominal model."""
+
     sonic_conductance: float  # m^3/(s Pa) per path at full opening
     critical_ratio: float = 0.3
+    overlap_extend: float = 0.0
+    overlap_retract: float = 0.0
+    flow_extend: tuple[float, ...] = OPENING_GRID
+    flow_retract: tuple[float, ...] = OPENING_GRID
+
+    def flow_increments(self, direction: str) -> tuple[float, ...]:
+        """The rise of the flow characteristic over each grid segment (what the plant takes)."""
+        levels = getattr(self, f"flow_{direction}")
+        return tuple(b - a for a, b in zip((0.0, *levels[:-1]), levels))
+
+    @property
+    def is_linear(self) -> bool:
+        return (self.overlap_extend == 0.0 and self.overlap_retract == 0.0
+                and self.flow_extend == OPENING_GRID and self.flow_retract == OPENING_GRID)
 
 
 @dataclass(frozen=True)
@@ -62,10 +98,13 @@ class Friction:
 
 @dataclass(frozen=True)
 class Sensors:
-    """White sensor noise (standard deviations): identification weights and virtual-rig noise."""
+    """White sensor noise (standard deviations: identification weights and virtual-rig noise)
+    and the pressure sensors' offsets (what a sensor reads minus the true pressure)."""
 
     position_noise: float = 5.0e-6  # m
     pressure_noise: float = 300.0  # Pa
+    offset_p1: float = 0.0  # Pa
+    offset_p2: float = 0.0  # Pa
 
 
 @dataclass(frozen=True)
@@ -88,14 +127,25 @@ class Cylinder:
 
     def value(self, name: str) -> float:
         spec = PARAMETERS[name]
-        return float(getattr(getattr(self, spec.section), spec.attr))
+        section = getattr(self, spec.section)
+        if spec.segment is None:
+            return float(getattr(section, spec.attr))
+        return float(section.flow_increments(spec.attr.removeprefix("flow_"))[spec.segment])
 
     def with_values(self, values: Mapping[str, float]) -> "Cylinder":
         """A copy with the named model parameters (PARAMETERS keys) replaced."""
-        sections: dict[str, dict[str, float]] = {}
+        sections: dict[str, dict[str, object]] = {}
+        rises: dict[str, list[float]] = {}
         for name, v in values.items():
             spec = PARAMETERS[name]
-            sections.setdefault(spec.section, {})[spec.attr] = float(v)
+            if spec.segment is None:
+                sections.setdefault(spec.section, {})[spec.attr] = float(v)
+                continue
+            direction = spec.attr.removeprefix("flow_")
+            rise = rises.setdefault(spec.attr, list(self.valve.flow_increments(direction)))
+            rise[spec.segment] = float(v)
+        for attr, rise in rises.items():  # a flow characteristic is the running sum of its rises
+            sections.setdefault("valve", {})[attr] = tuple(float(x) for x in itertools.accumulate(rise))
         return replace(self, **{s: replace(getattr(self, s), **kw) for s, kw in sections.items()})
 
 
@@ -107,6 +157,23 @@ class ParameterSpec:
     lower: float  # bounds used by the identifier
     upper: float
     description: str
+    segment: int | None = None  # a flow characteristic's rise over this grid segment (attr: flow_D)
+
+
+def _flow_parameters() -> dict[str, ParameterSpec]:
+    """The valve's flow characteristic as parameters: per direction the overlap and the rise of
+    C / sonic_conductance over every grid segment (rises >= 0 keep the curve non-decreasing)."""
+    out = {}
+    for d, sign in zip(VALVE_DIRECTIONS, ("u > 0", "u < 0")):
+        out[f"overlap_{d}"] = ParameterSpec("valve", f"overlap_{d}", "1", 0.0, 0.5,
+                                            f"valve overlap, {d} ({sign}): closed below this |u|")
+        lo = 0.0
+        for k, hi in enumerate(OPENING_GRID):
+            out[f"flow_{d}_{k + 1}"] = ParameterSpec(
+                "valve", f"flow_{d}", "1", 0.0, 5.0,
+                f"rise of C/Cmax, {d} ({sign}), from {lo:.0%} to {hi:.0%} of the opening", segment=k)
+            lo = hi
+    return out
 
 
 # Every physical parameter of the nominal model under its canonical (command-line, JSON) name.
@@ -128,11 +195,22 @@ PARAMETERS: dict[str, ParameterSpec] = {
     "Fv": ParameterSpec("friction", "Fv", "N s/m", 0.0, 1e5, "viscous friction coefficient"),
     "kp": ParameterSpec("friction", "kp", "N/Pa", 0.0, 1e-2, "seal-pressure friction coefficient"),
     "v_smooth": ParameterSpec("friction", "v_smooth", "m/s", 1e-6, 1.0, "friction smoothing velocity"),
+    "external_force": ParameterSpec("mechanics", "external_force", "N", -1e5, 1e5,
+                                    "constant external force, positive towards extension"),
+    "end_stiffness": ParameterSpec("mechanics", "end_stiffness", "N/m", 1e3, 1e10, "stiffness of the end stops"),
+    "end_damping": ParameterSpec("mechanics", "end_damping", "N s/m", 0.0, 1e7, "damping of the end stops"),
+    "offset_p1": ParameterSpec("sensors", "offset_p1", "Pa", -5e4, 5e4, "offset of the p1 sensor (reads p1 + offset)"),
+    "offset_p2": ParameterSpec("sensors", "offset_p2", "Pa", -5e4, 5e4, "offset of the p2 sensor (reads p2 + offset)"),
+    **_flow_parameters(),
 }
+
+# The valve's flow characteristic, every parameter of it (overlaps, then rises per direction).
+FLOW_CHARACTERISTIC = tuple(n for n in PARAMETERS if n.startswith(("overlap_", "flow_")))
 
 # The parameters a user may ask the identifier to estimate (geometry and supply are measured, not fitted).
 ESTIMABLE = ("Fc", "Fv", "kp", "mass", "conductance", "critical_ratio",
-             "dead_volume_cap", "dead_volume_rod", "angle")
+             "dead_volume_cap", "dead_volume_rod", "angle", "external_force", "offset_p1", "offset_p2",
+             *FLOW_CHARACTERISTIC)
 
 
 # --------------------------------------------------------------------------- loading
@@ -144,6 +222,7 @@ _SECTIONS = {"geometry": Geometry, "mechanics": Mechanics, "supply": Supply, "va
 _SCHEMA: dict[str, dict[str, Any]] = {
     section: {f.name: f.default for f in fields(cls)}  # MISSING: required
     for section, cls in _SECTIONS.items()}
+_FLOWS = {f"flow_{d}" for d in VALVE_DIRECTIONS}  # lists: the flow characteristic
 _OPTIONAL_SECTIONS = {"sensors", "identify"}
 # why a value above (+1) or below (-1) the parameter's bounds is most likely wrong
 _HINTS = {("geometry.bore", 1): "lengths are in metres, not mm",
@@ -205,6 +284,9 @@ def parse_cylinder(data: Mapping[str, Any], source: str | Path | None = None) ->
             if section == "identify":
                 vals[key] = _check_identify(key, v, fail)
                 continue
+            if key in _FLOWS:
+                vals[key] = _flow_levels(v, full, fail)
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise fail(f"key '{full}' must be a number, not {type(v).__name__} {v!r}.")
             v = float(v)
@@ -217,6 +299,23 @@ def parse_cylinder(data: Mapping[str, Any], source: str | Path | None = None) ->
     values["mechanics"]["angle"] = math.radians(values["mechanics"]["angle"])
     return Cylinder(name=name, source=Path(source) if source is not None else None,
                     **{section: cls(**values[section]) for section, cls in _SECTIONS.items()})
+
+
+def _flow_levels(v: Any, full: str, fail) -> tuple[float, ...]:
+    """valve.flow_extend / flow_retract: C / sonic_conductance at OPENING_GRID, non-decreasing."""
+    grid = ", ".join(f"{g:g}" for g in OPENING_GRID)
+    if (not isinstance(v, list) or len(v) != len(OPENING_GRID)
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+        raise fail(f"key '{full}' must be a list of {len(OPENING_GRID)} numbers: C / sonic_conductance at "
+                   f"{grid} of the opening beyond the overlap.")
+    levels = tuple(float(x) for x in v)
+    if levels[0] < 0 or any(b < a for a, b in zip(levels, levels[1:])):
+        raise fail(f"key '{full}' must be non-negative and non-decreasing (a valve opens further as the "
+                   f"command grows), not {list(levels)}.")
+    if not 0 < levels[-1] <= 5.0:
+        raise fail(f"key '{full}' must end (full opening) between 0 and 5 times sonic_conductance, "
+                   f"not {levels[-1]:g}.")
+    return levels
 
 
 def _check_identify(key: str, v: Any, fail) -> Any:
@@ -237,6 +336,8 @@ def _check_identify(key: str, v: Any, fail) -> Any:
 def _check_physics(v: dict[str, dict[str, Any]], fail) -> None:
     """Every model parameter within the identifier's bounds (PARAMETERS), then what relates keys."""
     for spec in PARAMETERS.values():
+        if spec.segment is not None:
+            continue  # the flow characteristic: checked as a whole where it is read
         full, x = f"{spec.section}.{spec.attr}", v[spec.section][spec.attr]
         lo, hi, unit = spec.lower, spec.upper, spec.unit
         if full == "mechanics.angle":  # the file gives degrees
@@ -260,7 +361,7 @@ def _check_physics(v: dict[str, dict[str, Any]], fail) -> None:
 
 
 def cylinder_to_toml(cyl: Cylinder) -> str:
-    """The cylinder in the FORMATS.md layout (round-trips through load_cylinder)."""
+    """The cylinder in the cylinder-file layout (round-trips through load_cylinder)."""
     lines = [f"name = {_toml_str(cyl.name)}", ""]
     for section in ("geometry", "mechanics", "supply", "valve", "friction", "sensors"):
         obj = getattr(cyl, section)
@@ -269,6 +370,8 @@ def cylinder_to_toml(cyl: Cylinder) -> str:
             val = getattr(obj, f.name)
             if section == "mechanics" and f.name == "angle":
                 val = _angle_to_deg(val)
+            if isinstance(val, tuple):
+                val = list(val)
             lines.append(f"{f.name} = {val!r}")
         lines.append("")
     lines.append("[identify]")

@@ -21,7 +21,9 @@ class Signals:
     """The symbolic quantities of one evaluation of the plant, passed through effect hooks.
 
     Hooks read and overwrite attributes and set derivatives of their own states in `deriv`.
-    Stages, in order (the command drive only: on_command, on_supply, on_flows, on_chambers):
+    p1, p2 are the true pressures (the sensors read them plus their offsets). Stages, in order
+    (on_command, on_supply, on_flows, on_chambers: not in the pressure drive; on_friction_terms,
+    on_friction, on_piston: not in the chambers drive):
 
     on_command         u (clipped valve command, read by the valve)
     on_supply          ps (supply pressure at the valve inlet)
@@ -30,7 +32,8 @@ class Signals:
     on_friction_terms  Fseal (seal level Fc + kp|p1-p2|, >= 0), sgn (direction function
                        tanh(v/v_smooth)), Fvisc (Fv v); afterwards Ff = Fseal*sgn + Fvisc
     on_friction        Ff (total friction force, opposing motion)
-    on_piston          M (moving mass used in the piston equation and the weight)
+    on_piston          M (moving mass used in the piston equation and the weight); F_ext
+                       (constant external force), F_end (end-stop force) are available
     on_chambers        dp1, dp2 (V1, V2, A1, A2 are available)
     """
 

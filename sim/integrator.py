@@ -11,10 +11,10 @@ reversals, breakaway) are refined by step doubling behind a short-circuiting
 is a deterministic function of state and input, so simulator and identifier see the
 very same trajectory.
 
-Inputs are either held (valve command, zero-order hold per MODEL.md) or linearly
-interpolated across the sample (measured pressures in the pressure drive); the
-latter are carried as auxiliary states with constant slope so the step stays
-autonomous and keeps its order.
+Inputs are either held (the valve command, zero-order hold as the model contract says)
+or linearly interpolated across the sample (measured pressures in the pressure drive,
+measured position and velocity in the chambers drive); the latter are carried as
+auxiliary states with constant slope so the step stays autonomous and keeps its order.
 """
 from __future__ import annotations
 
@@ -116,8 +116,9 @@ class StepBuilder:
     def __init__(self, plant: Plant, opts: IntegratorOptions = IntegratorOptions()):
         self.plant = plant
         self.opts = opts
-        # measured pressures vary continuously; the valve command is held (MODEL.md)
-        self.interpolate = plant.drive == "pressure"
+        # measured signals vary continuously; the valve command is held (zero-order hold)
+        self.held = np.array([n == "u" for n in plant.input_names])
+        self.interpolate = not self.held.all()
         self.nx = plant.nx
         self.nw = len(plant.input_names)
         self.npar = len(plant.param_names)
@@ -133,7 +134,7 @@ class StepBuilder:
         rhs = self.plant.rhs
         if self.interpolate:
             # augmented autonomous system z = (x, w) with dw/dt = (w1 - w0)/h over the step
-            slope = ca.if_else(h > 0, (w1 - w0) / ca.fmax(h, 1e-300), 0 * w0)
+            slope = ca.if_else(h > 0, (w1 - w0) / ca.fmax(h, 1e-300), 0 * w0) * ca.DM(1.0 - self.held)
             z = ca.vertcat(x, w0)
 
             def f(zz):
@@ -187,7 +188,7 @@ class StepBuilder:
         half = self._refine(coarse, depth - 1, name)
         x, w0, w1, p, h = sym[:5]
         # interpolated inputs split at the midpoint; a held input stays held in both halves
-        wm = 0.5 * (w0 + w1) if self.interpolate else w0
+        wm = w0 + 0.5 * (w1 - w0) * ca.DM(1.0 - self.held) if self.interpolate else w0
         first = half.call([x, w0, wm, p, h / 2, *sym[5:]])
         second = half.call([first[0], wm, w1, p, h / 2, *first[1:]])
         held = [ca.MX.sym(f"coarse_{n}", *coarse.sparsity_out(i).shape) for i, n in enumerate(names_out)]

@@ -15,13 +15,19 @@ from typing import Sequence
 
 import casadi as ca
 
-from .cylinder import PARAMETERS, Cylinder
+from .cylinder import OPENING_GRID, PARAMETERS, VALVE_DIRECTIONS, Cylinder
 from .extension import Effect, Signals, check_combination
 from .flow import G, KAPPA, R_AIR, mass_flow
 
 NOMINAL_PARAMS: tuple[str, ...] = tuple(PARAMETERS)
 
-DRIVES = ("command", "pressure")
+# command: the whole plant driven by the valve command; pressure: the piston alone, driven by
+# the measured pressures; chambers: the valve and both chambers alone, driven by the command
+# and the measured motion (position and its velocity)
+DRIVES = ("command", "pressure", "chambers")
+_BASE = {"command": (("p1", "p2", "x", "v"), ("u",), ("x", "p1", "p2")),
+         "pressure": (("x", "v"), ("p1", "p2"), ("x",)),
+         "chambers": (("p1", "p2"), ("u", "x", "v"), ("p1", "p2"))}
 
 
 @dataclass(frozen=True)
@@ -30,7 +36,9 @@ class Plant:
 
     command drive: state (p1, p2, x, v, *effect states), input (u,)
     pressure drive: state (x, v, *mechanical effect states), input (p1, p2)
-    Outputs are the measured states: (x, p1, p2) for the command drive, (x,) for the pressure drive.
+    chambers drive: state (p1, p2, *pneumatic effect states), input (u, x, v)
+    Outputs are the measured states: (x, p1, p2), (x,) and (p1, p2) respectively. Pressures,
+    as states and as inputs, are what the sensors read (true pressure + the sensor's offset).
     """
 
     drive: str
@@ -59,17 +67,38 @@ class Plant:
         return vals
 
     def initial_state(self, cyl: Cylinder, x0: float, p1: float, p2: float, v0: float = 0.0) -> list[float]:
-        base = [p1, p2, x0, v0] if self.drive == "command" else [x0, v0]
+        """The state at a measured (x, v, p1, p2): pressures as the sensors read them."""
+        known = {"p1": p1, "p2": p2, "x": x0, "v": v0}
+        base = [known[n] for n in _BASE[self.drive][0]]
         extra = [s0 for e in self.effects if _applies(e, self.drive) for s0 in e.initial_states(cyl, p1, p2, v0)]
         return base + extra
 
 
 # Bump when the nominal equations change, so cached compiled code is rebuilt.
-MODEL_REVISION = 1
+MODEL_REVISION = 2
 
 
 def _applies(effect: Effect, drive: str) -> bool:
-    return drive == "command" or effect.subsystem == "mechanical"
+    return drive == "command" or (effect.subsystem == "mechanical") == (drive == "pressure")
+
+
+def valve_conductance(C, a, overlap, rises):
+    """Sonic conductance of a path at the command magnitude a in [0, 1]: closed up to the
+    overlap, then C times the piecewise-linear flow characteristic of the opening beyond it
+    (its rises over the segments of OPENING_GRID); the defaults give C * a exactly."""
+    s = ca.fmax(a - overlap, 0.0) / (1.0 - overlap)
+    g, lo = 0.0, 0.0
+    for rise, hi in zip(rises, OPENING_GRID):
+        g = g + rise * ca.fmin(ca.fmax((s - lo) / (hi - lo), 0.0), 1.0)
+        lo = hi
+    return C * g
+
+
+def end_stop_force(x, v, stroke, stiffness, damping):
+    """The end stops: a stiff, damped contact beyond x = 0 and x = stroke, nothing between."""
+    below = -stiffness * x - damping * v
+    above = -stiffness * (x - stroke) - damping * v
+    return ca.if_else(x < 0, below, ca.if_else(x > stroke, above, 0.0))
 
 
 def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant:
@@ -93,28 +122,23 @@ def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant
     A2 = math.pi * (D**2 - d**2) / 4
 
     extra_states = [(e, s) for e in active for s in e.state_names()]
-    if drive == "command":
-        base_states = ["p1", "p2", "x", "v"]
-        input_names = ["u"]
-        output_names = ["x", "p1", "p2"]
-    else:
-        base_states = ["x", "v"]
-        input_names = ["p1", "p2"]
-        output_names = ["x"]
-    state_names = base_states + [e.key(s) for e, s in extra_states]
+    base_states, input_names, output_names = _BASE[drive]
+    state_names = [*base_states, *(e.key(s) for e, s in extra_states)]
     X = ca.SX.sym("X", len(state_names))
     U = ca.SX.sym("U", len(input_names))
-    st = dict(zip(state_names, ca.vertsplit(X)))
-    inp = dict(zip(input_names, ca.vertsplit(U)))
+    known = {**dict(zip(input_names, ca.vertsplit(U))), **dict(zip(state_names, ca.vertsplit(X)))}
+    st = {n: known[n] for n in state_names}
 
-    p1 = st["p1"] if drive == "command" else inp["p1"]
-    p2 = st["p2"] if drive == "command" else inp["p2"]
+    # the pressures the plant works with are the true ones: a sensor reads true + offset
+    p1 = known["p1"] - par["offset_p1"]
+    p2 = known["p2"] - par["offset_p2"]
+    x, v = known["x"], known["v"]
     sig = Signals(
-        A1=A1, A2=A2, x=st["x"], v=st["v"], p1=p1, p2=p2, par=par,
+        A1=A1, A2=A2, x=x, v=v, p1=p1, p2=p2, par=par,
         pa=par["atmosphere"], ps=par["supply_pressure"], T=par["temperature"],
         M=par["mass"], C=par["conductance"], b=par["critical_ratio"],
-        V1=par["dead_volume_cap"] + A1 * st["x"],
-        V2=par["dead_volume_rod"] + A2 * (L - st["x"]),
+        V1=par["dead_volume_cap"] + A1 * x,
+        V2=par["dead_volume_rod"] + A2 * (L - x),
     )
 
     # each active effect's own parameter and state symbols, by their short names
@@ -126,12 +150,15 @@ def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant
         for e in active:
             getattr(e, hook)(sig, *owned[e.name])
 
-    if drive == "command":
-        sig.u = ca.fmin(ca.fmax(inp["u"], -1.0), 1.0)
+    pneumatic = drive != "pressure"
+    mechanical = drive != "chambers"
+    if pneumatic:
+        sig.u = ca.fmin(ca.fmax(known["u"], -1.0), 1.0)
         stage("on_command")
         stage("on_supply")
-        c_pos = sig.C * ca.fmax(sig.u, 0.0)
-        c_neg = sig.C * ca.fmax(-sig.u, 0.0)
+        c_pos, c_neg = (valve_conductance(sig.C, a, par[f"overlap_{d}"],
+                                          [par[f"flow_{d}_{k + 1}"] for k in range(len(OPENING_GRID))])
+                        for d, a in zip(VALVE_DIRECTIONS, (ca.fmax(sig.u, 0.0), ca.fmax(-sig.u, 0.0))))
         # supply -> chamber paths (drawn from the supply) and chamber <- exhaust paths
         sig.mdot_s1 = mass_flow(c_pos, sig.ps, p1, sig.b, sig.T)
         sig.mdot_s2 = mass_flow(c_neg, sig.ps, p2, sig.b, sig.T)
@@ -140,27 +167,32 @@ def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant
         sig.mdot_supply = sig.mdot_s1 + sig.mdot_s2  # net mass flow drawn from the supply
         stage("on_flows")
 
-    # friction: every term opposes motion. Ff = Fseal * sgn + Fvisc, with the seal (Coulomb
-    # plus pressure) level Fseal >= 0, the direction function sgn in [-1, 1] and the viscous
-    # term Fvisc; on_friction_terms hooks reshape these before they are combined.
-    v = sig.v
-    sig.sgn = ca.tanh(v / par["v_smooth"])
-    sig.Fseal = par["Fc"] + par["kp"] * ca.fabs(p1 - p2)
-    sig.Fvisc = par["Fv"] * v
-    stage("on_friction_terms")
-    sig.Ff = sig.Fseal * sig.sgn + sig.Fvisc
-    stage("on_friction")
-    stage("on_piston")
-    sig.dv = (p1 * A1 - p2 * A2 - sig.pa * (A1 - A2) - sig.Ff - sig.M * G * ca.sin(par["angle"])) / sig.M
+    sig.Ff = 0.0
+    if mechanical:
+        # friction: every term opposes motion. Ff = Fseal * sgn + Fvisc, with the seal (Coulomb
+        # plus pressure) level Fseal >= 0, the direction function sgn in [-1, 1] and the viscous
+        # term Fvisc; on_friction_terms hooks reshape these before they are combined.
+        sig.sgn = ca.tanh(v / par["v_smooth"])
+        sig.Fseal = par["Fc"] + par["kp"] * ca.fabs(p1 - p2)
+        sig.Fvisc = par["Fv"] * v
+        stage("on_friction_terms")
+        sig.Ff = sig.Fseal * sig.sgn + sig.Fvisc
+        stage("on_friction")
+        sig.F_ext = par["external_force"]
+        sig.F_end = end_stop_force(x, v, L, par["end_stiffness"], par["end_damping"])
+        stage("on_piston")
+        sig.dv = (p1 * A1 - p2 * A2 - sig.pa * (A1 - A2) - sig.Ff - sig.M * G * ca.sin(par["angle"])
+                  + sig.F_ext + sig.F_end) / sig.M
 
-    if drive == "command":
+    derivs = {"x": v}
+    if mechanical:
+        derivs["v"] = sig.dv
+    if pneumatic:
         sig.dp1 = KAPPA / sig.V1 * (R_AIR * sig.T * sig.mdot1 - p1 * A1 * v)
         sig.dp2 = KAPPA / sig.V2 * (R_AIR * sig.T * sig.mdot2 + p2 * A2 * v)
         stage("on_chambers")
-        base_deriv = [sig.dp1, sig.dp2, v, sig.dv]
-    else:
-        base_deriv = [v, sig.dv]
-    deriv = base_deriv + [sig.deriv[e.key(s)] for e, s in extra_states]
+        derivs.update(p1=sig.dp1, p2=sig.dp2)
+    deriv = [derivs[n] for n in base_states] + [sig.deriv[e.key(s)] for e, s in extra_states]
 
     return Plant(
         drive=drive,
@@ -170,5 +202,5 @@ def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant
         output_names=tuple(output_names),
         param_names=tuple(param_names),
         rhs=ca.Function("rhs", [X, U, P], [ca.vertcat(*deriv)], ["x", "u", "p"], ["xdot"]),
-        friction=ca.Function("friction", [X, U, P], [sig.Ff], ["x", "u", "p"], ["Ff"]),
+        friction=ca.Function("friction", [X, U, P], [ca.SX(sig.Ff)], ["x", "u", "p"], ["Ff"]),
     )

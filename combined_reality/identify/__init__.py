@@ -9,11 +9,11 @@
 from .newton import equation_error_friction, friction_from_newton
 from .offline import Estimate, IdentifyOptions, IdentifyResult, identify
 from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
-from .shooting import UNITS, IdentificationError, at_bounds, sensor_noise
+from .shooting import UNITS, IdentificationError, PriorRow, at_bounds, sensor_noise
 from .smoothing import derivative_kernels, savgol_kernels, velocity_estimate
 from .validation import Validation, validate, validation_gain, validation_segments
 
 __all__ = ["equation_error_friction", "friction_from_newton", "Estimate", "IdentifyOptions", "IdentifyResult",
-           "identify", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError",
+           "identify", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError", "PriorRow",
            "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",
            "validate", "validation_gain", "validation_segments"]

@@ -32,10 +32,10 @@ from sim.plant import build_plant
 
 from ..files import Run, split_at_gaps
 from .newton import equation_error_friction
-from .shooting import (IdentificationError, RunLayout, ShootingProblem, at_bounds, cluster_covariance, condense,
-                       covariance, fit_metrics, free_parameters, line_search, linearize, parameter_bounds,
-                       parameter_unit, pooled_fit, residual_scales, run_layout, simulate_layout, solve_bounded,
-                       standard_deviations, warm_nodes, with_effect_values)
+from .shooting import (IdentificationError, PriorRow, RunLayout, ShootingProblem, at_bounds, cluster_covariance,
+                       condense, covariance, fit_metrics, free_parameters, line_search, linearize, parameter_bounds,
+                       parameter_unit, pooled_fit, prior_matrix, residual_scales, run_layout, simulate_layout,
+                       solve_bounded, standard_deviations, warm_nodes, with_effect_values)
 
 
 # a damped step closer than this (relative, in the scaled variables) to one whose line search
@@ -103,7 +103,10 @@ class IdentifyResult:
 def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = IdentifyOptions(),
              effects: Sequence[Effect] = (), initial: Mapping[str, float] | None = None,
              nodes: np.ndarray | None = None,
-             progress: Callable[[str], None] | None = None) -> IdentifyResult:
+             progress: Callable[[str], None] | None = None, prior: Sequence[PriorRow] = ()) -> IdentifyResult:
+    """Identify `options.estimate` from the runs (jointly) by multiple-shooting Gauss-Newton;
+    `initial` overrides start values, `nodes` warm-starts the node states (another model's
+    solution on the same runs), `prior` adds prior knowledge of the parameters."""
     t_start = time.perf_counter()
     if not runs:
         raise IdentificationError("no runs to identify from.")
@@ -171,8 +174,23 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     def out_of_time() -> bool:
         return time.perf_counter() - t_start > options.time_limit_s
 
-    def merit(E, D, mu):
-        return 0.5 * float(np.sum(E * E)) + mu * float(np.sum(np.abs(D)))
+    Gp, tp = prior_matrix(prior, estimate)
+
+    def prior_cost(th) -> float:
+        rp = Gp @ th - tp
+        return 0.5 * float(rp @ rp)
+
+    def merit(E, D, mu, th):
+        return 0.5 * float(np.sum(E * E)) + prior_cost(th) + mu * float(np.sum(np.abs(D)))
+
+    def with_prior(Nmat: np.ndarray, g: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not len(tp):
+            return Nmat, g
+        Nmat, g = Nmat.copy(), g.copy()
+        n0 = Nmat.shape[0] - nth
+        Nmat[n0:, n0:] += Gp.T @ Gp
+        g[n0:] += Gp.T @ (Gp @ th - tp)
+        return Nmat, g
 
     ev = evaluate(S, p, True)
     if ev is None:
@@ -191,9 +209,10 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         lin_ = linearize(ev, out_idx, wts, mask, M, nx, ny, nth)
         G, Hth = lin_[0], lin_[1]
         Nmat, g, P, Q, q, scores = condense(lin_, E, D * sscale[:, None], layouts, has_next, nx, nth)
+        Nmat, g = with_prior(Nmat, g, theta)
         linearized_at = (ev, Nmat, scores)
         R = len(layouts)
-        cost = 0.5 * float(np.sum(E * E))
+        cost = 0.5 * float(np.sum(E * E)) + prior_cost(theta)
         viol = float(np.sum(np.abs(D)))
 
         accepted = converged_here = False
@@ -219,15 +238,16 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
                 sl = slice(l.node0, l.node0 + l.K)
                 dS[sl] = P[sl] @ ds0[ri] + Q[sl] @ dth + q[sl]
             lin = np.einsum("kmoi,ki->kmo", G, dS) + np.einsum("kmoi,i->kmo", Hth, dth)
-            gdir = float(np.sum(E * lin))
-            quad = float(np.sum(lin * lin))
+            lin_prior = Gp @ dth
+            gdir = float(np.sum(E * lin)) + float((Gp @ theta - tp) @ lin_prior)
+            quad = float(np.sum(lin * lin)) + float(lin_prior @ lin_prior)
             predicted = -(gdir + 0.5 * quad)  # decrease of the cost the Gauss-Newton model expects
             if predicted < max(1e-2, 1e-10 * cost) and viol < 1e-2 * max(1, Ktot):
                 converged_here = True  # nothing left to gain, statistically or numerically
                 break
             if viol > 0:
                 mu = max(mu, (gdir + 0.5 * quad) / (0.5 * viol) + 1.0)
-            found = line_search(evaluate, lambda ev_, _th: merit(ev_[0], ev_[1], mu), S, dS.T, theta, dth, p,
+            found = line_search(evaluate, lambda ev_, th_: merit(ev_[0], ev_[1], mu, th_), S, dS.T, theta, dth, p,
                                 free, lower, upper, cost + mu * viol, min(gdir - mu * viol, 0.0), 1.0 / 64)
             if found:
                 alpha, S_try, th_try, p_try, ev_try = found
@@ -246,7 +266,10 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         lam = lam / 10 if lam > 1e-6 else 0.0
         S, theta, p = S_try, th_try, p_try
         std = standard_deviations(Nmat, R * nx, cost, mask.sum() * ny)
-        rel_step = np.max(np.abs(alpha * dth) / np.maximum(std, 1e-300)) if nth else 0.0
+        # a step small against what the data determine; an undetermined parameter (std not
+        # finite) must itself stop moving
+        yardstick = np.where(np.isfinite(std), std, 1e-6 * (upper - lower))
+        rel_step = np.max(np.abs(alpha * dth) / np.maximum(yardstick, 1e-300)) if nth else 0.0
         history.append({"iteration": it, "cost": cost, "defect": viol, "alpha": alpha, "lm": lam,
                         "theta": theta.tolist()})
         if progress:
@@ -261,7 +284,8 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         if rel_step < 1e-3 and new_viol < 1e-2 * max(1, Ktot) and alpha == 1.0:
             status = "converged"
             break
-        if abs(cost - 0.5 * float(np.sum(ev[0] ** 2))) < 1e-12 * cost and new_viol < 1e-2 * max(1, Ktot):
+        if (abs(cost - 0.5 * float(np.sum(ev[0] ** 2)) - prior_cost(theta)) < 1e-12 * cost
+                and new_viol < 1e-2 * max(1, Ktot)):
             status = "converged"
             break
 
@@ -272,8 +296,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     if linearized_at is not None and linearized_at[0] is ev:  # converged where the loop linearised
         Nfinal, scores = linearized_at[1], linearized_at[2]
     else:
-        Nfinal, _, _, _, _, scores = condense(linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E,
-                                               D * sscale[:, None], layouts, has_next, nx, nth)
+        Nfinal, gfinal, _, _, _, scores = condense(linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E,
+                                                    D * sscale[:, None], layouts, has_next, nx, nth)
+        Nfinal, _ = with_prior(Nfinal, gfinal, theta)
     cov_gn = covariance(Nfinal, len(layouts) * nx, cost, nres)
     cov_robust = cluster_covariance(Nfinal, scores, layouts, len(layouts) * nx,
                                      max(1, int(round(1.0 / (M * dt0)))))

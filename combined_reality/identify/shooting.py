@@ -26,6 +26,31 @@ class IdentificationError(RuntimeError):
     """The identification could not be carried out (the message says why)."""
 
 
+@dataclass(frozen=True)
+class PriorRow:
+    """Prior knowledge of the estimated parameters as one more least-squares residual,
+    (sum_i coefficients[i] * theta_i - target) / std: what the runs leave undetermined
+    follows it, what they determine hardly notices it."""
+
+    coefficients: Mapping[str, float]
+    target: float
+    std: float
+
+
+def prior_matrix(rows: Sequence[PriorRow], estimate: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(G, t) with the prior residual G theta - t (rows scaled by 1/std), for the rows whose
+    parameters are all estimated."""
+    index = {n: i for i, n in enumerate(estimate)}
+    use = [r for r in rows if r.coefficients and all(n in index for n in r.coefficients)]
+    G = np.zeros((len(use), len(estimate)))
+    t = np.zeros(len(use))
+    for k, r in enumerate(use):
+        for n, c in r.coefficients.items():
+            G[k, index[n]] = c / r.std
+        t[k] = r.target / r.std
+    return G, t
+
+
 @dataclass
 class RunLayout:
     """One run cut into K shooting intervals of M samples (the last one padded)."""
@@ -71,10 +96,12 @@ def run_layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> Run
     N = run.n
     K = math.ceil(N / M)
     pad = K * M + 1 - N
-    if plant.drive == "command":
-        w = run.u[None, :]
-    else:
-        w = np.vstack([run.p1, run.p2])
+    v = velocity_estimate(run.t, run.x)
+    # a driving velocity: central differences of the measured position, interpolated linearly
+    # over each sample like the position (a sum of them telescopes, so its noise does not
+    # accumulate, and unlike a smoothed velocity it keeps the fast changes of an impact)
+    signals = {"u": run.u, "x": run.x, "v": np.gradient(run.x, run.t), "p1": run.p1, "p2": run.p2}
+    w = np.vstack([signals[n] for n in plant.input_names])
     w_pad = np.hstack([w, np.repeat(w[:, -1:], pad, axis=1)])  # (nw, K*M+1)
     idx = (np.arange(K)[:, None] * M + np.arange(M + 1)[None, :]).ravel()
     W = w_pad[:, idx]
@@ -84,7 +111,6 @@ def run_layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> Run
     ys = np.stack([meas[n] for n in plant.output_names], axis=-1)  # (N, ny)
     ys = np.vstack([ys, np.zeros((K * M - N, ys.shape[1]))])
     mask = (np.arange(K * M) < N).astype(float).reshape(K, M)
-    v = velocity_estimate(run.t, run.x)
     nodes = np.arange(K) * M
     S0 = np.array([plant.initial_state(cyl, run.x[i], run.p1[i], run.p2[i], v[i]) for i in nodes]).T
     return RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask, S0)

@@ -156,16 +156,93 @@ def command_file_program(path, cyl: Cylinder, options: ProgramOptions = ProgramO
     return HeldCommandProgram(t, u, cyl, options)
 
 
+class CalibrationProgram:
+    """What calibration needs, safely: creeping openings through the valve's overlap in both
+    directions (open loop, stopped well before the soft limits), moves into both end stops at a
+    bounded speed and command with a hold there (the exhausting chamber settles at atmosphere,
+    the filling one at supply: the sensors' offsets; at the ends the dead volumes show), and
+    open-loop pulses of growing command (the flow characteristic up to full opening, the mass)
+    and closed-loop steps, ramps and sines at several positions and speeds (the flow
+    characteristic at small openings, the critical ratio). Call `command(t, x_measured)`."""
+
+    END_SPEED = 0.05  # m/s: the reference's speed into an end stop (a gentle landing)
+    END_COMMAND = 0.35  # command bound while driving into and holding at an end
+    END_HOLD = 1.5  # s at the end stop
+    CREEP_RATE = 0.15  # 1/s: how fast the open-loop command grows while creeping
+    CREEP_MAX = 0.3  # the creep's largest command
+
+    def __init__(self, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
+        self.L, self.opts = cyl.geometry.stroke, options
+        self.closed = PositionProgram(cyl, duration, seed, options)
+        L = self.L
+        # (start, end, kind, sign, level): cycles of creeping out and in, both end stops, pulses
+        # of growing command, then position control; its reference runs underneath throughout
+        self.phases: list[tuple[float, float, str, float, float]] = []
+        travel = 1.1 * L / self.END_SPEED + self.END_HOLD
+        # a pulse's length: a sixth of the stroke at the speed its command gives
+        v_per_u = 1.0 / self.closed.kff
+        t, cycle = 1.0, 0
+        while t < duration:
+            s = 1.0 if cycle % 2 == 0 else -1.0
+            plan = [("creep", 2.0, s, 0.0), ("settle", 0.8, s, 0.0), ("end", travel, s, 0.0), ("settle", 1.0, s, 0.0),
+                    ("creep", 2.0, -s, 0.0), ("settle", 0.8, s, 0.0), ("end", travel, -s, 0.0),
+                    ("settle", 1.0, s, 0.0)]
+            for level in (0.25, 0.45, 0.65, options.u_max):
+                for sign in (s, -s):
+                    plan += [("pulse", min(0.3, L / 6 / (v_per_u * level)), sign, level), ("settle", 0.6, s, 0.0)]
+            plan.append(("position", 5.0, s, 0.0))
+            for kind, length, sign, level in plan:
+                self.phases.append((t, t + length, kind, sign, level))
+                t += length
+            cycle += 1
+        self._i = -1
+        self._x0 = 0.5 * self.L  # where the current phase started
+        self._creep_done = False
+
+    def command(self, t: float, x_meas: float) -> float:
+        i = self._i
+        while i < len(self.phases) - 1 and t >= self.phases[i + 1][0]:
+            i += 1
+        if i != self._i:
+            self._i, self._x0, self._creep_done = i, x_meas, False
+        if i < 0:
+            return self.closed.command(t, x_meas)
+        t0, _t1, kind, sign, level = self.phases[i]
+        L = self.L
+        if kind == "end":  # no soft limit: the end stop is the limit, approached at END_SPEED
+            # the reference goes on beyond the end, so that the held command opens the valve
+            # decisively (up to END_COMMAND) and the chambers settle at supply and atmosphere
+            target = 1.5 * L if sign > 0 else -0.5 * L
+            r = self._x0 + sign * self.END_SPEED * (t - t0)
+            r = min(r, target) if sign > 0 else max(r, target)
+            u = self.closed.kp * (r - x_meas) + (self.closed.kff * sign * self.END_SPEED if r != target else 0.0)
+            return max(-self.END_COMMAND, min(self.END_COMMAND, u))
+        if kind == "creep":  # open loop from mid-stroke; stops well inside the soft limits
+            if (x_meas - 0.5 * L) * sign > 0.25 * L:
+                self._creep_done = True
+            u = 0.0 if self._creep_done else sign * min(self.CREEP_RATE * (t - t0), self.CREEP_MAX)
+            return guarded(u, x_meas, L, self.opts)
+        if kind == "pulse":  # open loop, from mid-stroke
+            return guarded(sign * level, x_meas, L, self.opts)
+        if kind == "settle":  # back to mid-stroke under position control
+            u = self.closed.kp * (0.5 * L - x_meas)
+            return guarded(u, x_meas, L, self.opts)
+        return self.closed.command(t, x_meas)
+
+
 PROGRAMS = {"mixed": ("step", "ramp", "sine"), "steps": ("step",), "ramps": ("ramp",), "sines": ("sine",),
-            "pulses": None}
+            "pulses": None, "calibration": None}
 
 
 def make_program(name: str, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
-    """A built-in program by name (mixed, steps, ramps, sines, pulses) or `file:PATH` (t,u CSV)."""
+    """A built-in program by name (mixed, steps, ramps, sines, pulses, calibration) or `file:PATH`
+    (t,u CSV)."""
     if name.startswith("file:"):
         return command_file_program(name[5:], cyl, options)
     if name not in PROGRAMS:
         raise ValueError(f"unknown program '{name}' (available: {', '.join(PROGRAMS)}, file:PATH).")
     if name == "pulses":
         return pulse_program(cyl, duration, seed, options)
+    if name == "calibration":
+        return CalibrationProgram(cyl, duration, seed, options)
     return PositionProgram(cyl, duration, seed, options, PROGRAMS[name])

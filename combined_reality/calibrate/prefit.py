@@ -1,0 +1,209 @@
+"""Linear starts for calibration, from the measured signals alone (equation error).
+
+The piston's force balance with the measured pressures is linear in the friction, the
+moving mass and a constant force; so least squares on it gives their start without any
+simulation (seed 000's method, with the mass and a constant force added). Its constant
+force also absorbs the pressure sensors' offsets (o1 A1 - o2 A2), which the force balance
+alone cannot tell from an external force."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import casadi as ca
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from sim.cylinder import OPENING_GRID, Cylinder
+from sim.flow import G, KAPPA, R_AIR, mass_flow
+
+from ..files import Run
+from ..identify import savgol_kernels
+
+__all__ = ["force_balance_prefit", "settled_offsets", "chamber_prefit", "unit_flows", "opening_basis"]
+
+_P_FROM, _P_TO, _B, _T = (ca.SX.sym(n) for n in ("p_from", "p_to", "b", "T"))
+SMOOTH = 0.02  # weight of the slope-continuity rows of the flow characteristic, relative to the data
+
+
+def force_balance_prefit(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> dict[str, float]:
+    """Fc, Fv, kp, mass and external_force by linear least squares on Newton's law with the
+    measured pressures, from the samples where the piston slides freely (away from the end
+    stops, |v| well above the friction smoothing). Empty if the runs barely move."""
+    g = cyl.geometry
+    A1, A2, pa = g.area_cap, g.area_rod, cyl.supply.atmosphere
+    _, k1, k2 = savgol_kernels(half)
+    rows, rhs = [], []
+    for r in runs:
+        if r.n < 4 * half:
+            continue
+        dt = r.sample_period
+        idx = np.arange(half, r.n - half)
+        v = np.convolve(r.x, k1, mode="same")[idx] / dt
+        a = np.convolve(r.x, k2, mode="same")[idx] / dt**2
+        x, p1, p2 = r.x[idx], r.p1[idx], r.p2[idx]
+        margin = 0.01 * g.stroke  # the end stops' force is not in this balance
+        free = (np.abs(v) > max(20 * cyl.friction.v_smooth, 0.005)) & (x > margin) & (x < g.stroke - margin)
+        if not free.any():
+            continue
+        sgn = np.sign(v[free])
+        force = (p1 * A1 - p2 * A2 - pa * (A1 - A2))[free]
+        # force = M (a + g sin(angle)) + Fc sgn + kp sgn |p1 - p2| + Fv v - F_ext
+        rows.append(np.column_stack([a[free] + G * np.sin(cyl.mechanics.angle), sgn,
+                                     sgn * np.abs(p1 - p2)[free], v[free], -np.ones(free.sum())]))
+        rhs.append(force)
+    if not rows or sum(len(b) for b in rhs) < 100:
+        return {}
+    A, b = np.vstack(rows), np.concatenate(rhs)
+    scale = np.maximum(np.abs(A).max(axis=0), 1e-300)
+    sol = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
+    if not np.all(np.isfinite(sol)):
+        return {}
+    M, Fc, kp, Fv, F_ext = (float(s) for s in sol)
+    out = {"Fc": max(Fc, 0.0), "kp": max(kp, 0.0), "Fv": max(Fv, 0.0), "external_force": F_ext}
+    if M > 0.2 * cyl.mechanics.moving_mass:  # accelerations too weak to weigh it: keep the file's
+        out["mass"] = M
+    return out
+
+
+def settled_offsets(cyl: Cylinder, runs: Sequence[Run], half: int = 10) -> dict[str, float]:
+    """The pressure sensors' offsets from where the truth is known: at rest against an end
+    stop with the valve open, the filling chamber settles at the supply pressure and the
+    exhausting one at atmosphere. Medians over the settled samples; empty when no run holds
+    against an end long enough (the valve's law then ties the offsets down in the fit)."""
+    L, ps, pa = cyl.geometry.stroke, cyl.supply.pressure, cyl.supply.atmosphere
+    k0, k1, _ = savgol_kernels(half)
+    found: dict[str, list[np.ndarray]] = {"offset_p1": [], "offset_p2": []}
+    for r in runs:
+        if r.n < 4 * half:
+            continue
+        dt = r.sample_period
+        v = np.convolve(r.x, k1, mode="same") / dt
+        d1, d2 = (np.abs(np.convolve(p, k1, mode="same")) / dt for p in (r.p1, r.p2))
+        inner = np.zeros(r.n, bool)
+        inner[half:-half] = True
+        # at rest against an end, pushed there by an open valve, pressures no longer moving
+        calm = inner & (np.abs(v) < 1e-3) & (np.abs(r.u) > 0.05) & (d1 < 2e4) & (d2 < 2e4)
+        out_end = calm & (r.x > L - 2e-4) & (r.u > 0)
+        in_end = calm & (r.x < 2e-4) & (r.u < 0)
+        found["offset_p1"] += [r.p1[out_end] - ps, r.p1[in_end] - pa]
+        found["offset_p2"] += [r.p2[out_end] - pa, r.p2[in_end] - ps]
+    out = {}
+    for name, parts in found.items():
+        vals = np.concatenate(parts) if parts else np.empty(0)
+        if vals.size >= 100:
+            out[name] = float(np.median(vals))
+    return out
+
+
+def unit_flows(cyl: Cylinder, p_from, p_to, critical_ratio: float) -> np.ndarray:
+    """Mass flow per unit sonic conductance from p_from to p_to (the valve's law of sim.flow,
+    evaluated on arrays)."""
+    fn = ca.Function("unit_flow", [_P_FROM, _P_TO, _B, _T], [mass_flow(1.0, _P_FROM, _P_TO, _B, _T)])
+    out = fn.map(len(p_from))(np.asarray(p_from)[None, :], np.asarray(p_to)[None, :], critical_ratio,
+                               cyl.supply.temperature)
+    return np.asarray(out).ravel()
+
+
+def opening_basis(a: np.ndarray, overlap: float) -> np.ndarray:
+    """The flow characteristic's value at |u| = a as a linear function of its rises: (n, grid)."""
+    s = np.maximum(a - overlap, 0.0) / (1.0 - overlap)
+    lo = np.r_[0.0, OPENING_GRID[:-1]]
+    hi = np.asarray(OPENING_GRID)
+    return np.clip((s[:, None] - lo) / (hi - lo), 0.0, 1.0)
+
+
+def chamber_prefit(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float] | None = None,
+                   block: int = 10) -> dict[str, float]:
+    """The flow characteristic (overlap and rises per direction) and both dead volumes by
+    linear least squares on the chambers' mass balance with the measured signals, summed over
+    blocks of `block` samples so that every sample's own held command counts:
+
+        sum_j (V0 + A x_j) (p_j+1 - p_j) / kappa = sum_j dt (C(u_j) q_j R T - p_j A (x_j+1 - x_j)/dt)
+
+    (chamber 1; chamber 2 with its own volume and the sign of its work), q the mass flow per
+    unit conductance of the open path at the sample's mean pressure (the valve's law, at the
+    file's critical ratio). Linear in the rises and V0 for a given overlap; the overlap of each
+    direction is searched on a grid. Rows are weighted by kappa / V (pressure units). Empty if
+    the runs do not open the valve."""
+    off = {"offset_p1": cyl.sensors.offset_p1, "offset_p2": cyl.sensors.offset_p2, **(offsets or {})}
+    g, T, b = cyl.geometry, cyl.supply.temperature, cyl.valve.critical_ratio
+    ps, pa, L = cyl.supply.pressure, cyl.supply.atmosphere, g.stroke
+    C = cyl.valve.sonic_conductance
+    K = len(OPENING_GRID)
+    parts: list[dict[str, np.ndarray]] = []
+    for r in runs:
+        nb = (r.n - 1) // block
+        if nb < 1:
+            continue
+        n = nb * block + 1
+        dt, x, u = np.diff(r.t[:n]), r.x[:n], r.u[:n - 1]
+        dx = np.diff(x)
+        for ch, pm, area in ((0, r.p1[:n], g.area_cap), (1, r.p2[:n], g.area_rod)):
+            p = pm - off[f"offset_p{ch + 1}"]
+            pmid = 0.5 * (p[1:] + p[:-1])
+            sources = (ps, pa) if ch == 0 else (pa, ps)  # the open path's other side: extend, retract
+            q = np.where(u > 0, unit_flows(cyl, np.full(n - 1, sources[0]), pmid, b),
+                         unit_flows(cyl, np.full(n - 1, sources[1]), pmid, b)) * C * R_AIR * T * dt
+            sign = 1.0 if ch == 0 else -1.0
+            vol = (g.dead_volume_cap + area * x[:-1]) if ch == 0 else (g.dead_volume_rod + area * (L - x[:-1]))
+            v0 = g.dead_volume_cap if ch == 0 else g.dead_volume_rod
+            dp = np.diff(p)
+
+            def blocksum(y):
+                return y.reshape(nb, block).sum(axis=1)
+
+            parts.append({"ch": np.full(nb, ch), "u": u.reshape(nb, block), "q": q.reshape(nb, block),
+                          "v0": blocksum(dp) / KAPPA,
+                          "rhs": blocksum((vol - v0) * dp) / KAPPA + blocksum(pmid * sign * area * dx),
+                          "w": KAPPA / vol.reshape(nb, block).mean(axis=1)})
+    if not parts:
+        return {}
+    cat = {k: np.concatenate([part[k] for part in parts]) for k in parts[0]}
+    chamber, ub, qb, v0col, rhs, w = (cat[k] for k in ("ch", "u", "q", "v0", "rhs", "w"))
+    K = len(OPENING_GRID)
+
+    # the rises of neighbouring segments are tied weakly by slope continuity (a smooth valve), so
+    # that segments the runs hardly open still get a value: rows SMOOTH * (rise_k/w_k - rise_k-1/w_k-1)
+    widths = np.diff(np.r_[0.0, OPENING_GRID])
+    weight = np.sqrt(np.mean((rhs * w) ** 2))  # the data rows' typical size
+
+    def solve(overlaps: tuple[float, float]):
+        A = np.zeros((len(rhs), 2 * K + 2))
+        for d, sel in ((0, ub > 0), (1, ub < 0)):  # each sample's rises, in its block's row
+            contrib = opening_basis(np.abs(ub[sel]), overlaps[d]) * qb[sel][:, None]
+            np.add.at(A, (np.nonzero(sel)[0][:, None], np.arange(d * K, (d + 1) * K)[None, :]), contrib)
+        A[chamber == 0, 2 * K] = -v0col[chamber == 0]
+        A[chamber == 1, 2 * K + 1] = -v0col[chamber == 1]
+        Aw, bw = A * w[:, None], rhs * w
+        smooth = np.zeros((2 * (K - 1), 2 * K + 2))
+        for d in (0, 1):
+            for k in range(1, K):
+                smooth[d * (K - 1) + k - 1, d * K + k] = 1.0 / widths[k]
+                smooth[d * (K - 1) + k - 1, d * K + k - 1] = -1.0 / widths[k - 1]
+        # the bounded problem on the Cholesky factor of the normal equations of [Aw; smooth] (scaled
+        # columns): as small as the number of unknowns, whatever the number of samples
+        norms = np.sqrt(np.sum(Aw**2, axis=0))
+        scale = np.maximum(norms, 1e-6 * norms.max())  # a segment no sample opens: its prior decides
+        As, Ss = Aw / scale, SMOOTH * weight * smooth / scale
+        normal = As.T @ As + Ss.T @ Ss
+        R = np.linalg.cholesky(normal + 1e-12 * np.eye(len(normal))).T
+        target = np.linalg.solve(R.T, As.T @ bw)
+        lo = np.r_[np.zeros(2 * K), np.full(2, 1e-8)] * scale
+        hi = np.r_[np.full(2 * K, 5.0), np.full(2, 1e-2)] * scale
+        fit = lsq_linear(R, target, bounds=(lo, hi), method="bvls")
+        residual = float(np.sum(bw**2) - np.sum(target**2)) + 2 * fit.cost
+        return residual, fit.x / scale
+
+    overlaps = [0.0, 0.0]
+    candidates = np.linspace(0.0, 0.2, 21)
+    for _ in range(2):  # the two directions' overlaps share only the dead volumes: search each in turn
+        for d in (0, 1):
+            costs = [solve(tuple(c if i == d else overlaps[i] for i in (0, 1)))[0] for c in candidates]
+            overlaps[d] = float(candidates[int(np.argmin(costs))])
+    _, sol = solve((overlaps[0], overlaps[1]))
+    out = {"overlap_extend": overlaps[0], "overlap_retract": overlaps[1],
+           "dead_volume_cap": float(sol[2 * K]), "dead_volume_rod": float(sol[2 * K + 1])}
+    for d, name in enumerate(("extend", "retract")):
+        for k in range(K):
+            out[f"flow_{name}_{k + 1}"] = float(sol[d * K + k])
+    return out

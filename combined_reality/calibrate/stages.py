@@ -1,0 +1,136 @@
+"""Calibration of what a cylinder file only guesses, staged the way the physics separates it.
+
+1. The piston's force balance, driven by the measured pressures (the pressure drive):
+   friction (Fc, Fv, kp), the moving mass and a constant force. Its constant force holds the
+   external force and the pressure sensors' offsets together (o1 A1 - o2 A2): the balance
+   alone cannot tell them apart.
+2. The valve and the chambers, driven by the measured motion (the chambers drive): the flow
+   characteristic per direction (overlap and rises), the critical ratio, both dead volumes
+   and the pressure sensors' offsets (at an end stop with the valve open, one chamber
+   settles at supply and the other at atmosphere; between, the valve's law ties them down).
+3. The whole command-driven model from those starts, every parameter at once: what the
+   stages left to each other (the offsets inside the constant force, the friction's share
+   of the pressure term) is settled where the model must reproduce position and pressures
+   from the command alone.
+
+Each stage is the one identifier (multiple-shooting Gauss-Newton) on the one plant with
+another drive, so nothing of the physics is written twice.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+from sim.cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, VALVE_DIRECTIONS, Cylinder
+
+from ..files import Run
+from ..identify import IdentificationError, IdentifyOptions, IdentifyResult, PriorRow, identify
+from .prefit import chamber_prefit, force_balance_prefit, settled_offsets
+
+__all__ = ["MECHANICAL", "PNEUMATIC", "CALIBRATED", "CalibrateOptions", "Calibration", "calibrate"]
+
+# what each stage estimates
+MECHANICAL = ("Fc", "Fv", "kp", "mass", "external_force")
+PNEUMATIC = ("critical_ratio", "dead_volume_cap", "dead_volume_rod", "offset_p1", "offset_p2", *FLOW_CHARACTERISTIC)
+CALIBRATED = (*MECHANICAL, *PNEUMATIC)
+
+
+# the flow characteristic's slope may change from one grid segment to the next by about this much
+# (in units of the linear law's slope) without cost: a smooth valve; what the runs do not open
+# follows its neighbours instead of staying undetermined
+SLOPE_CHANGE = 0.3
+
+
+def smooth_valve_prior() -> tuple[PriorRow, ...]:
+    """Slope continuity of each direction's flow characteristic between neighbouring segments."""
+    widths = [b - a for a, b in zip((0.0, *OPENING_GRID[:-1]), OPENING_GRID)]
+    return tuple(PriorRow({f"flow_{d}_{k + 1}": 1.0 / widths[k], f"flow_{d}_{k}": -1.0 / widths[k - 1]}, 0.0,
+                          SLOPE_CHANGE)
+                 for d in VALVE_DIRECTIONS for k in range(1, len(OPENING_GRID)))
+
+
+@dataclass(frozen=True)
+class CalibrateOptions:
+    estimate: tuple[str, ...] = CALIBRATED  # what to calibrate (the others keep the file's values)
+    interval_s: float = 0.1  # shooting interval of every stage
+    max_iter: int = 40  # Gauss-Newton iterations per stage at most
+    threads: int = IdentifyOptions.threads
+
+
+@dataclass
+class Calibration:
+    """The calibrated cylinder, the final (joint) fit and what each stage found."""
+
+    cylinder: Cylinder
+    result: IdentifyResult
+    stages: list[dict] = field(default_factory=list)
+    wall_s: float = 0.0
+
+
+def _stage(name: str, cyl: Cylinder, runs: Sequence[Run], drive: str, estimate: Sequence[str],
+           opts: CalibrateOptions, say: Callable[[str], None]) -> IdentifyResult | None:
+    if not estimate:
+        return None
+    t0 = time.perf_counter()
+    res = identify(cyl, runs, IdentifyOptions(drive=drive, estimate=tuple(estimate), interval_s=opts.interval_s,
+                                              max_iter=opts.max_iter, prefit=False, threads=opts.threads),
+                   prior=smooth_valve_prior())
+    say(f"  {name}: {res.solver['status']} after {res.solver['iterations']} iterations, "
+        f"{time.perf_counter() - t0:.1f} s, residual {res.solver['residual_sigma']:.3g} x noise")
+    return res
+
+
+def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = CalibrateOptions(),
+              progress: Callable[[str], None] | None = None) -> Calibration:
+    """Estimate `options.estimate` from the runs in three stages (module docstring)."""
+    t0 = time.perf_counter()
+    say = progress or (lambda _msg: None)
+    want = set(options.estimate)
+    stages: list[dict] = []
+
+    # 1. the force balance: a linear start, then the pressure drive
+    start = {k: v for k, v in force_balance_prefit(cyl, runs).items() if k in want}
+    if start:
+        say("  force balance, linear start: " + ", ".join(f"{k}={v:.4g}" for k, v in start.items()))
+    mech = _stage("1/3 force balance (driven by the measured pressures)", cyl.with_values(start), runs, "pressure",
+                  [n for n in MECHANICAL if n in want], options, say)
+    if mech is not None:
+        stages.append({"stage": "force balance", "drive": "pressure", **_summary(mech)})
+
+    # 2. the valve and the chambers: linear starts (offsets where the pressures settle at an end,
+    # then the characteristic and the dead volumes), then the chambers drive
+    offsets = {k: v for k, v in settled_offsets(cyl, runs).items() if k in want}
+    start2 = {k: v for k, v in chamber_prefit(cyl, runs, offsets).items() if k in want}
+    start2.update(offsets)
+    if start2:
+        say("  valve and chambers, linear start: " + ", ".join(f"{k}={v:.4g}" for k, v in start2.items()))
+    pneu = _stage("2/3 valve and chambers (driven by the measured motion)", cyl.with_values(start2), runs, "chambers",
+                  [n for n in PNEUMATIC if n in want], options, say)
+    if pneu is not None:
+        stages.append({"stage": "valve and chambers", "drive": "chambers", **_summary(pneu)})
+
+    # 3. everything together, driven by the command, from the stages' values
+    values: dict[str, float] = {}
+    if pneu is not None:
+        values.update({n: e.value for n, e in pneu.params.items()})
+    if mech is not None:
+        values.update({n: e.value for n, e in mech.params.items()})
+        if "external_force" in values:
+            # stage 1 measured F_ext - o1 A1 + o2 A2 (offsets taken as zero there)
+            g = cyl.geometry
+            o1 = values.get("offset_p1", cyl.sensors.offset_p1) - cyl.sensors.offset_p1
+            o2 = values.get("offset_p2", cyl.sensors.offset_p2) - cyl.sensors.offset_p2
+            values["external_force"] += o1 * g.area_cap - o2 * g.area_rod
+    joint = _stage("3/3 the whole model (driven by the command)", cyl.with_values(values), runs, "command",
+                   [n for n in CALIBRATED if n in want], options, say)
+    if joint is None:
+        raise IdentificationError("nothing to calibrate: the estimate list is empty.")
+    stages.append({"stage": "whole model", "drive": "command", **_summary(joint)})
+    return Calibration(cylinder=joint.cylinder, result=joint, stages=stages, wall_s=time.perf_counter() - t0)
+
+
+def _summary(res: IdentifyResult) -> dict:
+    return {"status": res.solver["status"], "iterations": res.solver["iterations"],
+            "wall_s": res.solver["wall_s"], "residual_sigma": res.solver["residual_sigma"],
+            "params": {n: e.value for n, e in res.params.items()}}
