@@ -25,10 +25,12 @@ from typing import Callable, Sequence
 from sim.cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, VALVE_DIRECTIONS, Cylinder
 
 from ..files import Run
-from ..identify import IdentificationError, IdentifyOptions, IdentifyResult, PriorRow, identify
+from ..identify import IdentificationError, IdentifyOptions, IdentifyResult, PriorRow, identify, validate
+from .identifiability import Identifiability, assess
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets
 
-__all__ = ["MECHANICAL", "PNEUMATIC", "CALIBRATED", "CalibrateOptions", "Calibration", "calibrate"]
+__all__ = ["MECHANICAL", "PNEUMATIC", "CALIBRATED", "CalibrateOptions", "Calibration", "calibrate",
+           "smooth_valve_prior", "validation_figures"]
 
 # what each stage estimates
 MECHANICAL = ("Fc", "Fv", "kp", "mass", "external_force")
@@ -60,12 +62,39 @@ class CalibrateOptions:
 
 @dataclass
 class Calibration:
-    """The calibrated cylinder, the final (joint) fit and what each stage found."""
+    """The calibrated cylinder, the final (joint) fit, what each stage found and what the runs
+    determine."""
 
     cylinder: Cylinder
     result: IdentifyResult
+    identifiability: Identifiability
     stages: list[dict] = field(default_factory=list)
     wall_s: float = 0.0
+
+    def to_json(self, start: Cylinder | None = None) -> dict:
+        """The identify format (params, fit, solver) plus the stages, the valve characteristic
+        and the identifiability; with `start` (the cylinder file), each parameter's file value."""
+        out = self.result.to_json()
+        if start is not None:
+            for n, d in out["params"].items():
+                d["file"] = start.value(n)
+        out["solver"] = {**out["solver"], "wall_s": round(self.wall_s, 3), "stages": self.stages}
+        v = self.cylinder.valve
+        out["valve"] = {"opening": list(OPENING_GRID), **{
+            d: {"overlap": getattr(v, f"overlap_{d}"), "flow": list(getattr(v, f"flow_{d}")),
+                "conductance": [x * v.sonic_conductance for x in getattr(v, f"flow_{d}")]}
+            for d in VALVE_DIRECTIONS}}
+        out["identifiability"] = self.identifiability.to_json()
+        return out
+
+
+def validation_figures(cyl: Cylinder, valid: Run, horizon_s: float = 1.0) -> dict:
+    """The calibrated model scored on a run no fit saw: open-loop segments of about
+    `horizon_s` from initial states fitted per segment (as the diagnosis scores)."""
+    val = validate(cyl, (), valid, horizon_s)
+    return {"rmse_x": val.rmse("x"), "rmse_p1": val.rmse("p1"), "rmse_p2": val.rmse("p2"),
+            "normalized_rms": val.normalized_rms(), "horizon_s": horizon_s, "segments": len(val.segments),
+            "status": val.status}
 
 
 def _stage(name: str, cyl: Cylinder, runs: Sequence[Run], drive: str, estimate: Sequence[str],
@@ -127,7 +156,8 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
     if joint is None:
         raise IdentificationError("nothing to calibrate: the estimate list is empty.")
     stages.append({"stage": "whole model", "drive": "command", **_summary(joint)})
-    return Calibration(cylinder=joint.cylinder, result=joint, stages=stages, wall_s=time.perf_counter() - t0)
+    return Calibration(cylinder=joint.cylinder, result=joint, identifiability=assess(joint, runs), stages=stages,
+                       wall_s=time.perf_counter() - t0)
 
 
 def _summary(res: IdentifyResult) -> dict:

@@ -12,7 +12,7 @@ from typing import Sequence
 
 from sim.cylinder import ConfigError
 
-from . import (batch, demo, diagnose, friction_compare, friction_map, identify, live, procedure, simulate,
+from . import (batch, calibrate, demo, diagnose, friction_compare, friction_map, identify, live, procedure, simulate,
                virtual_rig)
 from .common import UsageError, eprint
 
@@ -22,12 +22,14 @@ __all__ = ["build_parser", "main"]
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="combined-reality",
                                 description="Find out what a servopneumatic cylinder really does: simulate it, "
-                                            "identify its friction from recorded runs, run the model beside a "
-                                            "live rig, and diagnose why the simulation still differs.")
+                                            "identify its friction from recorded runs, calibrate what its cylinder "
+                                            "file only guesses, run the model beside a live rig, and diagnose why "
+                                            "the simulation still differs.")
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     simulate.add_parser(sub)
     identify.add_parser(sub)
+    calibrate.add_parser(sub)
     demo.add_parser(sub)
     virtual_rig.add_parser(sub)
     live.add_parsers(sub)

@@ -105,4 +105,10 @@ def run(args) -> int:
         eprint(f"combined-reality identify: the solver stopped without converging ({status}); "
                "the estimates above are the last iterate.")
         return 1
+    if not result.explains_run:
+        eprint(f"combined-reality identify: the model does not explain the run (residual "
+               f"{result.solver['residual_sigma']:.3g} x the sensor noise), so the values above describe a misfit; "
+               "if the cylinder file's valve, dead volumes, mass or sensor offsets are guesses, run "
+               "`combined-reality calibrate`; if an effect the model lacks is at work, run `combined-reality diagnose`.")
+        return 1
     return 0

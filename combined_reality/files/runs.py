@@ -334,10 +334,15 @@ CYLINDER_TAG = "cylinder:"
 
 
 def cylinder_identity(cyl) -> str:
-    """What makes a cylinder that cylinder: its name and geometry (friction may be
-    re-identified into a new file; the identity stays)."""
-    g, m = cyl.geometry, cyl.mechanics
-    return f"{cyl.name}; bore {g.bore:g} m, rod {g.rod:g} m, stroke {g.stroke:g} m, mass {m.moving_mass:g} kg"
+    """What makes a cylinder that cylinder: its name and geometry. Friction may be re-identified
+    and mass, volumes, valve and sensors calibrated into a new file: the identity stays."""
+    g = cyl.geometry
+    return f"{cyl.name}; bore {g.bore:g} m, rod {g.rod:g} m, stroke {g.stroke:g} m"
+
+
+def _same_identity(recorded: str, identity: str) -> bool:
+    # tags written before calibration existed also name the mass, which calibration may change
+    return recorded.split(", mass ")[0] == identity
 
 
 def cylinder_tag(cyl) -> str:
@@ -357,7 +362,7 @@ def recorded_elsewhere(run: Run, cyl) -> str | None:
     """The identity of the cylinder the run was recorded on if that is not `cyl`, else None
     (also None for runs without a cylinder tag: other tools' files)."""
     theirs = recorded_cylinder(run)
-    return theirs if theirs is not None and theirs != cylinder_identity(cyl) else None
+    return theirs if theirs is not None and not _same_identity(theirs, cylinder_identity(cyl)) else None
 
 
 def write_run(path: str | os.PathLike[str], run: Run, comments: Sequence[str] | None = None) -> None:

@@ -7,13 +7,13 @@
 - shooting, smoothing: the shared machinery (intervals, Gauss-Newton, covariance; derivatives)
 """
 from .newton import equation_error_friction, friction_from_newton
-from .offline import Estimate, IdentifyOptions, IdentifyResult, identify
+from .offline import MISMATCH, Estimate, IdentifyOptions, IdentifyResult, identify
 from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
 from .shooting import UNITS, IdentificationError, PriorRow, at_bounds, sensor_noise
 from .smoothing import derivative_kernels, savgol_kernels, velocity_estimate
 from .validation import Validation, validate, validation_gain, validation_segments
 
-__all__ = ["equation_error_friction", "friction_from_newton", "Estimate", "IdentifyOptions", "IdentifyResult",
+__all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estimate", "IdentifyOptions", "IdentifyResult",
            "identify", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError", "PriorRow",
            "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",
            "validate", "validation_gain", "validation_segments"]

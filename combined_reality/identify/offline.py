@@ -33,10 +33,16 @@ from sim.plant import build_plant
 from ..files import Run, split_at_gaps
 from .newton import equation_error_friction
 from .shooting import (IdentificationError, PriorRow, RunLayout, ShootingProblem, at_bounds, cluster_covariance,
-                       condense, covariance, fit_metrics, free_parameters, line_search, linearize, parameter_bounds,
+                       condense, covariance, drives_with_measured_inputs, fit_metrics, free_parameters,
+                       interval_residual_sigma, line_search, linearize,
+                       parameter_bounds,
                        parameter_unit, pooled_fit, prior_matrix, residual_scales, run_layout, simulate_layout,
                        solve_bounded, standard_deviations, warm_nodes, with_effect_values)
 
+
+# a model whose residual is this many times the sensor noise does not explain the run: its
+# parameters describe a misfit, not the cylinder
+MISMATCH = 3.0
 
 # a damped step closer than this (relative, in the scaled variables) to one whose line search
 # just failed is not searched again
@@ -55,6 +61,9 @@ class IdentifyOptions:
     prefit: bool = True
     integrator: IntegratorOptions = IntegratorOptions()
     threads: int = max(1, os.cpu_count() or 1)
+    # tell the residual in units of what the inputs' noise leaves (drives with measured inputs;
+    # a few extra simulations): see input_noise_floor
+    noise_floor: bool = True
 
 
 @dataclass
@@ -81,12 +90,17 @@ class IdentifyResult:
     correlation: np.ndarray | None = field(repr=False, default=None)
     nodes: np.ndarray | None = field(repr=False, default=None)  # final node states (nx, intervals)
 
+    @property
+    def explains_run(self) -> bool:
+        """Whether the model reproduces the runs to within a few times the sensor noise."""
+        return self.solver["residual_sigma"] <= MISMATCH
+
     def to_json(self) -> dict:
         return {
             "params": {n: {"value": e.value, "std": e.std, "unit": e.unit, "initial": e.initial,
                            **({"at_bound": True} if e.at_bound else {})} for n, e in self.params.items()},
             "fit": self.fit,
-            "solver": self.solver,
+            "solver": {**self.solver, "explains_run": self.explains_run},
             "drive": self.drive,
             "runs": self.fit_per_run,
             "correlation": {"names": list(self.params),
@@ -328,8 +342,15 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
             ename, pname = n.split(".", 1)
             eff_values.setdefault(ename, {})[pname] = params[n].value
     new_effects = tuple(with_effect_values(e, eff_values.get(e.name, {})) for e in effects)
+    residual_sigma, floor = math.sqrt(2 * cost / max(1.0, nres - len(layouts) * nx - nth)), 1.0
+    if options.noise_floor and drives_with_measured_inputs(plant):
+        # measured inputs carry noise that drives the model too: the residual is told in units of
+        # what that noise alone leaves, so that 1 means a perfect model in every drive
+        G_final = linearize(ev, out_idx, wts, mask, M, nx, ny, nth)[0]
+        residual_sigma, floor = interval_residual_sigma(problem, layouts, cyl, S, p, G_final, E,
+                                                        nres - Ktot * nx - nth)
     solver = {"status": status, "iterations": it, "wall_s": round(time.perf_counter() - t_start, 4),
-              "cost": cost, "residual_sigma": math.sqrt(2 * cost / max(1.0, nres - len(layouts) * nx - nth)),
+              "cost": cost, "residual_sigma": residual_sigma, "noise_floor": floor,
               "n_samples": int(sum(l.run.n for l in layouts)), "n_intervals": Ktot, "interval_samples": M,
               "compile": {"cache_hit": sf.stats.cache_hit, "build_s": round(sf.stats.build_s + sf.stats.compile_s, 3)},
               "history": history}

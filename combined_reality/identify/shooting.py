@@ -125,6 +125,7 @@ class ShootingProblem:
         self.f_sim = NumpyCall(sf.interval.map(K, "thread", threads) if threads > 1 else sf.interval.map(K))
         self.W, self.H, self.Y, self.mask, self.wts, self.sscale, self.nxt = W, H, Y, mask, wts, sscale, nxt
         self.K, self.M = K, sf.interval_len
+        self.plant = plant
         self.nx, self.nth = plant.nx, len(sf.free)
         self.out_idx = [plant.state_names.index(n) for n in plant.output_names]
 
@@ -409,3 +410,59 @@ def pooled_fit(runs: Sequence[Run], sims: Sequence[np.ndarray], outputs: Sequenc
         fit[f"rmse_{n}"], fit[f"r2_{n}"] = rmse_r2(meas_all[n], sim)
     return fit
 
+
+
+# measured signals a drive takes as inputs, and the sensor noise each carries
+_MEASURED_INPUTS = {"p1": "pressure_noise", "p2": "pressure_noise", "x": "position_noise"}
+
+
+def _beyond_node_states(G: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """What of the residuals R (K, M, ny) no initial state of its own interval could remove:
+    R less its least-squares projection on the interval's state sensitivities G (K, M, ny, nx)."""
+    K = G.shape[0]
+    A = G.reshape(K, -1, G.shape[-1])
+    b = R.reshape(K, -1)
+    AtA = np.einsum("kri,krj->kij", A, A) + 1e-12 * np.eye(A.shape[-1])
+    coef = np.linalg.solve(AtA, np.einsum("kri,kr->ki", A, b)[..., None])[..., 0]
+    return (b - np.einsum("kri,ki->kr", A, coef)).reshape(R.shape)
+
+
+def interval_residual_sigma(problem: "ShootingProblem", layouts: Sequence[RunLayout], cyl: Cylinder,
+                            S: np.ndarray, p: np.ndarray, G: np.ndarray, E: np.ndarray, dof: float,
+                            reps: int = 4, seed: int = 0) -> tuple[float, float]:
+    """The residual of a drive that takes measured signals as inputs, in units of what their
+    noise alone leaves: (residual sigma, the noise floor it was divided by).
+
+    Noisy inputs drive the model too: a position driven by noisy pressures wanders off like a
+    random walk, so over a whole run the residual says little. Here each shooting interval is
+    judged on its own: what its own initial state cannot remove (a projection on the state
+    sensitivities G of the last evaluation), divided by the same for `reps` simulations with
+    the inputs perturbed by their sensors' noise (seeded: the same figure on every machine)."""
+    plant = problem.plant
+    raw = math.sqrt(float(np.sum(_beyond_node_states(G, E) ** 2)) / max(dof, 1.0))
+    rng = np.random.default_rng(seed)
+    base = problem.evaluate(S, p, False)
+    if base is None:
+        return raw, 1.0
+    saved, dev2 = problem.W, 0.0
+    try:
+        for _ in range(reps):
+            noisy = []
+            for lay in layouts:
+                r = lay.run
+                kw = {n: getattr(r, n) + getattr(cyl.sensors, _MEASURED_INPUTS[n]) * rng.standard_normal(r.n)
+                      for n in ("p1", "p2", "x") if n in plant.input_names}
+                noisy.append(run_layout(replace(r, **kw), plant, cyl, problem.M, lay.node0).W)
+            problem.W = np.hstack(noisy)
+            ev = problem.evaluate(S, p, False)
+            if ev is None:
+                return raw, 1.0
+            dev2 += float(np.sum(_beyond_node_states(G, ev[0] - base[0]) ** 2)) / reps
+    finally:
+        problem.W = saved
+    floor = math.sqrt(1.0 + dev2 / max(float(problem.mask.sum() * len(plant.output_names)), 1.0))
+    return raw / floor, floor
+
+
+def drives_with_measured_inputs(plant: Plant) -> bool:
+    return any(n in _MEASURED_INPUTS for n in plant.input_names)
