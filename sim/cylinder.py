@@ -110,7 +110,7 @@ class Sensors:
 @dataclass(frozen=True)
 class IdentifySettings:
     estimate: tuple[str, ...] = ("Fc", "Fv", "kp")
-    drive: str = "command"  # "command" or "pressure"
+    drive: str = "command"  # "command", "pressure" or "chambers" (see sim.plant.DRIVES)
 
 
 @dataclass(frozen=True)
@@ -320,8 +320,8 @@ def _flow_levels(v: Any, full: str, fail) -> tuple[float, ...]:
 
 def _check_identify(key: str, v: Any, fail) -> Any:
     if key == "drive":
-        if v not in ("command", "pressure"):
-            raise fail(f"key 'identify.drive' must be \"command\" or \"pressure\", not {v!r}.")
+        if v not in ("command", "pressure", "chambers"):
+            raise fail(f"key 'identify.drive' must be \"command\", \"pressure\" or \"chambers\", not {v!r}.")
         return v
     if not isinstance(v, list) or not v or not all(isinstance(s, str) for s in v):
         raise fail("key 'identify.estimate' must be a non-empty list of parameter names.")

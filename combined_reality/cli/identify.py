@@ -1,7 +1,7 @@
 """`combined-reality identify`: friction (or any estimable parameter) from recorded runs."""
 from __future__ import annotations
 
-from sim.cylinder import ESTIMABLE, Cylinder, cylinder_to_toml
+from sim.cylinder import ESTIMABLE, FLOW_CHARACTERISTIC, Cylinder
 
 from .common import UsageError, eprint, estimate_list, load_config, parse_effects, progress_printer
 
@@ -18,16 +18,18 @@ def add_parser(sub) -> None:
     i.add_argument("--json", help="write the result as JSON (docs/formats.md)")
     i.add_argument("--estimate", help=f"comma-separated parameters (default from the config, else Fc,Fv,kp; "
                                       f"estimable: {', '.join(ESTIMABLE)})")
-    i.add_argument("--drive", choices=["command", "pressure"],
+    i.add_argument("--drive", choices=["command", "pressure", "chambers"],
                    help="command: full model driven by the recorded valve command (default); "
-                        "pressure: piston only, driven by the measured pressures")
+                        "pressure: piston only, driven by the measured pressures; "
+                        "chambers: valve and chambers only, driven by the command and the measured motion")
     i.add_argument("--effect", action="append", metavar="NAME[:k=v,...]",
                    help="add an unmodelled effect to the model (its parameters may be estimated as NAME.param)")
     i.add_argument("--interval", type=float, default=0.1, help="shooting interval in seconds (default 0.1)")
     i.add_argument("--max-iter", type=int, default=40, help="Gauss-Newton iterations at most (default 40)")
     i.add_argument("--no-prefit", action="store_true",
                    help="start from the config's friction values, not from the equation-error fit")
-    i.add_argument("--write-config", metavar="OUT.toml", help="write the cylinder file with identified values")
+    i.add_argument("--write-config", metavar="OUT.toml",
+                   help="write the cylinder file with the identified values (the comments of --config kept)")
     i.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     i.set_defaults(func=run)
 
@@ -60,7 +62,8 @@ def format_table(result, truth: Cylinder | None = None) -> str:
 
 
 def run(args) -> int:
-    from ..files import check_run_against_cylinder, clean_json, read_run, write_json_atomic, write_text_atomic
+    from ..files import check_run_against_cylinder, clean_json, read_run, write_json_atomic
+    from ..files.cylinder_file import write_cylinder_file
     from ..identify import IdentificationError, IdentifyOptions, identify
 
     cyl = load_config(args.config)
@@ -75,10 +78,14 @@ def run(args) -> int:
             raise UsageError(f"--estimate: unknown parameter '{n}' (estimable: {', '.join(ESTIMABLE)}"
                              + (f", {', '.join(sorted(effect_params))}" if effect_params else "") + ").")
     drive = args.drive or cyl.identify.drive
-    if drive == "pressure":
-        bad = [n for n in estimate if n in ("conductance", "critical_ratio", "dead_volume_cap", "dead_volume_rod")]
+    pneumatic = {"conductance", "critical_ratio", "dead_volume_cap", "dead_volume_rod", *FLOW_CHARACTERISTIC}
+    mechanical = {"Fc", "Fv", "kp", "mass", "angle", "external_force"}
+    cannot = {"pressure": ("the measured pressures", pneumatic), "chambers": ("the measured motion", mechanical)}
+    if drive in cannot:
+        given, excluded = cannot[drive]
+        bad = [n for n in estimate if n in excluded]
         if bad:
-            raise UsageError(f"--drive pressure uses the measured pressures, so it cannot estimate {', '.join(bad)}.")
+            raise UsageError(f"--drive {drive} uses {given}, so it cannot estimate {', '.join(bad)}.")
     if not args.interval > 0:
         raise UsageError(f"--interval must be positive, not {args.interval}.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
@@ -98,17 +105,15 @@ def run(args) -> int:
     if args.json:
         write_json_atomic(args.json, clean_json(out))
     if args.write_config:
-        write_text_atomic(args.write_config, cylinder_to_toml(result.cylinder))
+        write_cylinder_file(args.write_config, result.cylinder, note=f"identified from {', '.join(args.runs)}")
     print(format_table(result))
     status = result.solver["status"]
     if status != "converged":
         eprint(f"combined-reality identify: the solver stopped without converging ({status}); "
                "the estimates above are the last iterate.")
-        return 1
     if not result.explains_run:
         eprint(f"combined-reality identify: the model does not explain the run (residual "
                f"{result.solver['residual_sigma']:.3g} x the sensor noise), so the values above describe a misfit; "
                "if the cylinder file's valve, dead volumes, mass or sensor offsets are guesses, run "
                "`combined-reality calibrate`; if an effect the model lacks is at work, run `combined-reality diagnose`.")
-        return 1
-    return 0
+    return 0 if status == "converged" and result.explains_run else 1

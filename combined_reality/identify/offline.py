@@ -44,6 +44,10 @@ from .shooting import (IdentificationError, PriorRow, RunLayout, ShootingProblem
 # parameters describe a misfit, not the cylinder
 MISMATCH = 3.0
 
+# short steps in a row after which the line search turns non-monotone, and how many past
+# iterations it then looks back on
+NONMONOTONE = 3
+
 # a damped step closer than this (relative, in the scaled variables) to one whose line search
 # just failed is not searched again
 _SAME_STEP = 1e-2
@@ -211,6 +215,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         raise IdentificationError("the simulation from the initial guess is not finite; check the cylinder file "
                                   "(units, dead volumes, supply pressure) against the run.")
     lam, mu = 0.0, 0.0
+    creeping = 0  # accepted steps in a row that were backtracked to 1/8 or less
     linearized_at = None
     status = "max_iterations"
     history = []
@@ -261,8 +266,14 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
                 break
             if viol > 0:
                 mu = max(mu, (gdir + 0.5 * quad) / (0.5 * viol) + 1.0)
+            # a fit that creeps (only short steps accepted, NONMONOTONE times in a row) is in a curved
+            # valley: then a step may rise above the current merit as long as it stays below the
+            # worst of the last few (Grippo-Lampariello-Lucidi), so it takes full steps along it
+            reference = cost + mu * viol
+            if creeping >= NONMONOTONE:
+                reference = max([reference] + [h["cost"] + mu * h["defect"] for h in history[-NONMONOTONE:]])
             found = line_search(evaluate, lambda ev_, th_: merit(ev_[0], ev_[1], mu, th_), S, dS.T, theta, dth, p,
-                                free, lower, upper, cost + mu * viol, min(gdir - mu * viol, 0.0), 1.0 / 64)
+                                free, lower, upper, reference, min(gdir - mu * viol, 0.0), 1.0 / 64)
             if found:
                 alpha, S_try, th_try, p_try, ev_try = found
                 accepted = True
@@ -278,6 +289,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
             status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
             break
         lam = lam / 10 if lam > 1e-6 else 0.0
+        creeping = creeping + 1 if alpha <= 0.125 else 0
         S, theta, p = S_try, th_try, p_try
         std = standard_deviations(Nmat, R * nx, cost, mask.sum() * ny)
         # a step small against what the data determine; an undetermined parameter (std not

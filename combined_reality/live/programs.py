@@ -165,7 +165,9 @@ class CalibrationProgram:
     and closed-loop steps, ramps and sines at several positions and speeds (the flow
     characteristic at small openings, the critical ratio). Call `command(t, x_measured)`."""
 
-    END_SPEED = 0.05  # m/s: the reference's speed into an end stop (a gentle landing)
+    END_SPEED = 0.05  # m/s: the reference's speed into an end stop (a gentle landing) ...
+    END_TRAVEL = 2.0  # s: ... or, on a long stroke, fast enough to cross it in this time, at most
+    END_SPEED_MAX = 0.15  # m/s
     END_COMMAND = 0.35  # command bound while driving into and holding at an end
     END_HOLD = 1.5  # s at the end stop
     CREEP_RATE = 0.15  # 1/s: how fast the open-loop command grows while creeping
@@ -178,7 +180,8 @@ class CalibrationProgram:
         # (start, end, kind, sign, level): cycles of creeping out and in, both end stops, pulses
         # of growing command, then position control; its reference runs underneath throughout
         self.phases: list[tuple[float, float, str, float, float]] = []
-        travel = 1.1 * L / self.END_SPEED + self.END_HOLD
+        self.end_speed = min(max(self.END_SPEED, L / self.END_TRAVEL), self.END_SPEED_MAX)
+        travel = 1.1 * L / self.end_speed + self.END_HOLD
         # a pulse's length: a sixth of the stroke at the speed its command gives
         v_per_u = 1.0 / self.closed.kff
         t, cycle = 1.0, 0
@@ -209,13 +212,13 @@ class CalibrationProgram:
             return self.closed.command(t, x_meas)
         t0, _t1, kind, sign, level = self.phases[i]
         L = self.L
-        if kind == "end":  # no soft limit: the end stop is the limit, approached at END_SPEED
+        if kind == "end":  # no soft limit: the end stop is the limit, approached at end_speed
             # the reference goes on beyond the end, so that the held command opens the valve
             # decisively (up to END_COMMAND) and the chambers settle at supply and atmosphere
             target = 1.5 * L if sign > 0 else -0.5 * L
-            r = self._x0 + sign * self.END_SPEED * (t - t0)
+            r = self._x0 + sign * self.end_speed * (t - t0)
             r = min(r, target) if sign > 0 else max(r, target)
-            u = self.closed.kp * (r - x_meas) + (self.closed.kff * sign * self.END_SPEED if r != target else 0.0)
+            u = self.closed.kp * (r - x_meas) + (self.closed.kff * sign * self.end_speed if r != target else 0.0)
             return max(-self.END_COMMAND, min(self.END_COMMAND, u))
         if kind == "creep":  # open loop from mid-stroke; stops well inside the soft limits
             if (x_meas - 0.5 * L) * sign > 0.25 * L:

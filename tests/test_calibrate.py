@@ -1,0 +1,195 @@
+"""Calibration of what the cylinder file only guesses (valve characteristic, critical ratio,
+dead volumes, mass, pressure offsets, external force), end stops, the cylinder file written
+back with its comments, and a residual that means the same in every drive.
+
+The truth here is the project's own plant with departed values (the benchmark
+benchmarks/calibration.py uses an independently written plant and other curve shapes)."""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from conftest import CONFIGS
+
+from combined_reality.calibrate import CALIBRATED, calibrate, flow_coverage
+from combined_reality.cli import main
+from combined_reality.files import cylinder_tag, read_run, write_run
+from combined_reality.files.cylinder_file import cylinder_file_text
+from combined_reality.identify import IdentifyOptions, identify
+from combined_reality.live import run_program
+from combined_reality.live.programs import CalibrationProgram, make_program
+from hw.virtual_rig import VirtualRig
+from sim.cylinder import OPENING_GRID, load_cylinder
+
+GRID = np.array(OPENING_GRID)
+
+
+def departed(cyl):
+    """A rig whose cylinder file is wrong in every calibrated quantity by a realistic amount."""
+    truth = cyl.with_values({"dead_volume_cap": cyl.geometry.dead_volume_cap * 2.0,
+                             "dead_volume_rod": cyl.geometry.dead_volume_rod * 0.5,
+                             "mass": cyl.mechanics.moving_mass * 1.3, "critical_ratio": 0.4,
+                             "offset_p1": 3000.0, "offset_p2": -2500.0, "external_force": 3.0,
+                             "overlap_extend": 0.05, "overlap_retract": 0.03})
+    return replace(truth, valve=replace(truth.valve, flow_extend=tuple(1.2 * GRID ** 1.4),
+                                        flow_retract=tuple(0.8 * GRID ** 0.8)))
+
+
+def record(truth, file_cyl, seed: int, program: str = "calibration", duration: float = 20.0):
+    rig = VirtualRig(truth, rate=1000, seed=seed)
+    run = run_program(rig, make_program(program, truth, duration, seed=seed), int(duration * 1000))
+    return replace(run, comments=(cylinder_tag(file_cyl),))
+
+
+@pytest.fixture(scope="module")
+def truth(cyl_a):
+    return departed(cyl_a)
+
+
+@pytest.fixture(scope="module")
+def train(truth, cyl_a):
+    return record(truth, cyl_a, seed=1)
+
+
+@pytest.mark.slow
+def test_calibration_recovers_every_departed_quantity_and_the_friction(cyl_a, truth, train):
+    cal = calibrate(cyl_a, [train])
+    res = cal.result
+    assert res.solver["status"] == "converged"
+    assert 0.9 < res.solver["residual_sigma"] < 1.1  # at the sensor noise
+    for name in ("Fc", "Fv", "mass", "dead_volume_cap", "dead_volume_rod"):
+        assert res.params[name].value == pytest.approx(truth.value(name), rel=0.01), name
+    assert res.params["kp"].value == pytest.approx(truth.value("kp"), rel=0.05)
+    assert res.params["critical_ratio"].value == pytest.approx(0.4, abs=0.005)
+    for name in ("offset_p1", "offset_p2"):
+        assert res.params[name].value == pytest.approx(truth.value(name), abs=50.0), name
+    assert res.params["external_force"].value == pytest.approx(3.0, abs=0.3)
+    for d in ("extend", "retract"):
+        assert getattr(cal.cylinder.valve, f"overlap_{d}") == pytest.approx(getattr(truth.valve, f"overlap_{d}"),
+                                                                            abs=0.003)
+        # where the run opens the valve, the curve is measured to a few per cent
+        measured = [k for k in range(len(GRID)) if cal.identifiability.coverage[f"flow_{d}_{k + 1}"] > 0.003]
+        assert len(measured) >= 3
+        for k in measured:
+            assert getattr(cal.cylinder.valve, f"flow_{d}")[k] == pytest.approx(getattr(truth.valve, f"flow_{d}")[k],
+                                                                                rel=0.05), (d, k)
+    # honest uncertainties: the truth lies within 3 std of most estimates
+    z = [abs(e.value - truth.value(n)) / e.std for n, e in res.params.items() if e.std > 0 and math.isfinite(e.std)
+         and cal.identifiability.coverage.get(n, 1.0) > 0.003]
+    assert np.mean(np.array(z) < 3) >= 0.9, z
+
+
+def test_the_nominal_file_alone_is_a_misfit_that_identify_names(cyl_a, train, tmp_path, capsys):
+    """identify on a rig whose file is off says so in one line, naming calibrate and diagnose."""
+    path = tmp_path / "train.csv"
+    write_run(path, train, comments=list(train.comments))
+    code = main(["identify", "--config", str(CONFIGS / "cyl_a_32x100.toml"), str(path), "-q"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "does not explain the run" in err and "combined-reality calibrate" in err and "diagnose" in err
+
+
+@pytest.mark.slow
+def test_the_command_line_writes_a_complete_cylinder_file_with_the_comments_kept(cyl_a, truth, train, tmp_path,
+                                                                                 capsys):
+    tr, va = tmp_path / "train.csv", tmp_path / "valid.csv"
+    write_run(tr, train, comments=list(train.comments))
+    valid = record(truth, cyl_a, seed=2, program="mixed")
+    write_run(va, valid, comments=list(valid.comments))
+    out, cal_toml = tmp_path / "cal.json", tmp_path / "cal.toml"
+    src = CONFIGS / "cyl_a_32x100.toml"
+    code = main(["calibrate", "--config", str(src), str(tr), "--validate", str(va), "--json", str(out),
+                 "--write-config", str(cal_toml), "-q"])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    doc = json.loads(out.read_text())
+    for name in ("Fc", "Fv", "kp", "mass", "offset_p1", "flow_extend_3"):
+        assert set(doc["params"][name]) >= {"value", "std", "unit"}
+    assert doc["params"]["Fc"]["value"] == pytest.approx(truth.value("Fc"), rel=0.01)
+    val = doc["validation"]
+    assert set(val) >= {"rmse_x", "rmse_p1", "rmse_p2", "normalized_rms"}
+    assert val["normalized_rms"] < 1.2 and val["rmse_x"] < 8e-6
+    assert doc["fit"]["rmse_x"] < 6e-6 and doc["solver"]["status"] == "converged"
+    # the calibrated file: every comment line of the user's file is still there, and it loads
+    text = cal_toml.read_text()
+    for line in src.read_text().splitlines():
+        if line.startswith("#"):
+            assert line in text
+    cal = load_cylinder(cal_toml)
+    assert cal.mechanics.moving_mass == pytest.approx(truth.mechanics.moving_mass, rel=0.01)
+    assert cal.valve.overlap_extend == pytest.approx(0.05, abs=0.003)
+    # and every other subcommand takes it: identify now explains the run
+    code = main(["identify", "--config", str(cal_toml), str(va), "-q"])
+    assert code == 0, capsys.readouterr().err
+
+
+def test_a_written_cylinder_file_round_trips_and_keeps_defaults_out(cyl_a):
+    values = {"Fc": 21.123456789, "Fv": 9.87654321, "kp": 3.3e-5, "mass": 0.98765, "conductance": 1.1e-8,
+              "critical_ratio": 0.41, "dead_volume_cap": 1.234e-5, "dead_volume_rod": 4.321e-6,
+              "external_force": -2.5, "end_stiffness": 3e6, "end_damping": 1500.0, "offset_p1": 2345.6,
+              "offset_p2": -1234.5, "overlap_extend": 0.045, "overlap_retract": 0.02,
+              **{f"flow_retract_{k + 1}": 0.1 * (k + 1) for k in range(len(GRID))}}
+    assert set(values) >= set(CALIBRATED) - {n for n in CALIBRATED if n.startswith("flow_extend")}
+    changed = cyl_a.with_values(values)
+    text = cylinder_file_text(changed, note="test")
+    import tomllib
+
+    from sim.cylinder import parse_cylinder
+
+    again = parse_cylinder(tomllib.loads(text))
+    for name in values:
+        assert again.value(name) == pytest.approx(changed.value(name), rel=1e-6), name
+    # an unchanged cylinder gives the user's file back as it was
+    assert cylinder_file_text(cyl_a) == (CONFIGS / "cyl_a_32x100.toml").read_text()
+
+
+def test_runs_that_touch_the_end_stops_are_simulated_and_fitted(cyl_a):
+    """The piston stops at the ends (never more than the pressure force over the stop's
+    stiffness beyond), and identify fits such a run to the noise instead of refusing it."""
+    run = record(cyl_a, cyl_a, seed=4, duration=16.0)
+    L = cyl_a.geometry.stroke
+    force = cyl_a.supply.pressure * cyl_a.geometry.area_cap
+    assert run.x.max() > L and run.x.min() < 0  # it does touch both
+    assert run.x.max() < L + 1.2 * force / cyl_a.mechanics.end_stiffness + 5 * cyl_a.sensors.position_noise
+    assert run.x.min() > -1.2 * force / cyl_a.mechanics.end_stiffness - 5 * cyl_a.sensors.position_noise
+    res = identify(cyl_a, [run])
+    assert res.solver["status"] == "converged" and 0.9 < res.solver["residual_sigma"] < 1.1
+
+
+@pytest.mark.parametrize("drive", ["pressure", "chambers", "command"])
+def test_the_residual_of_a_perfect_model_is_one_in_every_drive(truth, train, drive):
+    """Measured inputs carry noise that drives the model too; the residual is told in units of
+    what that noise alone leaves, so 1 means a perfect model whatever the drive."""
+    res = identify(truth, [train], IdentifyOptions(drive=drive, estimate=(), prefit=False))
+    assert 0.85 < res.solver["residual_sigma"] < 1.2, res.solver
+
+
+def test_the_calibration_program_is_safe_and_covers_what_calibration_needs(cyl_a):
+    prog = make_program("calibration", cyl_a, 40.0, seed=0)
+    assert isinstance(prog, CalibrationProgram)
+    run = record(cyl_a, cyl_a, seed=5, duration=40.0)
+    assert np.all(np.abs(run.u) <= prog.opts.u_max + 1e-12)
+    L = cyl_a.geometry.stroke
+    v = np.gradient(run.x, run.t)
+    assert np.abs(v).max() < 2.0  # m/s: pulses are kept short
+    at_ends = (run.x > L - 2e-4) | (run.x < 2e-4)
+    # the end stops are only met at the gentle end speed (no pulse slams into them)
+    landing = at_ends & ~np.roll(at_ends, 1)
+    assert np.abs(v[landing]).max() < 3 * prog.end_speed + 0.05
+    coverage = flow_coverage(cyl_a, [run])
+    assert all(coverage[f"flow_{d}_{k}"] > 0 for d in ("extend", "retract") for k in (1, 2, 3, 4))
+
+
+def test_identifiability_names_what_a_run_cannot_determine(cyl_a, truth):
+    """A run that never holds against an end, never creeps and stays at small openings: the
+    report says which parameters it leaves open and what motion would determine them."""
+    run = record(truth, cyl_a, seed=6, program="sines", duration=10.0)
+    cal = calibrate(cyl_a, [run])
+    undetermined = {u["name"]: u for u in cal.identifiability.undetermined}
+    assert "flow_extend_6" in undetermined and "flow_retract_6" in undetermined
+    assert "record" in " ".join(cal.identifiability.lines())
+    assert set(cal.identifiability.determined) | set(undetermined) == set(CALIBRATED) | set(
+        cal.result.params)
