@@ -25,13 +25,13 @@
 #define RIG_P1_ZERO_COUNTS 6580.0f
 #define RIG_P1_SPAN_COUNTS 52390.0f
 #define RIG_P1_FULL_SCALE_PA 1.0e6f
-#define RIG_P1_VALID_MIN 3277u     /* 0.25 V: below the transducer's range */
-#define RIG_P1_VALID_MAX 62259u    /* 4.75 V */
+#define RIG_P1_VALID_MIN 3277u     /* below 0.25 V: a broken wire (the input's pull-down wins) */
+#define RIG_P1_VALID_MAX 65535u    /* over-range is real (a piston hitting its end stop): never a fault */
 #define RIG_P2_ZERO_COUNTS 6531.0f
 #define RIG_P2_SPAN_COUNTS 52460.0f
 #define RIG_P2_FULL_SCALE_PA 1.0e6f
 #define RIG_P2_VALID_MIN 3277u
-#define RIG_P2_VALID_MAX 62259u
+#define RIG_P2_VALID_MAX 65535u
 
 /* supply pressure: 4 mA (1 V, vented) to 20 mA (5 V, 16 bar gauge) */
 #define RIG_HAS_SUPPLY_SENSOR 1
