@@ -1,7 +1,7 @@
 """Golden vectors of the wire protocol, made by the Python implementation (hw.protocol) and
 checked against the C one (hw/firmware/test/test_protocol.c) by tests/test_firmware.py.
 
-    python tests/firmware_golden.py     # rewrites tests/data/firmware_golden.txt
+    PYTHONPATH=. python tests/firmware_golden.py     # rewrites tests/data/firmware_golden.txt
 
 One vector a line, fields separated by spaces, bytes in hex ('-' for none):
     CRC    data crc16                  CRC-16/CCITT-FALSE of data (4 hex digits)
@@ -15,18 +15,14 @@ from __future__ import annotations
 
 import math
 import random
-import sys
 from pathlib import Path
 
 from cobs import cobs
 
+from hw.protocol import (MAX_ENCODED, Command, ErrorCode, ErrorFrame, FrameDecoder, Heartbeat, SampleFrame, Start,
+                         StatusFrame, Stop, crc16, encode, pack)
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from hw.protocol import (MAX_ENCODED, Command, ErrorCode, ErrorFrame, FrameDecoder, Heartbeat,  # noqa: E402
-                         SampleFrame, Start, StatusFrame, Stop, crc16, encode, pack)
-
 GOLDEN = ROOT / "tests" / "data" / "firmware_golden.txt"
 
 
