@@ -10,6 +10,10 @@
 #include "rig_hal.h"
 #include "rig_protocol.h"
 
+#ifdef __cplusplus
+extern "C" { /* the boards' sketches are C++ */
+#endif
+
 /* One sensor's calibration: the reading at its zero point and how many counts its full
  * scale adds (negative when the reading falls as the quantity rises). Readings outside
  * [valid_min, valid_max] mean a broken wire or an unpowered sensor: the rig stops. */
@@ -95,5 +99,9 @@ uint16_t rig_valve_output(const rig_state *rig, float u);
 
 /* Centre the valve and stop streaming (power-down, a signal to the host build). */
 void rig_halt(rig_state *rig);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif

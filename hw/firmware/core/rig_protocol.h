@@ -10,6 +10,10 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#ifdef __cplusplus
+extern "C" { /* the boards' sketches are C++ */
+#endif
+
 #define RIG_PROTOCOL_VERSION 1
 
 /* frame types (type byte first) */
@@ -99,5 +103,9 @@ typedef struct {
 void rig_decoder_init(rig_decoder *d);
 /* one byte; returns 1 and fills *f when it completed an intact frame */
 int rig_decoder_byte(rig_decoder *d, uint8_t byte, rig_frame *f);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif

@@ -10,6 +10,10 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#ifdef __cplusplus
+extern "C" { /* the boards' sketches are C++ */
+#endif
+
 /* the sampling instant the hardware timer just marked */
 typedef struct {
     uint64_t t_us;   /* the rig clock at the sampling instant, us since power-up */
@@ -54,5 +58,9 @@ void hal_serial_flush(void);
 
 /* After every tick: the board shows it (e.g. a fault LED), the host build tells the plant. */
 void hal_tick_done(const rig_tick_report *report);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif
