@@ -26,7 +26,6 @@ import os
 import socket
 import struct
 import subprocess
-import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -169,16 +168,14 @@ class FirmwareRig:
         argv = [str(binary), "--plant-fd", str(theirs.fileno()), "--stroke", repr(cyl.geometry.stroke),
                 "--watchdog-ms", repr(float(watchdog_ms)), "--rate", repr(float(rate))]
         try:
+            # its stderr is ours: what it says when this process is gone still reaches the terminal
             self.proc = subprocess.Popen(argv, pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL,
-                                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                                         stdout=subprocess.DEVNULL)
         except OSError as e:
             self._sock.close()
             raise RigError(f"cannot start the firmware {binary}: {e.strerror}") from None
         finally:
             theirs.close()
-        self._stderr_lines: list[str] = []
-        self._stderr_thread = threading.Thread(target=self._forward_stderr, name="firmware stderr", daemon=True)
-        self._stderr_thread.start()
         self._sock.settimeout(HELLO_TIMEOUT_S)
         try:
             hello = self._sock.recv(1024)
@@ -186,8 +183,8 @@ class FirmwareRig:
             hello = b""
         if not hello:
             self.close()
-            said = "; ".join(self._stderr_lines) or "no message"
-            raise RigError(f"the firmware {binary} did not start (exit status {self.proc.returncode}: {said})")
+            raise RigError(f"the firmware {binary} did not start (exit status {self.proc.returncode}; "
+                           "its own message is above)")
         try:
             self.config = FirmwareConfig.from_hello(hello)
         except RigError:
@@ -246,7 +243,6 @@ class FirmwareRig:
                 proc.kill()
                 proc.wait()
         self._sock.close()
-        self._stderr_thread.join(timeout=2.0)
 
     # ---------------------------------------------------------------- internals
 
@@ -258,12 +254,6 @@ class FirmwareRig:
                       f"({e.strerror if isinstance(e, OSError) else e}); expect more overruns")
         gc.collect()
         gc.freeze()  # the plant's objects stay out of full collections, which took ms off a tick
-
-    def _forward_stderr(self) -> None:
-        for line in self.proc.stderr:
-            line = line.rstrip("\n")
-            self._stderr_lines.append(line)
-            self._log(line)
 
     def _serve(self, duration: float | None) -> None:
         cfg, plant, stats = self.config, self.plant, self.stats
@@ -283,12 +273,11 @@ class FirmwareRig:
                 self._fail(f"the firmware stopped ticking (silent for {TIMEOUT_S:g} s)")
                 return
             except OSError as e:
-                self._fail(f"the channel to the firmware failed: {e.strerror}")
+                self._fail(self._gone(f"the channel to the firmware failed: {e.strerror}"))
                 return
             if len(data) != _REQUEST.size:
-                code = self.proc.wait(timeout=5.0) if not data else None
-                self._fail("the firmware exited" + (f" (status {code})" if code is not None else
-                                                    f"; it sent a {len(data)}-byte request"))
+                self._fail(self._gone("the firmware closed the channel") if not data else
+                           f"the firmware sent a {len(data)}-byte request")
                 return
             t_us, seq, valve_out, status, u_applied, cmd_seq = _REQUEST.unpack(data)
             if failed_at is not None:  # the firmware has had its tick to report the fault
@@ -310,8 +299,8 @@ class FirmwareRig:
                                 ps_ch.counts(ps) if ps_ch is not None else 0, 1)
             try:
                 sock.send(reply)
-            except OSError:
-                self._fail("the firmware exited")
+            except OSError as e:
+                self._fail(self._gone(f"the channel to the firmware failed: {e.strerror}"))
                 return
             stats.ticks += 1
             if seq:
@@ -324,6 +313,13 @@ class FirmwareRig:
                 self._history.append((t_us, x, p1, p2, ps, seq, valve_out, status, u_applied, cmd_seq))
             if end_us is not None and t_us >= end_us:
                 return
+
+    def _gone(self, otherwise: str) -> str:
+        """Why the channel broke: the firmware's exit status when it has ended."""
+        try:
+            return f"the firmware exited (status {self.proc.wait(timeout=TIMEOUT_S)})"
+        except subprocess.TimeoutExpired:
+            return otherwise
 
     def _fail(self, why: str) -> None:
         if not self._stop:

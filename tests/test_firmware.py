@@ -344,6 +344,36 @@ def test_thirty_seconds_live_against_the_firmware_converge_and_lose_nothing(firm
     assert "rig-host: stopped after" in rig_err
 
 
+def test_when_the_firmware_dies_the_plant_side_says_so(firmware, cyl_a):
+    plant = PlantThread(cyl_a)
+    time.sleep(0.3)
+    plant.rig.proc.kill()
+    plant.thread.join(timeout=10)
+    assert not plant.thread.is_alive()
+    assert plant.rig.failure == f"the firmware exited (status {-signal.SIGKILL})"
+
+
+def test_when_the_plant_dies_the_firmware_centres_the_valve_and_exits(firmware, tmp_path):
+    err = tmp_path / "rig.err"
+    with open(err, "w") as stderr:
+        rig = subprocess.Popen([sys.executable, "-m", "combined_reality", "virtual-rig", "--config", str(CFG),
+                                "--serial", "--firmware", str(RIG_HOST)], stdout=subprocess.PIPE, stderr=stderr,
+                               text=True, cwd=ROOT)
+    try:
+        assert rig.stdout.readline().startswith("/dev/")
+        (child,) = Path(f"/proc/{rig.pid}/task/{rig.pid}/children").read_text().split()
+        rig.kill()  # the plant's process, without a chance to say goodbye
+        rig.wait()
+        t_end = time.monotonic() + 10
+        while Path(f"/proc/{child}").exists() and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert not Path(f"/proc/{child}").exists() or "zombie" in Path(f"/proc/{child}/status").read_text()
+    finally:
+        if rig.poll() is None:
+            rig.kill()
+    assert "rig-host: the plant is gone; valve centred, stopping" in err.read_text()
+
+
 # ------------------------------------------------------------------ the command line
 
 

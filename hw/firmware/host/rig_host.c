@@ -132,7 +132,7 @@ int hal_read_sensors(rig_counts *counts)
     }
     n = recv(plant_fd, rep, sizeof rep, 0);
     if (n != 9) {
-        plant_lost(n == 0 ? "the plant is gone" : "the plant sent a malformed reply");
+        plant_lost(n <= 0 ? "the plant is gone" : "the plant sent a malformed reply");
         return RIG_SENSORS_FAILED;
     }
     memcpy(&counts->x, rep, 2);
