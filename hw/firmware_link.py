@@ -124,14 +124,14 @@ class FirmwareConfig:
 @dataclass
 class FirmwareStats:
     ticks: int = 0  # sensor readings the plant served
-    samples: int = 0  # ticks at which the firmware streamed (RUNNING)
+    streaming: int = 0  # ticks at which the firmware streamed (RUNNING; a sample, unless the host lagged)
     overruns: int = 0  # ticks the firmware flagged OVERRUN (its loop was late: the machine is busy)
     watchdog_trips: int = 0
     soft_limits: int = 0  # entries into an end zone with a command that drove further in
     wall_s: float = 0.0
 
     def summary(self) -> str:
-        return (f"{self.ticks} ticks, {self.samples} samples streamed, {self.overruns} overruns, "
+        return (f"{self.ticks} ticks, {self.streaming} of them streaming, {self.overruns} overruns, "
                 f"{self.watchdog_trips} watchdog trips, {self.soft_limits} soft-limit stops")
 
 
@@ -304,7 +304,7 @@ class FirmwareRig:
                 return
             stats.ticks += 1
             if seq:
-                stats.samples += bool(status & Status.RUNNING)
+                stats.streaming += bool(status & Status.RUNNING)
                 stats.overruns += bool(status & Status.OVERRUN)
                 stats.watchdog_trips += bool(status & ~prev_status & Status.WATCHDOG)
                 stats.soft_limits += bool(status & ~prev_status & Status.SOFT_LIMIT)

@@ -87,7 +87,8 @@ void rig_halt(rig_state *rig)
 
 /* ------------------------------------------------------------------ sending */
 
-static void send_payload(rig_state *rig, const uint8_t *payload, size_t n, int is_error)
+/* 1 when the frame was queued, 0 when it was dropped for lack of room (and counted) */
+static int send_payload(rig_state *rig, const uint8_t *payload, size_t n, int is_error)
 {
     uint8_t wire[RIG_MAX_WIRE];
     size_t m = rig_encode(payload, n, wire);
@@ -95,11 +96,12 @@ static void send_payload(rig_state *rig, const uint8_t *payload, size_t n, int i
     if (room < m + (is_error ? 0u : ERROR_RESERVE)) {
         rig->tx_dropped++;
         rig->stats.frames_dropped++;
-        return;
+        return 0;
     }
     hal_serial_write(wire, m);
     if (is_error)
         rig->stats.errors_sent++;
+    return 1;
 }
 
 static void send_error(rig_state *rig, uint8_t code, uint64_t t_us, int32_t value)
@@ -299,8 +301,10 @@ void rig_tick(rig_state *rig, const rig_tick_info *tick, const rig_counts *c, in
     s.status = status;
     s.cmd_seq = rig->cmd_seq;
     if (rig->running) {
-        send_payload(rig, payload, rig_pack_sample(&s, payload), 0);
-        rig->stats.samples_sent++;
+        if (send_payload(rig, payload, rig_pack_sample(&s, payload), 0))
+            rig->stats.samples_sent++;
+        else
+            rig->stats.samples_dropped++;
         rig->status_sent = 0;
     } else if (!rig->status_sent || t - rig->last_status_us >= STATUS_PERIOD_US) {
         send_payload(rig, payload, rig_pack_status(s.seq, t, status, payload), 0);

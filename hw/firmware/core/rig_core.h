@@ -46,7 +46,7 @@ typedef struct {
 
 /* the rig's counters since power-up (the host build prints them when it ends) */
 typedef struct {
-    uint32_t ticks, samples_sent, overruns, watchdog_trips, frames_dropped, errors_sent;
+    uint32_t ticks, samples_sent, samples_dropped, overruns, watchdog_trips, frames_dropped, errors_sent;
 } rig_stats;
 
 typedef struct {

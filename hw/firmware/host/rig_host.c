@@ -315,11 +315,12 @@ int main(int argc, char **argv)
     }
     rig_halt(&rig);
     hal_serial_flush();
-    fprintf(stderr, "rig-host: stopped after %lu ticks: %lu samples sent, %lu overruns, %lu watchdog trips, "
-                    "%lu frames dropped for a slow host, %lu corrupted host frames rejected\n",
+    fprintf(stderr, "rig-host: stopped after %lu ticks: %lu samples sent, %lu samples dropped for a slow host "
+                    "(%lu frames in all), %lu overruns, %lu watchdog trips, %lu corrupted host frames rejected\n",
             (unsigned long)rig.stats.ticks, (unsigned long)rig.stats.samples_sent,
+            (unsigned long)rig.stats.samples_dropped, (unsigned long)rig.stats.frames_dropped,
             (unsigned long)rig.stats.overruns, (unsigned long)rig.stats.watchdog_trips,
-            (unsigned long)rig.stats.frames_dropped, (unsigned long)rig.decoder.frames_corrupt);
+            (unsigned long)rig.decoder.frames_corrupt);
     close(pty_master);
     close(pty_slave);
     return plant_failed ? 1 : 0;

@@ -306,7 +306,7 @@ static void a_full_transmit_buffer_drops_samples_and_says_so(void)
     streaming();
     tx_limit = 50; /* room for one error frame, not for a sample and the error reserve */
     tick(2000);
-    CHECK(sample() == NULL && rig.stats.frames_dropped == 1);
+    CHECK(sample() == NULL && rig.stats.frames_dropped == 1 && rig.stats.samples_dropped == 1);
     command(1, 2.0f, 3000); /* error frames still go out */
     tick(3000);
     e = error(RIG_ERR_TX_OVERFLOW);
