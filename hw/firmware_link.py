@@ -264,7 +264,7 @@ class FirmwareRig:
         rng = self._ps_rng
         prev_t: int | None = None
         prev_status = 0
-        failed_at: int | None = None
+        plant_failed = False
         end_us = None if duration is None else duration * 1e6
         while not self._stop:
             try:
@@ -280,7 +280,7 @@ class FirmwareRig:
                            f"the firmware sent a {len(data)}-byte request")
                 return
             t_us, seq, valve_out, status, u_applied, cmd_seq = _REQUEST.unpack(data)
-            if failed_at is not None:  # the firmware has had its tick to report the fault
+            if plant_failed:  # the firmware has had its tick to report the fault
                 return
             # the valve held the output of the previous tick over [t_k-1, t_k)
             plant.latch(cfg.u_of(valve_out))
@@ -291,7 +291,7 @@ class FirmwareRig:
             except RuntimeError as e:  # the plant diverged: the firmware hears it cannot read its sensors
                 self.failure = str(e)
                 self._log(f"firmware plant: {e}")
-                failed_at = t_us
+                plant_failed = True
                 sock.send(_REPLY.pack(0, 0, 0, 0, 0))
                 continue
             ps = ps_true + ps_noise * rng.standard_normal() if ps_ch is not None else math.nan

@@ -296,8 +296,10 @@ def test_killing_the_host_centres_the_valve_within_100_ms(firmware, cyl_a, tmp_p
     tripped = np.flatnonzero((ts > killed) & (t["status"].astype(int) & Status.WATCHDOG != 0))[0]
     after = slice(tripped, None)
     assert np.all(t["valve_out"][after] == centre) and np.all(t["u_applied"][after] == 0.0)
-    assert np.all(t["valve_out"][last_command <= ts][:int(np.sum((ts >= last_command) & (ts < ts[tripped])))]
-                  == t["valve_out"][changed[-1]])  # held until the watchdog, not earlier
+    # the last command held until the watchdog, not centred earlier (unless in an end zone)
+    held = (ts >= last_command) & (ts < ts[tripped])
+    in_zone = t["status"][held].astype(int) & Status.SOFT_LIMIT != 0
+    assert np.all((t["valve_out"][held] == t["valve_out"][changed[-1]]) | in_zone)
     since_kill, since_command = ts[tripped] - killed, ts[tripped] - last_command
     print(f"valve centred {since_kill * 1e3:.1f} ms after the host was killed, "
           f"{since_command * 1e3:.1f} ms after the last command was latched")

@@ -74,21 +74,31 @@ def run(args) -> int:
                            seed=args.seed, noise=not args.no_noise, link_path=args.link, log=eprint,
                            on_path=lambda path: print(path, flush=True), progress=eprint)
     except ValueError as e:  # said with the options' names
-        msg = re.sub(r"(?<![\w/.-])[a-z_]+(?![\w/.-])", lambda m: _FLAGS.get(m[0], m[0]), str(e))
-        raise UsageError(f"{msg}.") from None
+        raise _with_flags(e) from None
     print(server.path, flush=True)  # the first line of stdout: what the host opens
     truth = ", ".join(f"{n}={cyl.value(n):g}" for n in ("Fc", "Fv", "kp"))
     eprint(f"virtual rig: '{cyl.name}' ({truth}) at {args.rate:g} Hz, "
            f"{'SLCAN adapter' if args.can else 'serial protocol'} on {server.path}"
            + (f" (link {args.link})" if args.link else "") + "; SIGINT or SIGTERM ends it")
+    stats = _run_until_signalled(server, args.duration)
+    eprint(f"virtual rig: stopped after {stats.wall_s:.1f} s: {stats.summary()}")
+    return 1 if server.failure else 0
+
+
+def _with_flags(e: ValueError) -> UsageError:
+    """A library's message about its option fields, said with the command line's flags."""
+    msg = re.sub(r"(?<![\w/.-])[a-z_]+(?![\w/.-])", lambda m: _FLAGS.get(m[0], m[0]), str(e))
+    return UsageError(f"{msg}.")
+
+
+def _run_until_signalled(server, duration: float | None):
+    """server.run(duration), with SIGINT and SIGTERM asking it to stop; its statistics."""
     previous = {sig: signal.signal(sig, lambda *_: server.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        stats = server.run(args.duration)
+        return server.run(duration)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    eprint(f"virtual rig: stopped after {stats.wall_s:.1f} s: {stats.summary()}")
-    return 1 if server.failure else 0
 
 
 def _run_firmware(args, cyl, effects) -> int:
@@ -107,20 +117,14 @@ def _run_firmware(args, cyl, effects) -> int:
         rig = FirmwareRig(args.firmware, cyl, effects, rate=args.rate, watchdog_ms=args.watchdog_ms, seed=args.seed,
                           noise=not args.no_noise, log=eprint, progress=eprint)
     except ValueError as e:  # said with the options' names
-        msg = re.sub(r"(?<![\w/.-])[a-z_]+(?![\w/.-])", lambda m: _FLAGS.get(m[0], m[0]), str(e))
-        raise UsageError(f"{msg}.") from None
+        raise _with_flags(e) from None
     except RigError as e:
         raise UsageError(f"--firmware {args.firmware}: {e}.") from None
     print(rig.path, flush=True)  # the first line of stdout: what the host opens
     truth = ", ".join(f"{n}={cyl.value(n):g}" for n in ("Fc", "Fv", "kp"))
     eprint(f"virtual rig: '{cyl.name}' ({truth}) beside the firmware {args.firmware} at {args.rate:g} Hz, serial "
            f"protocol on {rig.path}; SIGINT or SIGTERM ends it")
-    previous = {sig: signal.signal(sig, lambda *_: rig.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        stats = rig.run(args.duration)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    stats = _run_until_signalled(rig, args.duration)
     eprint(f"virtual rig: stopped after {stats.wall_s:.1f} s: {stats.summary()}"
            + (f"; {rig.failure}" if rig.failure else ""))
     return 1 if rig.failure else 0

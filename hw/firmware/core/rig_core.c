@@ -39,12 +39,12 @@ int rig_config_check(const rig_config *cfg)
     return 0;
 }
 
-float rig_scale(const rig_channel *ch, uint16_t counts)
+static float to_si(const rig_channel *ch, uint16_t counts)
 {
     return ch->offset + ch->scale * (float)counts;
 }
 
-uint16_t rig_valve_output(const rig_state *rig, float u)
+static uint16_t valve_output(const rig_state *rig, float u)
 {
     float v = (float)rig->cfg.valve_centre + u * (float)rig->cfg.valve_span + 0.5f;
     if (v <= 0.0f)
@@ -56,7 +56,7 @@ uint16_t rig_valve_output(const rig_state *rig, float u)
 
 static void latch(rig_state *rig, float u)
 {
-    rig->valve_out = rig_valve_output(rig, u);
+    rig->valve_out = valve_output(rig, u);
     /* what the valve really holds, in command units (0 exactly at the centre) */
     rig->u_applied = (float)((int32_t)rig->valve_out - (int32_t)rig->cfg.valve_centre) / (float)rig->cfg.valve_span;
     hal_valve_write(rig->valve_out);
@@ -99,8 +99,6 @@ static int send_payload(rig_state *rig, const uint8_t *payload, size_t n, int is
         return 0;
     }
     hal_serial_write(wire, m);
-    if (is_error)
-        rig->stats.errors_sent++;
     return 1;
 }
 
@@ -241,15 +239,14 @@ void rig_tick(rig_state *rig, const rig_tick_info *tick, const rig_counts *c, in
             report(rig, RIG_ERR_OVERRUN, t, (int32_t)tick->late_us);
     }
 
-    rig->t_us = t;
     rig->seq++;
-    x = rig_scale(&rig->ch_x, c->x);
+    x = to_si(&rig->ch_x, c->x);
     s.seq = rig->seq;
     s.t_us = t;
     s.x = x;
-    s.p1 = rig_scale(&rig->ch_p1, c->p1);
-    s.p2 = rig_scale(&rig->ch_p2, c->p2);
-    s.ps = rig->cfg.has_supply ? rig_scale(&rig->ch_ps, c->ps) : (float)NAN;
+    s.p1 = to_si(&rig->ch_p1, c->p1);
+    s.p2 = to_si(&rig->ch_p2, c->p2);
+    s.ps = rig->cfg.has_supply ? to_si(&rig->ch_ps, c->ps) : (float)NAN;
 
     /* a sensor that cannot be read, or reads outside its range: stop, valve centred */
     broken = sensors_ok ? broken_sensor(rig, c) : 0;

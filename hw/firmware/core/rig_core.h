@@ -46,7 +46,7 @@ typedef struct {
 
 /* the rig's counters since power-up (the host build prints them when it ends) */
 typedef struct {
-    uint32_t ticks, samples_sent, samples_dropped, overruns, watchdog_trips, frames_dropped, errors_sent;
+    uint32_t ticks, samples_sent, samples_dropped, overruns, watchdog_trips, frames_dropped;
 } rig_stats;
 
 typedef struct {
@@ -61,7 +61,6 @@ typedef struct {
     uint64_t last_host_us;
     /* tick side */
     uint32_t seq;
-    uint64_t t_us;
     uint64_t last_status_us;
     uint8_t status_sent;
     uint16_t valve_out;
@@ -90,12 +89,6 @@ int rig_step(rig_state *rig);
 /* The parts of rig_step (the test program drives them without a timer). */
 void rig_receive(rig_state *rig, const uint8_t *data, size_t n, uint64_t t_us);
 void rig_tick(rig_state *rig, const rig_tick_info *tick, const rig_counts *counts, int sensors_ok);
-
-/* SI value of a reading, and the channel's coefficients (the host build reports them). */
-float rig_scale(const rig_channel *ch, uint16_t counts);
-
-/* The valve output for a command in [-1, 1]. */
-uint16_t rig_valve_output(const rig_state *rig, float u);
 
 /* Centre the valve and stop streaming (power-down, a signal to the host build). */
 void rig_halt(rig_state *rig);
