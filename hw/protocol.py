@@ -53,9 +53,10 @@ class ErrorCode(IntEnum):
     OVERRUN = 5  # value: us the rig was late
     TX_OVERFLOW = 6  # value: frames the rig dropped because the link was too slow
     RX_CORRUPT = 7  # value: corrupted host frames the rig rejected
-    INTERNAL = 8  # value: 0; the rig stopped (e.g. the plant of a virtual rig diverged)
+    INTERNAL = 8  # value: 0, or 1-4 the sensor out of its range (x, p1, p2, ps); the rig stopped
 
 
+_SENSORS = ("x", "p1", "p2", "ps")  # INTERNAL's value 1-4 (the firmware's sensor check)
 _ERROR_TEXT: dict[int, Callable[[int], str]] = {
     ErrorCode.WATCHDOG: lambda v: f"watchdog: valve centred after {v} ms of host silence",
     ErrorCode.BAD_COMMAND: lambda v: f"{v} invalid command(s) (NaN or beyond +-1) bounded",
@@ -64,7 +65,8 @@ _ERROR_TEXT: dict[int, Callable[[int], str]] = {
     ErrorCode.OVERRUN: lambda v: f"sampling deadline missed by {v} us",
     ErrorCode.TX_OVERFLOW: lambda v: f"link too slow: {v} frame(s) dropped by the rig",
     ErrorCode.RX_CORRUPT: lambda v: f"{v} corrupted host frame(s) rejected by the rig",
-    ErrorCode.INTERNAL: lambda v: "internal fault: the rig stopped",
+    ErrorCode.INTERNAL: lambda v: "internal fault: the rig stopped" + (
+        f" (sensor {_SENSORS[v - 1]} reads outside its range: a broken wire?)" if 1 <= v <= len(_SENSORS) else ""),
 }
 
 

@@ -331,3 +331,13 @@ def test_a_restarted_rig_whose_clock_is_ahead_is_still_recognised():
     clock.t += 1.0
     a = feed(s, clock, 20, 3_000_000)  # new rig: later clock, far smaller counter
     assert 900 < s.samples_lost < 1100 and a.t == pytest.approx(1.009 + 1.0, abs=1e-3)  # + the host's gap
+
+
+def test_error_lines_name_what_the_rig_reports():
+    from hw.protocol import describe_error
+
+    assert describe_error(1, 51) == "watchdog: valve centred after 51 ms of host silence"
+    assert describe_error(8, 0) == "internal fault: the rig stopped"
+    assert describe_error(8, 3) == "internal fault: the rig stopped (sensor p2 reads outside its range: a broken wire?)"
+    assert describe_error(8, 9) == "internal fault: the rig stopped"
+    assert describe_error(42, 7) == "unknown error code 42 (value 7)"
