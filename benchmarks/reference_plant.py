@@ -918,7 +918,7 @@ class DeadzoneHard(Effect):
 
     @classmethod
     def overlap(cls, P, Y, dY, s):
-        s.u = np.where(np.abs(s.u) <= P["d"], 0.0, s.u)
+        s.u = s.u * (np.abs(s.u) > P["d"])
 
 
 @dataclass(frozen=True)
@@ -940,12 +940,13 @@ class DeadzoneSoft(Effect):
 
     @classmethod
     def prepare(cls, P, c):
-        P["_on"] = P["d"] > 0
-        P["_d"] = np.where(P["_on"], P["d"], 1.0)
+        on = P["d"] > 0
+        P["_d"] = np.where(on, P["d"], 1.0)
+        P["_dd"] = P["d"] * on  # zero where neutral: the subtracted term vanishes exactly
 
     @classmethod
     def overlap(cls, P, Y, dY, s):
-        s.u = np.where(P["_on"], s.u - P["_d"] * np.tanh(s.u / P["_d"]), s.u)
+        s.u = s.u - P["_dd"] * np.tanh(s.u / P["_d"])
 
 
 # ---- valve delay
@@ -1001,15 +1002,16 @@ class DelaySpool(Effect):
 
     @classmethod
     def prepare(cls, P, c):
-        P["_on"] = P["t_n"] > 0
-        P["_w"] = np.where(P["_on"], 1.0 / np.where(P["_on"], P["t_n"], 1.0), 1.0)
+        on = P["t_n"] > 0
+        P["_on"] = on.astype(float)
+        P["_w"] = 1.0 / np.where(on, P["t_n"], 1.0)
+        P["_w2"], P["_2zw"] = P["_w"] ** 2, 2 * P["zeta"] * P["_w"]
 
     @classmethod
     def spool(cls, P, Y, dY, s):
-        w = P["_w"]
         dY[0] = Y[1]
-        dY[1] = w * w * (s.u - Y[0]) - 2 * P["zeta"] * w * Y[1]
-        s.u = np.where(P["_on"], np.clip(Y[0], -1.0, 1.0), s.u)
+        dY[1] = P["_w2"] * (s.u - Y[0]) - P["_2zw"] * Y[1]
+        s.u = s.u + P["_on"] * (np.minimum(np.maximum(Y[0], -1.0), 1.0) - s.u)  # the command where neutral
 
     @classmethod
     def rate(cls, P, c):
@@ -1038,14 +1040,15 @@ class DelaySlew(Effect):
 
     @classmethod
     def prepare(cls, P, c):
-        P["_on"] = P["t_slew"] > 0
-        P["_rmax"] = 1.0 / np.where(P["_on"], P["t_slew"], 1.0)
+        on = P["t_slew"] > 0
+        P["_on"] = on.astype(float)
+        P["_rmax"] = 1.0 / np.where(on, P["t_slew"], 1.0)
 
     @classmethod
     def spool(cls, P, Y, dY, s):
         r = P["_rmax"]
-        dY[0] = np.clip((s.u - Y[0]) / P["t_loop"], -r, r)
-        s.u = np.where(P["_on"], Y[0], s.u)
+        dY[0] = np.minimum(np.maximum((s.u - Y[0]) / P["t_loop"], -r), r)
+        s.u = s.u + P["_on"] * (Y[0] - s.u)  # the command where neutral
 
     @classmethod
     def rate(cls, P, c):
