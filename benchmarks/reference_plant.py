@@ -58,7 +58,7 @@ from combined_reality.files import Run, cylinder_tag, write_run  # noqa: E402
 from sim.cylinder import Cylinder, cylinder_to_toml, load_cylinder, parse_cylinder  # noqa: E402
 
 __all__ = ["Case", "Calibration", "SensorDepartures", "Effect", "Param", "EFFECT_FORMS", "WORDS", "make_effect",
-           "parse_effect", "random_effect", "ValveShape", "Linear", "PowerLaw", "Smoothstep", "Logistic",
+           "forms_of", "parse_effect", "random_effect", "ValveShape", "Linear", "PowerLaw", "Smoothstep", "Logistic",
            "Progressive", "SHAPES", "make_shape", "random_shape", "Result", "simulate", "simulate_detailed",
            "substeps_for", "main"]
 
@@ -261,7 +261,8 @@ class Calibration:
     characteristic_pos(u) (likewise for u < 0); characteristics are callables f(|u|) with
     f(0) = 0, f(1) = 1, monotone (named ValveShape objects serialise, arbitrary callables do not).
     Pressure sensors read true + offset. external_force is a constant force on the piston,
-    positive in the extension direction.
+    positive in the extension direction. In the simulation a characteristic is tabulated on
+    TABLE_POINTS points of |u| and interpolated linearly between them.
     """
 
     conductance_pos: float = 1.0  # 1, multiplier of the file's Cmax for u > 0
@@ -407,6 +408,7 @@ def _reference(cyl: Cylinder, what: str | None) -> float:
     refs = {
         "seal": fr.Fc + fr.kp * 0.5 * (s.pressure - s.atmosphere),  # N, seal friction at half supply
         "coulomb": fr.Fc,  # N
+        "viscous": max(fr.Fv, 1e-6),  # N s/m (a rig without viscous friction: a negligible span)
         "mass": cyl.mechanics.moving_mass,  # kg
         "stroke": cyl.geometry.stroke,  # m
         "valve_flow": cyl.valve.sonic_conductance * s.pressure,  # m^3/s (ANR) at full choked opening
@@ -589,19 +591,12 @@ class AsymmetryLevels(Effect):
     FORM: ClassVar[str] = "levels"
     PARAMS: ClassVar[dict[str, Param]] = {
         "dFc": Param("N", "Coulomb friction of extension minus the mean", 0.03, 0.5, "signed", "coulomb"),
-        "dFv": Param("N s/m", "viscous coefficient of extension minus the mean", 0.03, 0.7, "signed", None),
+        "dFv": Param("N s/m", "viscous coefficient of extension minus the mean", 0.03, 0.7, "signed", "viscous"),
     }
     NEUTRAL: ClassVar[dict[str, float]] = {"dFc": 0.0, "dFv": 0.0}
     HOOKS: ClassVar[tuple[str, ...]] = ("friction",)
     dFc: float = 5.0
     dFv: float = 5.0
-
-    @classmethod
-    def ranges(cls, cyl):
-        r = super().ranges(cyl)
-        fv = max(cyl.friction.Fv, 1e-6)  # a rig without viscous friction has no viscous asymmetry to draw
-        r["dFv"] = (0.03 * fv, 0.7 * fv)
-        return r
 
     @classmethod
     def _constrained(cls, vals, cyl):
@@ -932,7 +927,7 @@ class DeadzoneSoft(Effect):
     WORD: ClassVar[str] = "valve_deadzone"
     FORM: ClassVar[str] = "soft"
     PARAMS: ClassVar[dict[str, Param]] = {
-        "d": Param("1", "spool overlap (shift of the opening beyond it)", 0.005, 0.08),
+        "d": Param("1", "spool overlap (shift of the opening beyond it)", 0.001, 0.08),
     }
     NEUTRAL: ClassVar[dict[str, float]] = {"d": 0.0}
     HOOKS: ClassVar[tuple[str, ...]] = ("overlap",)
@@ -1319,8 +1314,9 @@ def forms_of(word: str) -> list[type[Effect]]:
     return [cls for (w, _), cls in EFFECT_FORMS.items() if w == word]
 
 
-def make_effect(word: str, form: str, values: Mapping[str, float] | None = None) -> Effect:
-    """An effect form by word and form name; parameters not given keep their defaults."""
+def make_effect(word: str, form: str, values: Mapping[str, float] | None = None, cyl: Cylinder | None = None) -> Effect:
+    """An effect form by word and form name. Parameters not given keep the class defaults (sized
+    for the default 32 x 100 cylinder), or with `cyl` the mid-range values for that cylinder."""
     cls = EFFECT_FORMS.get((word, form))
     if cls is None:
         known = ", ".join(f"{w}:{f}" for w, f in EFFECT_FORMS)
@@ -1329,22 +1325,24 @@ def make_effect(word: str, form: str, values: Mapping[str, float] | None = None)
     unknown = [k for k in values if k not in cls.PARAMS]
     if unknown:
         raise ValueError(f"{word}:{form} has no parameter(s) {unknown} (parameters: {', '.join(cls.PARAMS)}).")
-    return cls(**{k: float(v) for k, v in values.items()})
+    base = cls.typical(cyl, 0.5).values() if cyl is not None else {}
+    return cls(**{**base, **{k: float(v) for k, v in values.items()}})
 
 
-def parse_effect(spec: str) -> Effect:
-    """'stiction:exp:Fs_excess=10,v_stribeck=0.005' -> StictionExp(10, 0.005)."""
+def parse_effect(spec: str, cyl: Cylinder | None = None) -> Effect:
+    """'stiction:exp:Fs_excess=10,v_stribeck=0.005' -> StictionExp(10, 0.005) (see make_effect)."""
     parts = spec.split(":", 2)
     if len(parts) < 2:
         raise ValueError(f"effect {spec!r}: expected WORD:FORM[:k=v,...].")
-    return make_effect(parts[0], parts[1], _parse_kv(parts[2] if len(parts) > 2 else ""))
+    return make_effect(parts[0], parts[1], _parse_kv(parts[2] if len(parts) > 2 else ""), cyl)
 
 
 def random_effect(rng: np.random.Generator, cyl: Cylinder, word: str, form: str | None = None) -> Effect:
     """A random realistic effect for `word` (a random form unless `form` is given)."""
-    classes = forms_of(word) if form is None else [EFFECT_FORMS[(word, form)]]
+    classes = forms_of(word) if form is None else [c for c in forms_of(word) if c.FORM == form]
     if not classes:
-        raise ValueError(f"unknown effect word {word!r} (known: {', '.join(WORDS)}).")
+        known = ", ".join(f"{w}:{f}" for w, f in EFFECT_FORMS)
+        raise ValueError(f"unknown effect {word!r}{f' form {form!r}' if form else ''} (known: {known}).")
     return classes[rng.integers(len(classes))].random(rng, cyl)
 
 
@@ -1818,6 +1816,7 @@ def _simulate_batch(cases: list[Case], substeps: int | None, progress) -> list[R
     batch.U = np.zeros((batch.U_off + n_max + 2, n))
     Y = batch.initial_state(cases)
     programs = [None if c.commands is not None else _program(c) for c in cases]
+    is_open = np.array([p is None for p in programs])
     open_loop = np.zeros((n_max, n))
     for j, c in enumerate(cases):
         if c.commands is not None:
@@ -1848,7 +1847,7 @@ def _simulate_batch(cases: list[Case], substeps: int | None, progress) -> list[R
         p_m = batch.pa + batch.gain_p * (p_src - batch.pa) + batch.offset_p + noise[k, 1:3]
         meas[k, 0], meas[k, 1:3] = x_m, p_m
         # latch: closed loop the command computed at the previous sample, open loop the given one
-        latched = np.where(np.array([p is None for p in programs]), open_loop[k], sent)
+        latched = np.where(is_open, open_loop[k], sent)
         batch.U[batch.U_off + k + 1] = latched
         u_rows[k] = latched
         t_k = (k + 1) * batch.dt
@@ -1931,6 +1930,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=1000.0, help="sample rate in Hz (default 1000)")
     ap.add_argument("--effect", action="append", default=[], metavar="WORD:FORM[:k=v,...]",
                     help="an unmodelled effect (repeatable); see --list")
+    ap.add_argument("--random-effect", action="append", default=[], metavar="WORD[:FORM]",
+                    help="an unmodelled effect at a random realistic strength drawn with --seed (repeatable)")
+    ap.add_argument("--random-departures", action="store_true",
+                    help="random realistic calibration departures drawn with --seed (--departure overrides)")
     ap.add_argument("--departure", action="append", default=[], metavar="KEY=VALUE",
                     help="a calibration departure, e.g. conductance_pos=0.8 or "
                          "characteristic_neg=power,exponent=1.5,overlap=0.05 (repeatable)")
@@ -1952,10 +1955,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not args.config:
                 raise ValueError("--config (or --case) is required.")
             cyl = load_cylinder(args.config)
-            cal = Calibration(**dict(_parse_departure(d) for d in args.departure))
+            rng = np.random.default_rng([args.seed, 20240])  # a stream apart from the noise's
+            cal = Calibration.random(rng, cyl) if args.random_departures else Calibration()
+            cal = Calibration(**{**{f.name: getattr(cal, f.name) for f in fields(cal)},
+                                 **dict(_parse_departure(d) for d in args.departure)})
             sen = SensorDepartures(**{k: v for k, v in (_parse_departure(d) for d in args.sensor)})
+            effects = [parse_effect(e, cyl) for e in args.effect]
+            for spec in args.random_effect:
+                word, _, form = spec.partition(":")
+                effects.append(random_effect(rng, cyl, word, form or None))
             case = Case(cyl=cyl, duration=args.duration, seed=args.seed, rate=args.rate, calibration=cal,
-                        effects=tuple(parse_effect(e) for e in args.effect), sensors=sen, noise=not args.no_noise)
+                        effects=tuple(effects), sensors=sen, noise=not args.no_noise)
         if not args.output:
             raise ValueError("-o/--output is required.")
     except (ValueError, TypeError, OSError) as e:
