@@ -398,6 +398,7 @@ class Param:
     high: float
     kind: str = "strength"
     scale: str | None = None
+    positive: bool = True  # a shape that must be > 0 (strengths must be >= 0, signed ones any)
 
 
 def _reference(cyl: Cylinder, what: str | None) -> float:
@@ -456,8 +457,13 @@ class Effect:
     def check(self, cyl: Cylinder) -> None:
         """Raise ValueError for values that make no physical sense on this cylinder."""
         for k, x in self.values().items():
+            p = self.PARAMS[k]
             if not math.isfinite(x):
                 raise ValueError(f"{self.WORD}:{self.FORM}: parameter {k} must be finite, not {x}.")
+            if p.kind == "strength" and x < 0 or p.kind == "shape" and p.positive and x <= 0:
+                sign = ">=" if p.kind == "strength" else ">"
+                raise ValueError(f"{self.WORD}:{self.FORM}: parameter {k} must be {sign} 0 ({p.description}), "
+                                 f"not {x:g}.")
 
     @classmethod
     def neutral(cls) -> "Effect":
@@ -663,8 +669,8 @@ class PositionTight(Effect):
     FORM: ClassVar[str] = "tight"
     PARAMS: ClassVar[dict[str, Param]] = {
         "dF": Param("N", "extra friction inside the tight section", 0.05, 1.0, scale="seal"),
-        "x_from": Param("m", "start of the section", 0.15, 0.55, "shape", "stroke"),
-        "x_to": Param("m", "end of the section", 0.45, 0.85, "shape", "stroke"),
+        "x_from": Param("m", "start of the section", 0.15, 0.55, "shape", "stroke", positive=False),
+        "x_to": Param("m", "end of the section", 0.45, 0.85, "shape", "stroke", positive=False),
         "edge": Param("m", "width of the section's edges", 0.005, 0.05, "shape", "stroke"),
     }
     NEUTRAL: ClassVar[dict[str, float]] = {"dF": 0.0}
@@ -705,7 +711,7 @@ class PositionWave(Effect):
     PARAMS: ClassVar[dict[str, Param]] = {
         "a": Param("1", "relative amplitude of the seal friction's variation", 0.05, 0.8),
         "wavelength": Param("m", "wavelength of the profile", 0.4, 2.0, "shape", "stroke"),
-        "phase": Param("rad", "phase at x = 0", 0.0, 2 * math.pi, "shape"),
+        "phase": Param("rad", "phase at x = 0", 0.0, 2 * math.pi, "shape", positive=False),
     }
     NEUTRAL: ClassVar[dict[str, float]] = {"a": 0.0}
     HOOKS: ClassVar[tuple[str, ...]] = ("friction",)
@@ -1393,13 +1399,18 @@ class Case:
             raise ValueError(f"one form per effect word, not {words}.")
         for e in self.effects:
             e.check(self.cyl)
+        if isinstance(self.seed, np.integer):
+            object.__setattr__(self, "seed", int(self.seed))
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, not {self.seed!r}.")
+        if not (self.duration > 0 and self.rate > 0 and self.n_samples >= 1):
+            raise ValueError(f"duration and rate must give at least one sample, not {self.duration!r} s "
+                             f"at {self.rate!r} Hz.")
         if self.commands is not None:
             cmd = np.asarray(self.commands, float).ravel()
             if len(cmd) != self.n_samples or not np.all(np.isfinite(cmd)):
                 raise ValueError(f"commands: {self.n_samples} finite values needed, got {len(cmd)}.")
             object.__setattr__(self, "commands", cmd)
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
-            raise ValueError(f"seed must be an integer, not {self.seed!r}.")
 
     @property
     def n_samples(self) -> int:

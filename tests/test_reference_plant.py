@@ -401,3 +401,19 @@ def test_command_line_writes_a_run_the_project_reads(tmp_path, capsys):
     assert rp.main(["--config", str(DEFAULT_CYLINDER), "--effect", "valve_delay:nope", "-o", str(out)]) == 2
     assert "unknown effect form" in capsys.readouterr().err
     assert math.isclose(case.sensors.position_gain, 0.01)
+
+
+def test_cases_refuse_what_makes_no_physical_sense(cyl):
+    with pytest.raises(ValueError, match="one form per effect word"):
+        rp.Case(cyl, 1.0, 1, effects=(rp.StictionExp(), rp.StictionRational()))
+    with pytest.raises(ValueError, match="q_ref must be >= 0"):
+        rp.Case(cyl, 1.0, 1, effects=(rp.LeakRod(q_ref=-1e-5),))
+    with pytest.raises(ValueError, match="x_d must be > 0"):
+        rp.Case(cyl, 1.0, 1, effects=(rp.DynamicsDahl(x_d=0.0),))
+    with pytest.raises(ValueError, match="n must lie in"):
+        rp.Case(cyl, 1.0, 1, effects=(rp.HeatPolytropic(n=1.6),))
+    with pytest.raises(ValueError, match="commands"):
+        rp.Case(cyl, 1.0, 1, commands=np.zeros(10))
+    with pytest.raises(ValueError, match="non-negative integer"):
+        rp.Case(cyl, 1.0, 1.5)
+    assert rp.Case(cyl, 1.0, np.int64(3)).seed == 3
