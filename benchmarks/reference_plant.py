@@ -1373,9 +1373,9 @@ def _parse_kv(text: str) -> dict[str, float]:
 class Case:
     """One simulated run: a cylinder, the excitation and noise seed, and the truth.
 
-    commands: None for closed-loop position control (PositionProgram of the project with this
-    seed, designed from the cylinder file), or the command held after each sample (open loop,
-    one per sample). x0: start position (default mid-stroke); the piston starts at rest with
+    commands: None for a closed-loop experiment program of the project (`program`: mixed,
+    steps, ramps, sines, calibration, ...; seeded, designed from the cylinder file), or the
+    command held after each sample (open loop, one per sample). x0: start position (default mid-stroke); the piston starts at rest with
     chamber 2 at half the supply span and chamber 1 balancing it.
     """
 
@@ -1388,6 +1388,7 @@ class Case:
     sensors: SensorDepartures = field(default_factory=SensorDepartures)
     noise: bool = True
     commands: np.ndarray | None = None
+    program: str = "mixed"  # closed loop (commands None): the experiment program by its name
     x0: float | None = None  # m
     end_stiffness: float = K_END  # N/m
     end_damping: float = C_END  # N s/m
@@ -1440,7 +1441,7 @@ class Case:
             "effects": [e.to_json() for e in self.effects],
             "sensors": self.sensors.to_json(),
             "commands": None if self.commands is None else self.commands.tolist(),
-            "x0": self.x0, "end_stiffness": self.end_stiffness, "end_damping": self.end_damping,
+            "program": self.program, "x0": self.x0, "end_stiffness": self.end_stiffness, "end_damping": self.end_damping,
         }
 
     @classmethod
@@ -1451,7 +1452,8 @@ class Case:
                    noise=bool(d["noise"]), calibration=Calibration.from_json(d["calibration"]),
                    effects=tuple(_effect_from_json(e) for e in d["effects"]),
                    sensors=SensorDepartures.from_json(d["sensors"]),
-                   commands=None if cmd is None else np.asarray(cmd, float), x0=d.get("x0"),
+                   commands=None if cmd is None else np.asarray(cmd, float), program=d.get("program", "mixed"),
+                   x0=d.get("x0"),
                    end_stiffness=float(d.get("end_stiffness", K_END)), end_damping=float(d.get("end_damping", C_END)))
 
     def key(self) -> str:
@@ -1889,15 +1891,15 @@ def _bounded(u: float) -> float:
 def _program(case: Case):
     # imported here: the project's live package pulls in its own plant, which only the
     # closed-loop excitation needs (the controller itself is plain Python)
-    from combined_reality.live.programs import PositionProgram
+    from combined_reality.live.programs import make_program
 
-    return PositionProgram(case.cyl, case.duration, seed=case.seed)
+    return make_program(case.program, case.cyl, case.duration, seed=case.seed)
 
 
 def _comments(case: Case, substeps: int) -> list[str]:
     return [cylinder_tag(case.cyl),
             f"reference plant (benchmarks/reference_plant.py, revision {REVISION}): RK4, {substeps} substeps per "
-            f"sample; {'closed loop (PositionProgram)' if case.commands is None else 'open loop'}, seed {case.seed}, "
+            f"sample; {f'closed loop ({case.program})' if case.commands is None else 'open loop'}, seed {case.seed}, "
             f"noise {'on' if case.noise else 'off'}",
             "truth: " + json.dumps(case.truth(), sort_keys=True, default=str)]
 
