@@ -10,6 +10,7 @@ import pytest
 from sim.cylinder import (
     ESTIMABLE,
     FLOW_CHARACTERISTIC,
+    OPENING_GRID,
     PARAMETERS,
     ConfigError,
     Cylinder,
@@ -204,7 +205,7 @@ def test_every_parameter_is_reachable(tmp_path: Path) -> None:
     cyl = load_cylinder(write(tmp_path, EXAMPLE))
     for name, spec in PARAMETERS.items():
         inside = spec.lower + 0.3 * (spec.upper - spec.lower)  # differs from every value of the example
-        assert cyl.value(name) != inside and cyl.with_values({name: inside}).value(name) == inside
+        assert cyl.value(name) != inside and cyl.with_values({name: inside}).value(name) == pytest.approx(inside, rel=1e-12)
     assert set(ESTIMABLE) <= set(PARAMETERS)
 
 
@@ -330,11 +331,14 @@ def test_loader_refuses_what_the_identifier_bounds_exclude(name: str) -> None:
 
 # --------------------------------------------------------------------------- the valve's flow characteristic
 
-CHARACTERISTIC = """\
+EXTEND = tuple(round(1.1 * g ** 1.3, 6) for g in OPENING_GRID)  # a valve that opens progressively, 10 % strong
+RETRACT = tuple(round(0.9 * g, 6) for g in OPENING_GRID)
+CHARACTERISTIC = f"""\
 overlap_extend = 0.04
-flow_extend = [0.02, 0.1, 0.25, 0.5, 0.8, 1.1]
-flow_retract = [0.05, 0.15, 0.3, 0.5, 0.75, 0.9]
+flow_extend = {list(EXTEND)}
+flow_retract = {list(RETRACT)}
 """
+N = len(OPENING_GRID)
 
 
 def with_valve(lines: str) -> str:
@@ -345,22 +349,23 @@ def test_flow_characteristic_loads_and_round_trips(tmp_path: Path) -> None:
     cyl = load_cylinder(write(tmp_path, with_valve(CHARACTERISTIC)))
     v = cyl.valve
     assert v.overlap_extend == 0.04 and v.overlap_retract == 0.0 and not v.is_linear
-    assert v.flow_extend == (0.02, 0.1, 0.25, 0.5, 0.8, 1.1)
+    assert v.flow_extend == EXTEND
     # the plant's parameters are the rises over the grid segments; setting one moves the levels above it
-    assert cyl.value("flow_extend_2") == pytest.approx(0.08)
-    moved = cyl.with_values({"flow_extend_2": 0.18})
-    assert moved.valve.flow_extend == pytest.approx((0.02, 0.2, 0.35, 0.6, 0.9, 1.2))
+    assert cyl.value("flow_extend_2") == pytest.approx(EXTEND[1] - EXTEND[0])
+    moved = cyl.with_values({"flow_extend_2": EXTEND[1] - EXTEND[0] + 0.1})
+    assert moved.valve.flow_extend == pytest.approx(EXTEND[:1] + tuple(x + 0.1 for x in EXTEND[1:]))
     again = load_cylinder(write(tmp_path, cylinder_to_toml(cyl), name="again.toml"))
     assert again == cyl
     assert load_cylinder(write(tmp_path, EXAMPLE, name="plain.toml")).valve.is_linear
 
 
 @pytest.mark.parametrize("lines, fragment", [
-    ("flow_extend = [0.1, 0.05, 0.3, 0.5, 0.75, 1.0]\n", "'valve.flow_extend' must be non-negative and non-decreasing"),
-    ("flow_extend = [0.1, 0.3]\n", "'valve.flow_extend' must be a list of 6 numbers"),
+    (f"flow_extend = {[0.1, 0.05] + list(OPENING_GRID[2:])}\n",
+     "'valve.flow_extend' must be non-negative and non-decreasing"),
+    ("flow_extend = [0.1, 0.3]\n", f"'valve.flow_extend' must be a list of {N} numbers"),
     ("overlap_retract = 0.7\n", "'valve.overlap_retract' must lie in [0, 0.5]"),
-    ("flow_extend = [0, 0, 0, 0, 0, 0]\n", "'valve.flow_extend' must end (full opening) between 0 and 5"),
-    ("flow_retract = 1.0\n", "'valve.flow_retract' must be a list of 6 numbers"),
+    (f"flow_extend = {[0] * N}\n", "'valve.flow_extend' must end (full opening) between 0 and 5"),
+    ("flow_retract = 1.0\n", f"'valve.flow_retract' must be a list of {N} numbers"),
 ])
 def test_flow_characteristic_refusals(tmp_path: Path, lines: str, fragment: str) -> None:
     refused(tmp_path, with_valve(lines), fragment)

@@ -105,7 +105,9 @@ def unit_flows(cyl: Cylinder, p_from, p_to, critical_ratio: float) -> np.ndarray
 
 
 def opening_basis(a: np.ndarray, overlap: float) -> np.ndarray:
-    """The flow characteristic's value at |u| = a as a linear function of its rises: (n, grid)."""
+    """The flow characteristic's value at |u| = a as a linear function of its rises, (n, grid):
+    straight between the grid points (the plant's monotone cubic is not linear in the rises;
+    for a start, the straight segments through the same levels serve)."""
     s = np.maximum(a - overlap, 0.0) / (1.0 - overlap)
     lo = np.r_[0.0, OPENING_GRID[:-1]]
     hi = np.asarray(OPENING_GRID)
