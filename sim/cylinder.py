@@ -1,4 +1,4 @@
-"""A cylinder as typed, frozen, SI parameters, loaded from the FORMATS.md TOML layout.
+"""A cylinder as typed, frozen, SI parameters, loaded from the docs/formats.md TOML layout.
 
 Units are SI everywhere inside; the only conversion at this edge is the mounting
 angle, which the file gives in degrees and the model uses in radians.
@@ -268,7 +268,7 @@ def _check_physics(v: dict[str, dict[str, Any]], fail) -> None:
 
 
 def cylinder_to_toml(cyl: Cylinder) -> str:
-    """The cylinder in the FORMATS.md layout (round-trips through load_cylinder)."""
+    """The cylinder in the docs/formats.md layout (round-trips through load_cylinder)."""
     lines = [f"name = {_toml_str(cyl.name)}", ""]
     for section in ("geometry", "mechanics", "supply", "valve", "friction", "sensors"):
         obj = getattr(cyl, section)

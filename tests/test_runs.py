@@ -1,4 +1,4 @@
-"""combined_reality/runs.py: the recorded-run CSV of FORMATS.md."""
+"""combined_reality/runs.py: the recorded-run CSV of docs/formats.md."""
 from __future__ import annotations
 
 import os

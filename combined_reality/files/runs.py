@@ -1,4 +1,4 @@
-"""Recorded runs: the CSV layout of FORMATS.md ("A recorded run: CSV").
+"""Recorded runs: the CSV layout of docs/formats.md ("A recorded run: CSV").
 
 A run is the sampled time series ``t, u, x, p1, p2`` (s, 1, m, Pa absolute), an optional
 measured supply pressure ``ps`` and any further columns, which are kept so that a rewrite
@@ -127,7 +127,7 @@ def _as_column(value: object, name: str) -> np.ndarray:
 
 
 def read_run(path: str | os.PathLike[str]) -> Run:
-    """Load a run CSV, refusing anything FORMATS.md does not allow with a RunFormatError."""
+    """Load a run CSV, refusing anything docs/formats.md does not allow with a RunFormatError."""
     path = Path(path)
     lines = _read_lines(path)
 
@@ -165,7 +165,7 @@ def read_run(path: str | os.PathLike[str]) -> Run:
 
     columns = _parse_cells(rows, linenos, names, header_line, fail)
 
-    # Extra columns are not checked: FORMATS.md says they are ignored (but kept).
+    # Extra columns are not checked: docs/formats.md says they are ignored (but kept).
     standard = [c for c in REQUIRED_COLUMNS + ("ps",) if c in columns]
     for name in standard:
         bad = np.flatnonzero(~np.isfinite(columns[name]))
@@ -296,7 +296,7 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
             except ValueError:
                 if name in REQUIRED_COLUMNS or name == "ps":
                     raise fail(f"{s.strip()!r} is not a number.", linenos[i], name) from None
-                # FORMATS.md: further columns are ignored, so text there is kept, not refused.
+                # docs/formats.md: further columns are ignored, so text there is kept, not refused.
                 columns[name] = np.array(col, dtype=str)
                 break
         else:
