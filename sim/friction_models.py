@@ -50,9 +50,8 @@ import numpy as np
 from .effects import EFFECTS, parse_effect_spec
 from .extension import Effect, ParamInfo, make_from, parse_spec
 
-__all__ = ["FrictionModel", "CV", "Karnopp", "Threlfall", "CVS", "LuGre", "CVLoad", "CVSLoad", "Belforte", "CVPressure",
-           "Efficiency",
-           "FRICTION_MODELS", "DIRECTIONS", "make_friction_model", "parse_friction_spec",
+__all__ = ["FrictionModel", "CV", "Karnopp", "Threlfall", "CVS", "LuGre", "CVLoad", "CVSLoad", "Belforte",
+           "CVPressure", "Efficiency", "FRICTION_MODELS", "DIRECTIONS", "make_friction_model", "parse_friction_spec",
            "parameter_unit", "without_nominal_friction"]
 
 # direction name -> parameter suffix, sign of v

@@ -33,8 +33,8 @@ from sim.extension import check_combination
 from sim.friction_models import FrictionModel, parse_truth_spec
 
 from ..diagnose import DiagnoseOptions, diagnose
-from ..files import (RunFormatError, atomic_write, check_run_against_cylinder, cylinder_tag, read_run, recorded_elsewhere,
-                     write_run)
+from ..files import (RunFormatError, atomic_write, check_run_against_cylinder, cylinder_tag, read_run,
+                     recorded_elsewhere, write_run)
 from ..friction import identify_model, model_parameters
 from ..identify import IdentificationError, IdentifyOptions, velocity_estimate
 from ..live import simulate_run

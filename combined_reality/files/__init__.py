@@ -11,4 +11,5 @@ from .runs import (REQUIRED_COLUMNS, Run, RunFormatError, RunRecorder, cylinder_
 
 __all__ = ["atomic_write", "clean_json", "write_json_atomic", "write_text_atomic", "check_run_against_cylinder",
            "check_train_and_valid", "first_implausible", "time_unit_problem", "REQUIRED_COLUMNS", "Run",
-           "RunFormatError", "RunRecorder", "cylinder_identity", "cylinder_tag", "read_run", "recorded_cylinder", "recorded_elsewhere", "split_at_gaps", "write_run"]
+           "RunFormatError", "RunRecorder", "cylinder_identity", "cylinder_tag", "read_run", "recorded_cylinder",
+           "recorded_elsewhere", "split_at_gaps", "write_run"]

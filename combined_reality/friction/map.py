@@ -944,20 +944,24 @@ def _assess(fit: ModelFit, points: Sequence[MapPoint]) -> ModelFit:
     it leaves the range of the points' forces (by more than half their spread), or its static
     level lies below its Coulomb level."""
     problems = list(fit.problems)
+    slide = [p for p in points if not p.breakaway]
     curve = _fit_curve(fit, points)
-    if curve is not None:
-        vv, FF = curve
+    if curve is not None and slide:
         s = DIRECTIONS[fit.direction][1]
-        mag = s * FF
+        if FIT_SPECS[fit.model].needs():  # a curve of the points' pressures or loads: the model at the points
+            mag = s * _predicted(fit, slide)
+        else:
+            vv, FF = curve
+            speeds = np.abs([p.v for p in slide])
+            inside = (np.abs(vv) >= speeds.min()) & (np.abs(vv) <= speeds.max())  # where there are points
+            mag = s * FF[inside] if inside.any() else s * FF
         forces = np.abs([p.F for p in points])
         spread = max(float(np.ptp(forces)), 0.1 * float(np.mean(forces)))
         low, high = float(forces.min()) - _RANGE_MARGIN * spread, float(forces.max()) + _RANGE_MARGIN * spread
-        speeds = np.abs([p.v for p in points if not p.breakaway])
-        inside = (np.abs(vv) >= speeds.min()) & (np.abs(vv) <= speeds.max())  # where there are points
-        mag = mag[inside] if inside.any() else mag
         if np.any(~np.isfinite(mag)) or mag.min() < low or mag.max() > high:
             problems.append(f"the fitted curve leaves the data's range ({float(np.nanmin(mag)):.3g} to "
-                            f"{float(np.nanmax(mag)):.3g} N against points of {forces.min():.3g} to {forces.max():.3g} N)")
+                            f"{float(np.nanmax(mag)):.3g} N against points of {forces.min():.3g} to "
+                            f"{forces.max():.3g} N)")
     Fs, Fc = fit.params.get("Fs"), fit.params.get("Fc")
     if Fs is not None and Fc is not None and Fs < Fc * (1 - 1e-3):
         problems.append(f"the static level Fs = {Fs:.3g} N lies below the Coulomb level Fc = {Fc:.3g} N")
@@ -1028,25 +1032,27 @@ def plot_map(fmap: FrictionMap, path: str | os.PathLike[str], title: str = "") -
                        label="stick band" if direction == "extension" else None)
         for name, fit in d.fits.items():
             i = list(FIT_SPECS).index(name)  # one colour (and style) per model in both directions
-            style = {"color": colours[i % len(colours)], "label": name if direction == "extension" else None}
+            # the best bold, fits that may not be preferred (parameters not determined, an unsound curve) faint
+            style = {"color": colours[i % len(colours)], "label": name if direction == "extension" else None,
+                     "alpha": 1.0 if fit.preferable else 0.35, "lw": 2.5 if name == d.best else 1.2}
             if FIT_SPECS[name].needs():
                 # the curve depends on the points' pressures or loads: the model at each point, not one line
                 pts = [p for p in d.points if not p.breakaway]
                 at = _predicted(fit, pts)
-                ax.plot([p.v * 1e3 for p in pts], at, "x" if i < len(colours) else "+", ms=6, **style)
+                ax.plot([p.v * 1e3 for p in pts], at, "x" if i < len(colours) else "+", ms=6, ls="none", **style)
                 continue
             curve = _fit_curve(fit, d.points)
             if curve is None:
                 continue
             vv, FF = curve
-            ax.plot(vv * 1e3, FF, "-" if i < len(colours) else "--", **style)
+            ax.plot(vv * 1e3, FF, ls="-" if i < len(colours) else "--", **style)
     lo, hi = min(F_all), max(F_all)
     ax.set_ylim(lo - 0.15 * (hi - lo), hi + 0.15 * (hi - lo))
     ax.axhline(0, color="0.5", lw=0.5)
     ax.axvline(0, color="0.5", lw=0.5)
     ax.set_xlabel("velocity v [mm/s]")
     ax.set_ylabel("friction F [N]")
-    ax.set_title(title or "static friction map")
+    ax.set_title((title or "static friction map") + "\nbold: the best fit; faint: fits not to be preferred")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -139,7 +139,9 @@ def _check(path: Path, mapping: ImportMapping, raw: RawTable, columns: dict[str,
                            f" {odd.reason}; check {fix} of columns.{odd.column} in {where}.".replace(" )", ")"))
     why = time_unit_problem(t)
     if why is not None:
-        raise MappingError(f"{path}, {raw.locate(t.size - 1)}, column '{mapping.channel('t').source}': {why}; check "
-                           f"the unit of columns.t in {where} (\"ms\" for milliseconds).")
+        tch = mapping.channel("t")
+        what = f"column '{tch.source}'" if tch.source is not None else f"the time track of '{tch.time_of}'"
+        raise MappingError(f"{path}, {raw.locate(t.size - 1)}, {what}: {why}; check the unit of columns.t in {where} "
+                           f"(\"ms\" for milliseconds).")
     if not math.isfinite(float(t[-1] - t[0])):
         raise MappingError(f"{path}: the time column is not finite.")

@@ -61,7 +61,8 @@ def align_signals(mapping: ImportMapping, signals: Mapping[str, Signal], time_tr
             left = np.clip(idx - 1, 0, None)
             closer = np.abs(tt - times[left]) <= np.abs(times[np.minimum(idx, times.size - 1)] - tt)
             pick = np.where(closer, left, np.minimum(idx, times.size - 1))
-            keep &= tt >= times[0] - _half_period(times)
+            half = _half_period(times)
+            keep &= (tt >= times[0] - half) & (tt <= times[-1] + half)
             out[name] = vals[pick]
         else:
             keep &= (tt >= times[0]) & (tt <= times[-1])
