@@ -109,7 +109,8 @@ def test_the_example_mapping_needs_no_delimiter_or_decimal_when_they_can_be_foun
 
 def si_mapping(names=("t", "u", "x", "p1", "p2"), extra_source="", **units) -> str:
     units = {"t": "s", "u": "1", "x": "m", "p1": "Pa", "p2": "Pa", **units}
-    rows = "\n".join(f'{n} = {{ from = "{names[i]}", unit = "{units[n]}" }}' for i, n in enumerate("t u x p1 p2".split()))
+    rows = "\n".join(f'{n} = {{ from = "{src}", unit = "{units[n]}" }}'
+                     for n, src in zip(("t", "u", "x", "p1", "p2"), names))
     return f"[source]\n{extra_source}[columns]\n{rows}\n"
 
 
@@ -282,4 +283,4 @@ def test_missing_optional_reader_names_the_extra(tmp_path, capsys, monkeypatch):
 def test_identify_refuses_the_raw_lab_file_and_points_to_import(tmp_path, capsys, short_run):
     raw = write_lab_csv(tmp_path / "messung.csv", short_run, preamble="", encoding="utf-8")
     code, _, err = call(["identify", "--config", CONFIGS / "cyl_a_32x100.toml", raw], capsys)
-    assert code == 2 and "messung.csv" in err
+    assert_refused(code, err, "messung.csv, line 1", "missing required columns", "'combined-reality import'")

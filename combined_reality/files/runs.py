@@ -250,7 +250,8 @@ def _header(line: str, lineno: int, fail: _Fail) -> list[str]:
         what = "column" if len(missing) == 1 else "columns"
         found = ", ".join(repr(n) for n in names)
         raise fail(f"missing required {what} {', '.join(repr(c) for c in missing)} "
-                   f"(the header has {found}).", lineno)
+                   f"(the header has {found}); a recording with other columns or units converts with "
+                   "'combined-reality import'.", lineno)
     return names
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .mapping import ImportMapping, MappingError
-from .raw import RawTable, Signal, align_signals
+from .raw import RawTable, Signal, align_signals, require_file
 
 __all__ = ["read_can_log"]
 
@@ -30,8 +30,7 @@ def read_can_log(path: Path, mapping: ImportMapping) -> RawTable:
     except Exception as e:  # cantools raises its own parse errors, UnsupportedDatabaseFormatError ...
         raise MappingError(f"{mapping.path}: key 'source.dbc': {dbc_path} is not a readable DBC "
                            f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}).") from None
-    if not path.is_file():
-        raise MappingError(f"{path}: file not found." if not path.exists() else f"{path}: not a file.")
+    require_file(path)
 
     def resolve(name: str) -> tuple[str, str | None]:
         msg_name, dot, sig_name = name.partition(".")

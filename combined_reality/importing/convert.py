@@ -4,7 +4,6 @@ sample), report the sampling and, on request, resample."""
 from __future__ import annotations
 
 import hashlib
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -78,8 +77,6 @@ def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate
     for ch in mapping.channels:
         try:
             values, line = convert_channel(ch, raw.columns[ch.name], mapping.atmosphere)
-        except MappingError:
-            raise
         except Exception as e:  # pint refuses e.g. arithmetic on offset units
             raise MappingError(f"{mapping.path}: key '{ch.key}': cannot convert {ch.unit!r} ({e}).") from None
         columns[ch.name] = values
@@ -143,5 +140,3 @@ def _check(path: Path, mapping: ImportMapping, raw: RawTable, columns: dict[str,
         what = f"column '{tch.source}'" if tch.source is not None else f"the time track of '{tch.time_of}'"
         raise MappingError(f"{path}, {raw.locate(t.size - 1)}, {what}: {why}; check the unit of columns.t in {where} "
                            f"(\"ms\" for milliseconds).")
-    if not math.isfinite(float(t[-1] - t[0])):
-        raise MappingError(f"{path}: the time column is not finite.")

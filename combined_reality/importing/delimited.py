@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .mapping import ImportMapping, MappingError
-from .raw import RawTable
+from .raw import RawTable, require_column_time
 
 __all__ = ["read_delimited", "DELIMITERS"]
 
@@ -22,9 +22,7 @@ _COMMA_DECIMAL = re.compile(r"^\s*[-+]?\d*,\d+([eE][-+]?\d+)?\s*$")
 
 def read_delimited(path: Path, mapping: ImportMapping) -> RawTable:
     opts = mapping.source
-    if mapping.channel("t").time_of is not None:
-        raise MappingError(f"{mapping.path}: key 'columns.t.time_of' is for recordings with time tracks (TDMS, MDF, "
-                           f"CAN logs); name the time column with from = \"...\".")
+    require_column_time(mapping, "column")
     lines, encoding = _lines(path, opts.encoding)
     wanted = mapping.source_names()
     header_index, delimiter = _find_header(path, lines, wanted, opts.header_line, opts.delimiter)
@@ -121,9 +119,9 @@ def _find_header(path: Path, lines: list[str], wanted: list[str], header_line: i
                 best = (found, i, d)
     if best is None:
         where = f"line {header_line}" if header_line is not None else f"the first {len(indices)} lines"
+        tried = "" if delimiter else f" with any delimiter of {' '.join(map(repr, DELIMITERS))}"
         raise MappingError(f"{path}: no line names the mapped columns ({', '.join(repr(n) for n in wanted)}) in "
-                           f"{where}" + ("" if delimiter else f" with any delimiter of {' '.join(map(repr, DELIMITERS))}")
-                           + "; check [columns] ... from = against the file's header.")
+                           f"{where}{tried}; check [columns] ... from = against the file's header.")
     _, i, d = best
     cells = _split(lines[i], d)
     missing = [n for n in wanted if n not in cells]

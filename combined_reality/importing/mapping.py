@@ -45,11 +45,11 @@ class MappingError(ValueError):
 
 # file suffix -> format
 SOURCE_FORMATS: dict[str, tuple[str, ...]] = {
-    "csv": (".csv", ".txt", ".dat", ".tsv", ".asc_table"),
+    "csv": (".csv", ".txt", ".dat", ".tsv"),
     "parquet": (".parquet", ".pq"),
     "mat": (".mat",),
     "tdms": (".tdms",),
-    "mdf": (".mf4", ".mdf", ".dat_mdf"),
+    "mdf": (".mf4", ".mdf"),
     "can": (".asc", ".blf", ".log", ".trc"),
 }
 _SOURCE_KEYS = {"format", "delimiter", "decimal", "encoding", "header_line", "skip_after_header", "dbc"}

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .mapping import ImportMapping, MappingError
-from .raw import RawTable, optional_reader
+from .raw import RawTable, optional_reader, require_column_time, require_file, require_finite
 
 __all__ = ["read_mat"]
 
@@ -18,11 +18,8 @@ _COLUMN = re.compile(r"^(?P<var>[^()]+)\(\s*:\s*,\s*(?P<col>\d+)\s*\)$")
 
 
 def read_mat(path: Path, mapping: ImportMapping) -> RawTable:
-    if mapping.channel("t").time_of is not None:
-        raise MappingError(f"{mapping.path}: key 'columns.t.time_of' is for recordings with time tracks (TDMS, MDF, "
-                           f"CAN logs); name the time variable with from = \"...\".")
-    if not path.is_file():
-        raise MappingError(f"{path}: file not found." if not path.exists() else f"{path}: not a file.")
+    require_column_time(mapping, "variable")
+    require_file(path)
     lookup, version = _open(path)
     by_source = {name: _channel(path, lookup, name) for name in mapping.source_names()}
     lengths = {n: v.size for n, v in by_source.items()}
@@ -32,13 +29,13 @@ def read_mat(path: Path, mapping: ImportMapping) -> RawTable:
     n = next(iter(lengths.values()))
     if n < 2:
         raise MappingError(f"{path}: {n} sample(s); a run needs at least 2.")
-    for name, v in by_source.items():
-        bad = np.flatnonzero(~np.isfinite(v))
-        if bad.size:
-            raise MappingError(f"{path}, variable '{name}', element {int(bad[0]) + 1}: {v[bad[0]]} is not a finite "
-                               f"number.")
-    return RawTable(columns={ch.name: by_source[ch.source] for ch in mapping.channels},
-                    locate=lambda i: f"sample {i + 1}", describe=f"MATLAB {version} file, {n} samples")
+    columns = {ch.name: by_source[ch.source] for ch in mapping.channels}
+    require_finite(path, columns, _sample)
+    return RawTable(columns=columns, locate=_sample, describe=f"MATLAB {version} file, {n} samples")
+
+
+def _sample(i: int) -> str:
+    return f"sample {i + 1}"
 
 
 def _open(path: Path):

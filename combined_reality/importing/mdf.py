@@ -9,15 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from .mapping import ImportMapping, MappingError
-from .raw import RawTable, Signal, align_signals, optional_reader
+from .raw import RawTable, Signal, align_signals, optional_reader, require_file, require_finite
 
 __all__ = ["read_mdf"]
 
 
 def read_mdf(path: Path, mapping: ImportMapping) -> RawTable:
     asammdf = optional_reader("asammdf", "mdf", "MDF files")
-    if not path.is_file():
-        raise MappingError(f"{path}: file not found." if not path.exists() else f"{path}: not a file.")
+    require_file(path)
     try:
         mdf = asammdf.MDF(path)
     except Exception as e:  # asammdf raises MdfException, ValueError, struct.error ... on a damaged file
@@ -41,14 +40,11 @@ def read_mdf(path: Path, mapping: ImportMapping) -> RawTable:
     aligned, kept, note = align_signals(mapping, signals, base.times)
     t_values = base.times if t.time_of is not None else base.values
     columns = {"t": t_values[kept], **aligned}
-    for name, v in columns.items():
-        bad = np.flatnonzero(~np.isfinite(v))
-        if bad.size:
-            raise MappingError(f"{path}, channel for {name}, sample {int(bad[0]) + 1}: {v[bad[0]]} is not a finite "
-                               f"number.")
+    locate = (lambda i: f"sample {int(kept[i]) + 1}")  # noqa: E731
+    require_finite(path, columns, locate)
     if columns["t"].size < 2:
         raise MappingError(f"{path}: {columns['t'].size} sample(s) where every channel was recorded; a run needs at "
                            f"least 2.")
-    return RawTable(columns=columns, locate=lambda i: f"sample {int(kept[i]) + 1}",
+    return RawTable(columns=columns, locate=locate,
                     describe=f"MDF, {columns['t'].size} samples on the time base of the time channel",
                     notes=(note,) if note else ())

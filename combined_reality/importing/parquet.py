@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from .mapping import ImportMapping, MappingError
-from .raw import RawTable
+from .raw import RawTable, require_column_time
 
 __all__ = ["read_parquet"]
 
@@ -15,9 +15,7 @@ def read_parquet(path: Path, mapping: ImportMapping) -> RawTable:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    if mapping.channel("t").time_of is not None:
-        raise MappingError(f"{mapping.path}: key 'columns.t.time_of' is for recordings with time tracks (TDMS, MDF, "
-                           f"CAN logs); name the time column with from = \"...\".")
+    require_column_time(mapping, "column")
     try:
         schema = pq.read_schema(path)
     except FileNotFoundError:
@@ -28,8 +26,9 @@ def read_parquet(path: Path, mapping: ImportMapping) -> RawTable:
     wanted = mapping.source_names()
     missing = [n for n in wanted if n not in schema.names]
     if missing:
+        more = " ..." if len(schema.names) > 12 else ""
         raise MappingError(f"{path}: no column {', '.join(repr(n) for n in missing)} (the table has "
-                           f"{', '.join(repr(n) for n in schema.names[:12])}{' ...' if len(schema.names) > 12 else ''}).")
+                           f"{', '.join(repr(n) for n in schema.names[:12])}{more}).")
     try:
         table = pq.read_table(path, columns=wanted)
     except (OSError, pa.ArrowException) as e:

@@ -4,13 +4,15 @@ channel."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Mapping
 
 import numpy as np
 
 from .mapping import ImportMapping, MappingError
 
-__all__ = ["RawTable", "Signal", "align_signals", "optional_reader"]
+__all__ = ["RawTable", "Signal", "align_signals", "optional_reader", "require_file", "require_column_time",
+           "require_finite"]
 
 
 @dataclass(frozen=True)
@@ -88,3 +90,25 @@ def optional_reader(module: str, extra: str, what: str):
     except ImportError:
         raise MappingError(f"reading {what} needs the package '{module.split('.')[0]}', which is not installed: "
                            f"pip install 'combined-reality[{extra}]'.") from None
+
+
+def require_file(path: Path) -> None:
+    """A recording that is not there (or a folder) in one sentence."""
+    if not path.is_file():
+        raise MappingError(f"{path}: file not found." if not path.exists() else f"{path}: not a file.")
+
+
+def require_column_time(mapping: ImportMapping, what: str) -> None:
+    """Formats without time tracks need the time as a column (from = ...), not time_of."""
+    if mapping.channel("t").time_of is not None:
+        raise MappingError(f"{mapping.path}: key 'columns.t.time_of' is for recordings with time tracks (TDMS, MDF, "
+                           f"CAN logs); name the time {what} with from = \"...\".")
+
+
+def require_finite(path: Path, columns: dict[str, np.ndarray], locate: Callable[[int], str]) -> None:
+    """Every mapped value a finite number, else the first that is not, located."""
+    for name, values in columns.items():
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raise MappingError(f"{path}, {locate(int(bad[0]))}, channel for {name}: {values[bad[0]]} is not a "
+                               f"finite number.")

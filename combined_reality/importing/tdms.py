@@ -9,15 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from .mapping import ImportMapping, MappingError
-from .raw import RawTable, Signal, align_signals, optional_reader
+from .raw import RawTable, Signal, align_signals, optional_reader, require_file, require_finite
 
 __all__ = ["read_tdms"]
 
 
 def read_tdms(path: Path, mapping: ImportMapping) -> RawTable:
     nptdms = optional_reader("nptdms", "tdms", "TDMS files")
-    if not path.is_file():
-        raise MappingError(f"{path}: file not found." if not path.exists() else f"{path}: not a file.")
+    require_file(path)
     try:
         f = nptdms.TdmsFile.read(path)
     except Exception as e:  # npTDMS raises ValueError, KeyError, struct.error ... on a damaged file
@@ -61,11 +60,8 @@ def read_tdms(path: Path, mapping: ImportMapping) -> RawTable:
         raw = {"t": raw["t"][kept], **aligned}
         describe += ", channels of other rates aligned on the time tracks"
         notes = (note,) if note else ()
-    for name, v in raw.items():
-        bad = np.flatnonzero(~np.isfinite(v))
-        if bad.size:
-            raise MappingError(f"{path}, channel for {name}, sample {int(bad[0]) + 1}: {v[bad[0]]} is not a finite "
-                               f"number.")
+    locate = (lambda i: f"sample {i + 1}")  # noqa: E731
+    require_finite(path, raw, locate)
     if raw["t"].size < 2:
         raise MappingError(f"{path}: {raw['t'].size} sample(s); a run needs at least 2.")
-    return RawTable(columns=raw, locate=lambda i: f"sample {i + 1}", describe=describe, notes=notes)
+    return RawTable(columns=raw, locate=locate, describe=describe, notes=notes)

@@ -52,10 +52,9 @@ def check_unit(unit: str, scale: str | None, dimension: str | None, has_span: bo
     """Refuse a unit (times the scale) that cannot measure what the channel holds."""
     q = _units(unit)
     if scale is not None:
+        s = _quantity(scale)
         try:
-            q = q * _quantity(scale)
-        except UnitProblem:
-            raise
+            q = q * s
         except Exception as e:  # offset units (degC) cannot be multiplied
             raise UnitProblem(f"the unit '{unit}' cannot be scaled by '{scale}' ({_first_line(e)}).") from None
     if dimension is None or has_span:
