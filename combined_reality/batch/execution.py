@@ -38,7 +38,7 @@ from ..files import (RunFormatError, atomic_write, check_run_against_cylinder, c
 from ..friction import identify_model, model_parameters
 from ..identify import IdentificationError, IdentifyOptions, velocity_estimate
 from ..live import simulate_run
-from .manifest import CylinderJob, file_stem
+from .manifest import CylinderJob
 from .report import write_batch_report
 
 __all__ = ["run_job", "run_batch", "BatchSummary", "columns", "write_results", "read_results_csv", "RUNS_DIR",
@@ -74,7 +74,7 @@ def _load_inputs(job: CylinderJob):
                  else {f"truth_{k}": cyl.value(k) for k in ("Fc", "Fv", "kp")})
         for k in range(s.runs):
             # the task returns the run; the client writes it under --out (a worker's folder is not the user's)
-            name = f"{RUNS_DIR}/{job.file_stem or file_stem(job.name)}_{k + 1}.csv"
+            name = f"{RUNS_DIR}/{job.stem}_{k + 1}.csv"
             run = replace(simulate_run(cyl, s.duration, s.seed + k, s.rate, effects, noise=s.noise), source=Path(name),
                           comments=(cylinder_tag(cyl), f"combined-reality batch: virtual rig, seed {s.seed + k}; "
                                                        f"truth: {'; '.join(s.effects) or 'the cylinder file'}"))
@@ -294,7 +294,7 @@ class _Cache:
         self.dir.mkdir(parents=True, exist_ok=True)
 
     def _path(self, job: CylinderJob, key: str) -> Path:
-        return self.dir / f"{job.file_stem or file_stem(job.name)}.{key}.json"
+        return self.dir / f"{job.stem}.{key}.json"
 
     def get(self, job: CylinderJob, key: str) -> dict | None:
         try:
@@ -304,7 +304,7 @@ class _Cache:
         return row if row.get("status") == "ok" else None
 
     def put(self, job: CylinderJob, key: str, row: dict) -> None:
-        for old in self.dir.glob(f"{job.file_stem or file_stem(job.name)}.*.json"):
+        for old in self.dir.glob(f"{job.stem}.*.json"):
             old.unlink(missing_ok=True)
         atomic_write(self._path(job, key), json.dumps({k: _json_value(v) for k, v in row.items()}).encode())
 

@@ -53,6 +53,11 @@ class CylinderJob:
     # names differ only in characters a file name cannot hold or in case
     file_stem: str = ""
 
+    @property
+    def stem(self) -> str:
+        """The name in file names (the manifest's unique one, else the name made safe)."""
+        return self.file_stem or file_stem(self.name)
+
     def content_hash(self) -> str:
         """Everything the row depends on; a missing file hashes as missing (and fails)."""
         h = hashlib.sha256()
