@@ -93,7 +93,7 @@ def test_a_run_without_motion_is_refused_not_converged(tmp_path, capsys):
                 p1=np.full(n, 3e5), p2=np.full(n, 3e5))
     path = tmp_path / "still.csv"
     write_run(path, still)
-    code, err = call(["identify", "--config", CFG, path, "--json", tmp_path / "o.json", "-q"], capsys)
+    code, err = call(["identify", "--config", CFG, path, "--json", tmp_path / "o.json"], capsys)  # progress on
     assert_refused(code, err, "still.csv: this run cannot determine Fc, Fv, kp: the piston does not move")
     assert not (tmp_path / "o.json").exists()
 

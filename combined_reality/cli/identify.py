@@ -76,7 +76,7 @@ def not_determined(result) -> list[str]:
 
 def run(args) -> int:
     from ..files import check_run_against_cylinder, clean_json, read_run, write_json_atomic, write_text_atomic
-    from ..identify import IdentificationError, IdentifyOptions, identify
+    from ..identify import IdentificationError, IdentifyOptions, check_determinable, identify
 
     cyl = load_config(args.config)
     runs = [read_run(p) for p in args.runs]
@@ -98,6 +98,7 @@ def run(args) -> int:
         raise UsageError(f"--interval must be positive, not {args.interval}.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
                            prefit=not args.no_prefit)
+    check_determinable(cyl, runs, estimate)  # before any progress line: a refusal is the only line on stderr
     prog = progress_printer(args.quiet)
     if prog:
         prog(f"identifying {', '.join(estimate)} from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
