@@ -53,6 +53,7 @@ _DIRS = tuple((d, sfx, sign) for d, (sfx, sign) in DIRECTIONS.items())  # (direc
 _TABLE3 = (("Fs", "F<sub>s</sub> static", "N", 1.0), ("Fc", "F<sub>c</sub> Coulomb", "N", 1.0),
            ("B", "B viscous", "N s/m", 1.0), ("vs", "v<sub>s</sub> Stribeck", "mm/s", 1e3))
 _NOMINAL_AS = {"Fc": "Fc", "B": "Fv"}  # Table 3 quantity -> nominal parameter (one value, both directions)
+_ALIASES = {"B": ("Fv",)}  # Table 3 quantity -> its other names in the family
 _C_EXT, _C_RET = "#1f77b4", "#e8590c"
 _RULE_TEXT = f"{RULE_OF_THUMB[0]:.2f}–{RULE_OF_THUMB[1]:.2f}"
 _TOL_TEXT = f"{100 * REL_TOL:g} %"
@@ -284,8 +285,11 @@ def _table3_param(c: _Cyl, q: str, sfx: str) -> str | None:
     """The model's parameter for Table 3 quantity q in direction sfx, or None (no such)."""
     if c.family == "nominal":
         return _NOMINAL_AS.get(q)
-    n = f"{q}_{sfx}"
-    return n if n in c.names else None
+    for name in (q, *_ALIASES.get(q, ())):  # cv_dp writes the viscous coefficient as Fv, as the nominal law
+        n = f"{name}_{sfx}"
+        if n in c.names:
+            return n
+    return None
 
 
 def _param_text(c: _Cyl, p: str, k: float = 1.0) -> str:
