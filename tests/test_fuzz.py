@@ -194,3 +194,10 @@ def test_crashes_found_by_hand_are_located_in_a_batch_row(tmp_path, capsys, what
     assert ("quoted.csv, line 3" if what == "unclosed quote" else f"latin1.toml, line {NAME_LINE}: not UTF-8") \
         in row["error"]
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["failed"] == 1
+
+
+def test_a_manifest_that_is_not_utf8_is_located(tmp_path, capsys):
+    m = tmp_path / "fleet.toml"
+    m.write_bytes('[[cylinder]]\nname = "Zylinder für Presse 3"\nconfig = "c.toml"\nruns = ["r.csv"]\n'.encode("latin-1"))
+    code, err = _call(["batch", m, "--out", tmp_path / "out", "-q"], capsys)
+    _one_located_sentence(code, err, "fleet.toml, line 2: not UTF-8")

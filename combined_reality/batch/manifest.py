@@ -116,11 +116,13 @@ def load_manifest(path: str | os.PathLike[str], diagnose: bool = False) -> list[
     files that are missing or bad fail their own row later, not the batch."""
     path = Path(path)
     try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = path.read_bytes()
+        doc = tomllib.loads(data.decode("utf-8-sig"))
     except OSError as e:
         raise ManifestError(f"cannot read the manifest {path}: {e.strerror or e}") from None
     except UnicodeDecodeError as e:
-        raise ManifestError(f"{path}: not UTF-8 text at byte {e.start} (a manifest is TOML, which is UTF-8).") from None
+        line = data.count(b"\n", 0, e.start) + 1
+        raise ManifestError(f"{path}, line {line}: not UTF-8 text (a manifest is TOML, which is UTF-8).") from None
     except tomllib.TOMLDecodeError as e:
         raise ManifestError(f"{path} is not valid TOML: {e}") from None
     unknown = set(doc) - {"cylinder", "model", "simulate"}
