@@ -365,6 +365,7 @@ FIT_SPECS: dict[str, FitSpec] = {s.name: s for s in (
 _FS_FROM_BREAKAWAY_ROWS = frozenset({"cvs", "lugre"})
 _CONDITION_HELP = {"dp": "dp (|p1 - p2|, Pa)", "pc": "pc (counter pressure, Pa gauge)", "load": "load (N)"}
 _STRONG_CORRELATION = 0.999
+_REACH = 0.05  # a static force of which less reaches any point is extrapolated, not measured
 
 
 @dataclass(frozen=True)
@@ -575,7 +576,7 @@ def _flags(cls, free, values, std, ci, lower, upper, corr, v, J_full, suffix) ->
             flags.append({"param": n, "reason": f"the standard deviation {s:.3g} exceeds the value {x:.3g}"})
         # how much of the parameter reaches the points at all (e.g. Fs behind a tiny Stribeck velocity)
         col = J_full[:, cls.param_index(f"{n}_{suffix}")]
-        if n in ("Fs", "mu_s") and float(np.max(np.abs(col))) < 0.05:
+        if n in ("Fs", "mu_s") and float(np.max(np.abs(col))) < _REACH:
             flags.append({"param": n, "reason": f"at most {100 * float(np.max(np.abs(col))):.2g} % of {n} reaches "
                                                  f"the points: it is extrapolated below the slowest speed"})
     if corr is not None:
@@ -591,7 +592,7 @@ def _flags(cls, free, values, std, ci, lower, upper, corr, v, J_full, suffix) ->
 _DETERMINED_SHARE = 0.5
 
 
-def _not_determined(cls, free, values, std, lower, upper, flags, J_full, suffix, F) -> set[str]:
+def _not_determined(cls, free, values, std, lower, upper, corr, J_full, suffix, F) -> set[str]:
     """Free parameters the points do not pin down: no finite standard deviation, stuck at a
     bound other than zero (the fit wanted beyond), inseparable from another (|r| > 0.999), a
     static force that hardly reaches the points, or an uncertainty whose effect on the curve
@@ -604,14 +605,15 @@ def _not_determined(cls, free, values, std, lower, upper, flags, J_full, suffix,
         i = cls.param_index(f"{n}_{suffix}")
         lo, hi = lower[free.index(n)], upper[free.index(n)]
         at_bound = (abs(x - hi) <= 1e-6 * max(1.0, abs(hi))) or (lo != 0 and abs(x - lo) <= 1e-6 * max(1.0, abs(lo)))
-        if not math.isfinite(s) or at_bound or float(np.max(np.abs(J_full[:, i]))) * s > _DETERMINED_SHARE * spread:
+        reach = float(np.max(np.abs(J_full[:, i])))
+        if not math.isfinite(s) or at_bound or reach * s > _DETERMINED_SHARE * spread or \
+                (n in ("Fs", "mu_s") and reach < _REACH):
             out.add(n)
-    for f in flags:
-        reason = f["reason"]
-        if reason.startswith("correlated with") or "reaches the points" in reason:
-            out.add(f["param"])
-            if reason.startswith("correlated with"):
-                out.add(reason.split()[2])
+    if corr is not None:
+        for i in range(len(free)):
+            for j in range(i + 1, len(free)):
+                if abs(corr[i, j]) > _STRONG_CORRELATION:
+                    out.update((free[i], free[j]))
     return out
 
 
@@ -685,7 +687,7 @@ def fit_model(points: Sequence[MapPoint], spec: FitSpec | str, fixed: Mapping[st
         ci[b] = (values[b] - tq * std[b], values[b] + tq * std[b]) if math.isfinite(std[b]) else None
     J_all = cls.static_jacobian(v, full(theta), **kw)
     flags = _flags(cls, free, values, std, ci, lower, upper, corr, v, J_all, suffix)
-    undetermined = _not_determined(cls, free, values, std, lower, upper, flags, J_all, suffix, F)
+    undetermined = _not_determined(cls, free, values, std, lower, upper, corr, J_all, suffix, F)
     for b, val in fixed_all.items():
         values[b] = float(val) if math.isfinite(val) else None
         std.setdefault(b, None)
