@@ -1,4 +1,4 @@
-"""A cylinder as typed, frozen, SI parameters, loaded from the FORMATS.md TOML layout.
+"""A cylinder as typed, frozen, SI parameters, loaded from the docs/formats.md TOML layout.
 
 Units are SI everywhere inside; the only conversion at this edge is the mounting
 angle, which the file gives in degrees and the model uses in radians.
@@ -156,11 +156,19 @@ _HINTS = {("geometry.bore", 1): "lengths are in metres, not mm",
 def load_cylinder(path: str | Path) -> Cylinder:
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: cylinder file not found.") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a cylinder file.") from None
     except OSError as e:
         raise ConfigError(f"{path}: cannot read cylinder file ({e.strerror}).") from None
+    try:
+        text = data.decode("utf-8-sig")  # TOML is UTF-8; editors on Windows like to add a BOM
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise ConfigError(f"{path}, line {line}: not UTF-8 text (a cylinder file is TOML, which is UTF-8; save it "
+                          "as UTF-8).") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -260,7 +268,7 @@ def _check_physics(v: dict[str, dict[str, Any]], fail) -> None:
 
 
 def cylinder_to_toml(cyl: Cylinder) -> str:
-    """The cylinder in the FORMATS.md layout (round-trips through load_cylinder)."""
+    """The cylinder in the docs/formats.md layout (round-trips through load_cylinder)."""
     lines = [f"name = {_toml_str(cyl.name)}", ""]
     for section in ("geometry", "mechanics", "supply", "valve", "friction", "sensors"):
         obj = getattr(cyl, section)

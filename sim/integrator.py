@@ -11,7 +11,7 @@ reversals, breakaway) are refined by step doubling behind a short-circuiting
 is a deterministic function of state and input, so simulator and identifier see the
 very same trajectory.
 
-Inputs are either held (valve command, zero-order hold per MODEL.md) or linearly
+Inputs are either held (valve command, zero-order hold per docs/model.md) or linearly
 interpolated across the sample (measured pressures in the pressure drive); the
 latter are carried as auxiliary states with constant slope so the step stays
 autonomous and keeps its order.
@@ -116,7 +116,7 @@ class StepBuilder:
     def __init__(self, plant: Plant, opts: IntegratorOptions = IntegratorOptions()):
         self.plant = plant
         self.opts = opts
-        # measured pressures vary continuously; the valve command is held (MODEL.md)
+        # measured pressures vary continuously; the valve command is held (docs/model.md)
         self.interpolate = plant.drive == "pressure"
         self.nx = plant.nx
         self.nw = len(plant.input_names)

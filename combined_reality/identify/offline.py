@@ -32,6 +32,7 @@ from sim.plant import build_plant
 
 from ..files import Run, split_at_gaps
 from .newton import equation_error_friction
+from .preflight import check_determinable
 from .shooting import (IdentificationError, RunLayout, ShootingProblem, at_bounds, cluster_covariance, condense,
                        covariance, fit_metrics, free_parameters, line_search, linearize, parameter_bounds,
                        parameter_unit, pooled_fit, residual_scales, run_layout, simulate_layout, solve_bounded,
@@ -107,6 +108,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     t_start = time.perf_counter()
     if not runs:
         raise IdentificationError("no runs to identify from.")
+    check_determinable(cyl, runs, options.estimate)  # no "converged" on runs that cannot say
     n_runs = len(runs)
     pieces = [piece for r in runs for piece in split_at_gaps(r)]
     if len(pieces) > n_runs:
