@@ -8,7 +8,7 @@ absolute target of 2 s for a 20 s run, which does:
 
 (a) speed-up over a hand-written baseline: scipy.optimize.least_squares on
     single-shooting residuals, simulated by scipy.integrate.solve_ivp of an
-    independent plain-Python transcription of MODEL.md (10 s, 1 kHz run);
+    independent plain-Python transcription of docs/model.md (10 s, 1 kHz run);
 (b) a 20 s run identified by the command-line tool as a separate process:
     process wall time relative to the duration of the data;
 (c) cold start (model functions built and compiled) vs cached, and the peak
@@ -46,7 +46,7 @@ TARGET_PROCESS_S = 2.0  # (b) process wall time on this 2-core machine, at most
 
 
 # ============================================================== the baseline (a)
-# The baseline's model is the independent transcription of MODEL.md that also serves the
+# The baseline's model is the independent transcription of docs/model.md that also serves the
 # tests as an oracle (it shares no code with sim/).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from model_reference import ReferenceModel  # noqa: E402

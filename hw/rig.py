@@ -3,7 +3,7 @@
 Serial, CAN, the virtual rig and file replay all satisfy it, so the pipeline never
 knows which one it has (as python-can's Bus does for CAN interfaces).
 
-Timing contract (MODEL.md): at each tick t_k the rig samples its sensors and latches the
+Timing contract (docs/model.md): at each tick t_k the rig samples its sensors and latches the
 latest command it has received; the valve holds that command over [t_k, t_k+1) and the
 sample reports it as `u_applied`. A recording writes `u = u_applied` on the sample's row,
 so the row is complete the moment it arrives. A command sent in reply to sample k is

@@ -237,11 +237,19 @@ _HINTS = {("geometry.bore", 1): "lengths are in metres, not mm",
 def load_cylinder(path: str | Path) -> Cylinder:
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: cylinder file not found.") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a cylinder file.") from None
     except OSError as e:
         raise ConfigError(f"{path}: cannot read cylinder file ({e.strerror}).") from None
+    try:
+        text = data.decode("utf-8-sig")  # TOML is UTF-8; editors on Windows like to add a BOM
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise ConfigError(f"{path}, line {line}: not UTF-8 text (a cylinder file is TOML, which is UTF-8; save it "
+                          "as UTF-8).") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

@@ -3,7 +3,7 @@
 An effect is an extension of the plant (sim.extension): a frozen dataclass whose fields are
 its parameter values, hooking into named stages of the plant's signal flow (command,
 supply, flows, friction terms, friction, piston, chambers; see sim.extension.Signals). The virtual rig uses effects as truth; the
-identifier and the diagnosis use them as candidates. Names follow the FORMATS.md
+identifier and the diagnosis use them as candidates. Names follow the docs/formats.md
 vocabulary; docs/effects.md gives every equation, parameter and realistic strength.
 
 Conventions shared by all effects:

@@ -18,7 +18,7 @@ G = 9.81
 
 
 def flow_function(r, b):
-    """ISO 6358 flow function phi(r) with the short laminar end of MODEL.md (0 <= r <= 1)."""
+    """ISO 6358 flow function phi(r) with the short laminar end of docs/model.md (0 <= r <= 1)."""
     a = (r - b) / (1 - b)
     phi_turb = ca.sqrt(ca.fmax(1 - a * a, 1e-300))
     a_lam = (R_LAM - b) / (1 - b)

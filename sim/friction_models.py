@@ -12,6 +12,8 @@ from the same CasADi expression). Models (seeds 000, 003, 004; docs/friction.md)
     cv_load    cv with normal-load terms (seed 003)    F = (Fc + mu Fn) s + (B + mu_v Fn) v
     cvs_load   cvs with normal-load terms (seed 003)   F = ((Fc + mu Fn)(1 - e) + (Fs + mu_s Fn) e) s + (B + mu_v Fn) v
     belforte   pressure-dependent (seed 004 Eq. 2)     F = (FA + (1 + K1 |v|^alpha)(K2 |p1 - p2| + K3 pc)) s
+    cv_dp      the nominal law per direction           F = (Fc + kp |p1 - p2|) s + Fv v
+    efficiency friction proportional to the pressure   F = kp |p1 - p2| s      (seed 004 Eq. 1)
 
 Conventions:
 - Every parameter exists once per direction: suffix `_pos` for extension (v > 0) and
@@ -49,7 +51,7 @@ from .effects import EFFECTS, parse_effect_spec
 from .extension import Effect, ParamInfo, make_from, parse_spec
 
 __all__ = ["FrictionModel", "CV", "Karnopp", "Threlfall", "CVS", "LuGre", "CVLoad", "CVSLoad", "Belforte",
-           "FRICTION_MODELS", "DIRECTIONS", "make_friction_model", "parse_friction_spec",
+           "CVPressure", "Efficiency", "FRICTION_MODELS", "DIRECTIONS", "make_friction_model", "parse_friction_spec",
            "parameter_unit", "without_nominal_friction"]
 
 # direction name -> parameter suffix, sign of v
@@ -530,8 +532,63 @@ class Belforte(FrictionModel):
         return (_per(q, "FA", s) + speed * (_per(q, "K2", s) * cond["dp"] + _per(q, "K3", s) * cond["pc"])) * s
 
 
+_KP = ParamInfo("N/Pa", 0.0, 1e-2, "friction per pascal of |p1 - p2| (seal pressure)")
+
+
+@dataclass(frozen=True)
+class CVPressure(FrictionModel):
+    """The product's own friction law (docs/model.md) with every parameter per direction:
+
+        F = (Fc(s) + kp(s) |p1 - p2|) s + Fv(s) v
+
+    With Fc_pos = Fc_neg = Fc, kp_pos = kp_neg = kp and Fv_pos = Fv_neg = Fv it is the nominal
+    plant's friction, to rounding. Fv is the viscous coefficient (B in the other models).
+    """
+
+    name: ClassVar[str] = "cv_dp"
+    description: ClassVar[str] = "the nominal law per direction: Coulomb plus seal-pressure term, plus viscous"
+    BASE: ClassVar[tuple[str, ...]] = ("Fc", "kp", "Fv")
+    CONDITIONS: ClassVar[tuple[str, ...]] = ("dp",)
+    PARAMS: ClassVar[dict[str, ParamInfo]] = _directional(Fc=_FC, kp=_KP, Fv=_B)
+    Fc_pos: float = 20.0
+    Fc_neg: float = 20.0
+    kp_pos: float = 1e-5
+    kp_neg: float = 1e-5
+    Fv_pos: float = 50.0
+    Fv_neg: float = 50.0
+
+    @classmethod
+    def curve(cls, v, q, cond, direction):
+        s = direction(v)
+        return (_per(q, "Fc", s) + _per(q, "kp", s) * cond["dp"]) * s + _per(q, "Fv", s) * v
+
+
+@dataclass(frozen=True)
+class Efficiency(FrictionModel):
+    """Friction proportional to the pressure force, as catalogues give it (seed 004 Eq. 1,
+    F = m P A with the efficiency factor m): with P the pressure difference across the piston,
+
+        F = kp(s) |p1 - p2| s,        kp = m A1 (N/Pa)
+
+    The simplest pressure-dependent form; cv_dp contains it (Fc = Fv = 0).
+    """
+
+    name: ClassVar[str] = "efficiency"
+    description: ClassVar[str] = "friction proportional to the pressure difference (the catalogues' efficiency factor)"
+    BASE: ClassVar[tuple[str, ...]] = ("kp",)
+    CONDITIONS: ClassVar[tuple[str, ...]] = ("dp",)
+    PARAMS: ClassVar[dict[str, ParamInfo]] = _directional(kp=_KP)
+    kp_pos: float = 5e-5
+    kp_neg: float = 5e-5
+
+    @classmethod
+    def curve(cls, v, q, cond, direction):
+        s = direction(v)
+        return _per(q, "kp", s) * cond["dp"] * s
+
+
 FRICTION_MODELS: dict[str, type[FrictionModel]] = {cls.name: cls for cls in (
-    CV, Karnopp, Threlfall, CVS, LuGre, CVLoad, CVSLoad, Belforte)}
+    CV, Karnopp, Threlfall, CVS, LuGre, CVLoad, CVSLoad, Belforte, CVPressure, Efficiency)}
 
 
 # ================================================================ helpers

@@ -11,7 +11,7 @@ reversals, breakaway) are refined by step doubling behind a short-circuiting
 is a deterministic function of state and input, so simulator and identifier see the
 very same trajectory.
 
-Inputs are either held (the valve command, zero-order hold as the model contract says)
+Inputs are either held (the valve command, zero-order hold, docs/model.md)
 or linearly interpolated across the sample (measured pressures in the pressure drive,
 measured position and velocity in the chambers drive); the latter are carried as
 auxiliary states with constant slope so the step stays autonomous and keeps its order.

@@ -1,4 +1,4 @@
-"""The nominal servopneumatic plant of MODEL.md, written once, symbolically, in CasADi.
+"""The nominal servopneumatic plant of docs/model.md, written once, symbolically, in CasADi.
 
 Everything that simulates or identifies builds on `build_plant`: the simulator and the
 virtual rig (command drive, with effects as truth), the identifier (either drive, with

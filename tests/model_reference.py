@@ -1,4 +1,4 @@
-"""An independent plain-Python transcription of MODEL.md, sharing no code with sim/.
+"""An independent plain-Python transcription of docs/model.md, sharing no code with sim/.
 
 The test oracle for the CasADi plant (tests/test_plant.py) and the model of the scipy
 baseline in benchmarks/identify_speed.py, so a disagreement points at one of them.
@@ -9,7 +9,7 @@ RHO0, T0, R_LAM, KAPPA, R_AIR, G = 1.185, 293.15, 0.995, 1.4, 287.0, 9.81
 
 
 class ReferenceModel:
-    """The MODEL.md right-hand side in plain Python scalars (math is faster than numpy on scalars)."""
+    """The docs/model.md right-hand side in plain Python scalars (math is faster than numpy on scalars)."""
 
     def __init__(self, cyl):
         g = cyl.geometry

@@ -9,13 +9,16 @@ import json
 import math
 import os
 import shutil
+import subprocess
+import sys
 import textwrap
+import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from conftest import CONFIGS, assert_refused
+from conftest import CONFIGS, ROOT, assert_refused
 
 from combined_reality import batch
 from combined_reality.batch import execution as batch_execution
@@ -496,7 +499,7 @@ def test_dask_cluster_gives_the_table_of_local_processes(folder, tmp_path, capsy
         """)
     local_out, dask_out = tmp_path / "local", tmp_path / "dask"
     with ProcessPoolExecutor(2) as pool:
-        local = run_batch(load_manifest(m, runs_dir=local_out / "runs"), local_out, pool, report=False, workers=2)
+        local = run_batch(load_manifest(m), local_out, pool, report=False, workers=2)
     assert (local.ok, local.failed) == (2, 1)
 
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
@@ -533,7 +536,7 @@ def test_dask_cluster_gives_the_table_of_local_processes(folder, tmp_path, capsy
 def seed_papers_rows(tmp_path_factory):
     """The ten cylinders of configs/manifests/seed_papers.toml (20 s runs) on two processes."""
     out = tmp_path_factory.mktemp("seed_papers")
-    jobs = load_manifest(SEED_PAPERS, runs_dir=out / "runs")
+    jobs = load_manifest(SEED_PAPERS)
     with ProcessPoolExecutor(2) as pool:
         summary = run_batch(jobs, out, pool, report=False, workers=2)
     return summary, out, _assert_csv_matches_parquet(out)
@@ -564,3 +567,105 @@ def test_seed002_nominal_friction_recovered(seed_papers_rows):
         assert r["status"] == "ok" and r["model"] == "nominal", r
         for k in ("Fc", "Fv", "kp"):
             assert r[k] == pytest.approx(r[f"truth_{k}"], rel=0.05), (r["name"], k, r[k], r[f"truth_{k}"])
+
+
+# ------------------------------------------------------------------ a real cluster (issue 17)
+
+def _start(argv, cwd: Path, log: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.Popen([sys.executable, "-m", "dask", *argv], cwd=cwd, env=env, stdout=log.open("wb"),
+                            stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.slow
+def test_dask_scheduler_and_worker_processes_elsewhere_write_nothing_in_their_folder(tmp_path, monkeypatch, capsys):
+    """A `dask scheduler` and a `dask worker` started as their own processes in another folder: every output of
+    the batch lies under --out on the client's side (workers return data), and two names that differ only in
+    punctuation get files of their own."""
+    import distributed
+
+    client_dir, cluster_dir, scratch = tmp_path / "client", tmp_path / "cluster", tmp_path / "scratch"
+    for d in (client_dir, cluster_dir, scratch):
+        d.mkdir()
+    shutil.copy(CFG_A, client_dir / "cyl.toml")
+    _write(client_dir / "fleet.toml", f"""
+        [simulate]
+        duration = {SHORT}
+
+        [[cylinder]]
+        name = "press 3/cylinder 2"
+        config = "cyl.toml"
+        simulate = {{seed = 1}}
+
+        [[cylinder]]
+        name = "press 3 cylinder 2"
+        config = "cyl.toml"
+        simulate = {{seed = 2}}
+        """)
+    sched_file = tmp_path / "scheduler.json"
+    scheduler = _start(["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
+                        str(sched_file)], cluster_dir, tmp_path / "scheduler.log")
+    worker = None
+    try:
+        deadline = time.monotonic() + 60
+        while not sched_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        address = json.loads(sched_file.read_text())["address"]
+        worker = _start(["worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
+                         "--local-directory", str(scratch), "--name", "w1"], cluster_dir, tmp_path / "worker.log")
+        with distributed.Client(address, timeout="60s") as c:
+            c.wait_for_workers(1, timeout=60)
+        monkeypatch.chdir(client_dir)  # --out relative: it is the client's folder, not a worker's
+        code, _, err = _cli(["fleet.toml", "--out", "out", "--scheduler", address, "--no-report"], capsys)
+        assert code == 0, err
+    finally:
+        for p in (worker, scheduler):
+            if p is not None:
+                _stop(p)
+    assert sorted(p.name for p in cluster_dir.iterdir()) == []  # nothing in the workers' folder
+    out = client_dir / "out"
+    rows = {r["name"]: r for r in read_results_csv(out / "results.csv")}
+    files = {name: r["run_files"] for name, r in rows.items()}
+    assert len(set(files.values())) == 2  # no name overwrites the other's runs
+    for f in files.values():
+        assert (out / f).is_file() and f.startswith("runs/")
+    assert len(list((out / "cache").glob("*.json"))) == 2  # nor its cache entry
+    assert "file names of cylinders" in err and "'press 3/cylinder 2' -> press_3_cylinder_2-" in err
+    written = {p.relative_to(tmp_path).parts[0] for p in tmp_path.rglob("*") if p.is_file()}
+    assert written <= {"client", "scratch", "scheduler.json", "scheduler.log", "worker.log"}
+
+
+def test_names_that_differ_only_in_punctuation_or_case_get_their_own_files(tmp_path):
+    _write(tmp_path / "cyl.toml", CFG_A.read_text())
+    names = ["cyl A", "cyl/A", "CYL_a", "plain"]
+    _write(tmp_path / "m.toml", "".join(f'[[cylinder]]\nname = "{n}"\nconfig = "cyl.toml"\nsimulate = {{}}\n\n'
+                                        for n in names))
+    stems = [j.file_stem for j in load_manifest(tmp_path / "m.toml")]
+    assert len({s.lower() for s in stems}) == 4 and stems[3] == "plain"
+    # the same stems whatever the order of the manifest
+    _write(tmp_path / "r.toml", "".join(f'[[cylinder]]\nname = "{n}"\nconfig = "cyl.toml"\nsimulate = {{}}\n\n'
+                                        for n in reversed(names)))
+    assert [j.file_stem for j in load_manifest(tmp_path / "r.toml")] == stems[::-1]
+
+
+@pytest.mark.parametrize("sim, says", [
+    ("{duration = 1e9}", "simulate asks for 1e+12 samples"),
+    ("{duration = 600, rate = 2000}", "at most 1e+06 per cylinder"),
+    ("{duration = 400, runs = 3}", "x 3 run(s)"),
+])
+def test_simulation_lengths_are_bounded(tmp_path, capsys, sim, says):
+    _write(tmp_path / "cyl.toml", CFG_A.read_text())
+    m = _write(tmp_path / "m.toml", f'[[cylinder]]\nname = "big"\nconfig = "cyl.toml"\nsimulate = {sim}\n')
+    code, _, err = _cli([m, "--out", tmp_path / "out"], capsys)
+    assert_refused(code, err, "m.toml", "cylinder 'big'", says)
+    assert not (tmp_path / "out").exists()

@@ -119,21 +119,41 @@ def test_headline_counts_and_the_failed_row_escaped(report):
     assert "a<b&c" not in text and "p1 < 0" not in text
 
 
+def _table3_cells(t3: str, name: str) -> list[str]:
+    """cylinder, model, Fs ext/retr, Fc ext/retr, B ext/retr, vs ext/retr (mm/s), other parameters: from the
+    extension and retraction tables and the table of other parameters (as one row of seed 004's Table 3)."""
+    ext = _cells(t3[t3.index("<h3>extension"):t3.index("<h3>retraction")], name)
+    ret = _cells(t3[t3.index("<h3>retraction"):], name)
+    others = t3[t3.index("<h3>other parameters"):] if "<h3>other parameters" in t3 else ""
+    other = _cells(others, name)[1] if html.escape(name) in others else "—"
+    return ext[:2] + [c for pair in zip(ext[2:6], ret[2:6]) for c in pair] + [other]
+
+
+def test_table_3_is_split_per_direction_so_that_it_fits_the_page(report):
+    text, _ = report
+    t3 = _section(text, "<h2>Friction parameters")
+    assert t3.split("<h3>Against")[0].count("<table>") == 3 and "<h3>extension</h3>" in t3 and "<h3>retraction</h3>" in t3
+    # every table that is not inside another scrolls sideways instead of running off the page
+    assert text.count('<div class="scroll"><table') == text.count("<table") - text.count('<table style="margin:0">')
+    header = re.search(r"<h3>extension</h3>\s*<div class=\"scroll\"><table><tr>(.*?)</tr>", t3, re.S).group(1)
+    assert header.count("<th>") == 6  # cylinder, model and four quantities: half the columns of one table
+
+
 def test_table_3_shows_the_values_per_direction(report):
     text, _ = report
     t3 = _section(text, "<h2>Friction parameters")
     # cylinder, model, Fs ext/retr, Fc ext/retr, B ext/retr, vs ext/retr (mm/s), other
-    c2 = _cells(t3, ACT2["name"])
+    c2 = _table3_cells(t3, ACT2["name"])
     assert c2[1] == "cvs"
     assert c2[2:4] == ["22.00", "20.00"]
     assert c2[4] == "16.87 ± 0.21" and c2[5] == "13.47 ± 0.18"
     assert c2[6].startswith("178.8") and "± 2.7" in c2[6] and c2[7].startswith("165.6")
     assert c2[8].startswith("3.42") and c2[9].startswith("6.16")  # mm/s
     assert "delta = 2" in c2[10] and "fixed" in c2[10]
-    c4 = _cells(t3, ACT4["name"])
+    c4 = _table3_cells(t3, ACT4["name"])
     assert c4[4].startswith("1.59") and c4[5].startswith("6.10") and c4[8].startswith("8.50")
     assert "±" not in "".join(c4[2:10])  # no std given
-    cn = _cells(t3, NOMINAL["name"])
+    cn = _table3_cells(t3, NOMINAL["name"])
     assert cn[1] == "nominal"
     assert cn[2] == cn[3] == cn[8] == cn[9] == "—"  # the nominal model has no Fs, no Stribeck velocity
     assert cn[4] == cn[5] == "24.80 ± 0.12" and cn[6] == cn[7] == "13.45"
@@ -227,7 +247,7 @@ def test_odd_rows_render(tmp_path):
     text = (tmp_path / "odd.html").read_text(encoding="utf-8")
     assert "4 cylinders in the batch: 4 identified, 0 failed." in text
     t3 = _section(text, "<h2>Friction parameters")
-    c = _cells(t3, "$x$ _lead")
+    c = _table3_cells(t3, "$x$ _lead")
     assert c[2] == "n/a" and c[4] == "16.87"  # Fs_pos NaN: not available; Fc_pos without its NaN std
     assert "magic" in t3 and "unknown" in t3
     maps = _section(text, "<h2>Friction against velocity")

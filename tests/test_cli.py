@@ -1,4 +1,4 @@
-"""The command line per FORMATS.md: bad input refused with exit 2 and one clear sentence."""
+"""The command line per docs/formats.md: bad input refused with exit 2 and one clear sentence."""
 import json
 import subprocess
 import sys

@@ -1,4 +1,4 @@
-"""sim/cylinder.py: the cylinder TOML of FORMATS.md, its defaults, round trip and refusals."""
+"""sim/cylinder.py: the cylinder TOML of docs/formats.md, its defaults, round trip and refusals."""
 from __future__ import annotations
 
 import math
@@ -19,7 +19,7 @@ from sim.cylinder import (
     parse_cylinder,
 )
 
-# The example of FORMATS.md, verbatim apart from the angle (non-zero so the conversion shows).
+# The example of docs/formats.md, verbatim apart from the angle (non-zero so the conversion shows).
 EXAMPLE = """\
 name = "A"                      # free text
 

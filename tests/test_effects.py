@@ -1,4 +1,4 @@
-"""The effect library: every FORMATS.md word as a composable extension of the one plant.
+"""The effect library: every docs/formats.md word as a composable extension of the one plant.
 
 Each effect builds for the drives it applies to, composes with others, vanishes exactly
 at its neutral value, changes the trajectory in the physically expected direction, keeps
@@ -18,7 +18,7 @@ from sim.integrator import IntegratorOptions
 from sim.flow import R_AIR
 from sim.plant import build_plant
 
-# FORMATS.md, "The effect vocabulary" (without `none`)
+# docs/formats.md, "The effect vocabulary" (without `none`)
 VOCABULARY = ("stiction", "friction_asymmetry", "friction_position", "friction_dynamics", "mass",
               "valve_deadzone", "valve_delay", "leakage", "heat_transfer", "supply_droop")
 MECHANICAL = {"stiction", "friction_asymmetry", "friction_position", "friction_dynamics", "mass"}

@@ -18,8 +18,8 @@ from combined_reality.cli.common import UsageError
 from combined_reality.friction.map import (FIT_SPECS, MapPoint, PointsFormatError, SegmentOptions, TooFewPointsError,
                                            build_map, fit_model, linear_fit, points_from_run, read_points)
 from combined_reality.files import Run, write_run
-from sim.friction_models import (CV, CVS, DIRECTIONS, Belforte, CVLoad, CVSLoad, Karnopp, LuGre,
-                                 Threlfall, without_nominal_friction)
+from sim.friction_models import (CV, CVS, DIRECTIONS, Belforte, CVLoad, CVPressure, CVSLoad, Efficiency, Karnopp,
+                                 LuGre, Threlfall, without_nominal_friction)
 
 # seed 004 Table 3, actuator 2 (Norgren 32 x 100), SI, magnitudes
 TABLE3_N2 = dict(Fc_pos=16.87, Fc_neg=13.47, Fs_pos=22.0, Fs_neg=20.0, vs_pos=0.00342, vs_neg=0.00616,
@@ -41,6 +41,10 @@ TRUTH = {
                         mu_v_neg=0.8),
     "belforte": Belforte(FA_pos=8.0, FA_neg=6.0, K1_pos=3.0, K1_neg=2.0, alpha_pos=0.8, alpha_neg=1.2,
                          K2_pos=2e-5, K2_neg=1.5e-5, K3_pos=1e-5, K3_neg=2e-5),
+    "belforte_dp": Belforte(FA_pos=8.0, FA_neg=6.0, K1_pos=3.0, K1_neg=2.0, alpha_pos=0.8, alpha_neg=1.2,
+                            K2_pos=2e-5, K2_neg=1.5e-5, K3_pos=0.0, K3_neg=0.0),
+    "cv_dp": CVPressure(Fc_pos=16.9, Fc_neg=13.5, kp_pos=2e-5, kp_neg=3e-5, Fv_pos=179.0, Fv_neg=166.0),
+    "efficiency": Efficiency(kp_pos=2e-5, kp_neg=3e-5),
 }
 
 
@@ -483,3 +487,80 @@ def test_command_on_a_virtual_rig_run(cvs_rig_run, tmp_path, capsys):
         # the slowest points are far above the true Stribeck velocities: cvs cannot be trusted there
         assert d["models"]["karnopp"]["params"]["dv"] == pytest.approx(band["dv"], rel=1e-12)
     assert "constant-velocity points" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ measured seals (issue 17)
+
+def _seal_points(seed=4, noise=0.1):
+    """Measured-style points of a seal whose friction grows with pressure (one chamber held at 1, 3, 5, 7 bar,
+    friction from about 4 N to 8 N), the speeds rising with the pressure as on a rig driven by that chamber."""
+    rng = np.random.default_rng(seed)
+    pts, truth = [], {1: (3.33, 6.67e-6, 5.0), -1: (3.0, 7.0e-6, 6.0)}  # Fc, kp, Fv per direction
+    for s, (Fc, kp, Fv) in truth.items():
+        for bar, base in zip((1, 3, 5, 7), (10e-3, 25e-3, 45e-3, 70e-3)):
+            for f in (0.75, 0.875, 1.0, 1.125, 1.25):
+                v, dp = base * f, bar * 1e5 * (1 + rng.normal(0, 0.01))
+                pts.append(MapPoint(v=s * v, F=s * (Fc + kp * dp + Fv * v + rng.normal(0, noise)), dp=dp))
+    return pts, truth
+
+
+def test_friction_growing_with_pressure_selects_the_law_with_the_pressure_term(tmp_path, capsys):
+    pts, truth = _seal_points()
+    table = _table(tmp_path, pts, columns=("v", "F", "dp"))
+    assert _cli([table, "--json", tmp_path / "map.json", "--plot", tmp_path / "map.png"]) == 0
+    out = capsys.readouterr().out
+    doc = json.loads((tmp_path / "map.json").read_text())
+    for direction, (suffix, s) in DIRECTIONS.items():
+        d = doc["directions"][direction]
+        assert d["best"] == "cv_dp", d["best"]
+        law = d["models"]["cv_dp"]
+        assert law["r2"] >= 0.95 and law["preferable"]
+        assert law["params"]["kp"] == pytest.approx(truth[s][1], rel=0.15)
+        assert law["params"]["Fc"] == pytest.approx(truth[s][0], abs=0.3)
+        # the confounding is said, with its correlation
+        assert [c["quantities"] for c in d["confounded"]] == [["speed", "dp"]] and d["confounded"][0]["r"] > 0.9
+        # models without dp fit far worse: the pressure term is what the points need
+        assert d["models"]["cv"]["r2"] < 0.9
+    assert out.count("speed and |p1 - p2| changed together") == 2
+    assert out.count(" *  ") == 2 and all("cv_dp" in line for line in out.splitlines() if " *  " in line)
+
+
+def test_parameters_the_points_do_not_pin_down_are_not_printed_and_not_ranked(tmp_path, capsys):
+    pts, _ = _seal_points()
+    fmap = build_map(pts)
+    seen = 0
+    for d in fmap.directions.values():
+        for name, fit in d.fits.items():
+            if fit.not_determined:
+                seen += 1
+                assert not fit.preferable and name != d.best
+        assert d.best is not None and d.fits[d.best].preferable
+        # the best is the lowest AICc among the preferable fits only
+        assert d.fits[d.best].aicc == min(f.aicc for f in d.fits.values() if f.preferable)
+    assert seen >= 2  # cvs_delta, belforte_dp: several Stribeck and speed parameters on these points
+    table = _cli_table(tmp_path, pts, capsys)
+    rows = [line for line in table.splitlines() if line.strip().startswith(("cvs_delta", "belforte_dp"))]
+    assert rows and all("not determined" in r for r in rows)
+    assert "e-32" not in table and "e+04" not in table  # no absurd value printed as an estimate
+
+
+def _cli_table(tmp_path, pts, capsys) -> str:
+    table = _table(tmp_path, pts, name="p.csv", columns=("v", "F", "dp"))
+    assert _cli([table, "--json", tmp_path / "m.json"]) == 0
+    return capsys.readouterr().out
+
+
+def test_a_static_level_below_the_coulomb_level_is_flagged_and_not_preferred():
+    """Friction lower at low speed (Fs < Fc): cvs fits best by AICc but is not preferred."""
+    rng = np.random.default_rng(2)
+    speeds = np.geomspace(2e-3, 0.2, 16)
+    pts = []
+    for s in (1, -1):
+        F = 10.0 + 60.0 * speeds - 3.0 * np.exp(-(speeds / 0.01) ** 2) + rng.normal(0, 0.05, speeds.size)
+        pts += [MapPoint(v=s * v, F=s * f) for v, f in zip(speeds, F)]
+    fmap = build_map(pts, ["cv", "cvs"])
+    for d in fmap.directions.values():
+        cvs = d.fits["cvs"]
+        assert cvs.aicc < d.fits["cv"].aicc  # the better fit by the numbers ...
+        assert any("below the Coulomb level" in p for p in cvs.problems) and not cvs.preferable
+        assert d.best == "cv"  # ... is not the one preferred

@@ -15,8 +15,9 @@ from scipy.optimize import brentq
 
 from sim.effects import EFFECTS, Effect, Stiction
 from sim.extension import check_combination
-from sim.friction_models import (CV, CVS, DIRECTIONS, FRICTION_MODELS, Belforte, CVLoad, CVSLoad, Karnopp, LuGre,
-                                  Threlfall, make_friction_model, parse_friction_spec, without_nominal_friction)
+from sim.friction_models import (CV, CVS, DIRECTIONS, FRICTION_MODELS, Belforte, CVLoad, CVPressure, CVSLoad,
+                                 Efficiency, Karnopp, LuGre, Threlfall, make_friction_model, parse_friction_spec,
+                                 without_nominal_friction)
 from sim.plant import build_plant
 
 # seed 004 Table 3, actuator 2 (Norgren 32 x 100), SI, magnitudes
@@ -38,6 +39,8 @@ EXAMPLES = {
                         mu_v_neg=0.8, Fn=40.0),
     "belforte": Belforte(FA_pos=8.0, FA_neg=6.0, K1_pos=3.0, K1_neg=2.0, alpha_pos=0.8, alpha_neg=1.2,
                          K2_pos=2e-5, K2_neg=1.5e-5, K3_pos=1e-5, K3_neg=2e-5),
+    "cv_dp": CVPressure(Fc_pos=16.9, Fc_neg=13.5, kp_pos=2e-5, kp_neg=3e-5, Fv_pos=179.0, Fv_neg=166.0),
+    "efficiency": Efficiency(kp_pos=4e-5, kp_neg=5e-5),
 }
 
 

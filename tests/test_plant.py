@@ -1,4 +1,4 @@
-"""The CasADi plant against MODEL.md: an independent transcription, physics invariants."""
+"""The CasADi plant against docs/model.md: an independent transcription, physics invariants."""
 import math
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""combined_reality/runs.py: the recorded-run CSV of FORMATS.md."""
+"""combined_reality/runs.py: the recorded-run CSV of docs/formats.md."""
 from __future__ import annotations
 
 import os
@@ -48,7 +48,7 @@ def refused(path: Path, *, line: int | None = None, column: str | None = None, s
 def random_run(n: int = 500, seed: int = 0, **kw) -> Run:
     rng = np.random.default_rng(seed)
     t = np.cumsum(rng.uniform(0.9e-3, 1.1e-3, n))  # jittered, awkward decimals
-    return Run(t=t, u=rng.uniform(-1.2, 1.2, n), x=rng.uniform(0.0, 0.2, n),
+    return Run(t=t, u=rng.uniform(-1.0, 1.0, n), x=rng.uniform(0.0, 0.2, n),
                p1=rng.uniform(1e5, 7e5, n), p2=rng.uniform(1e5, 7e5, n), **kw)
 
 
@@ -123,9 +123,29 @@ def test_columns_in_any_order_with_spaces_and_quotes(tmp_path: Path) -> None:
     assert np.array_equal(run.u, [0.5, -0.5])
 
 
-def test_command_outside_unit_range_is_accepted(tmp_path: Path) -> None:
-    text = HEADER + "\n0,1.5,0,2e5,2e5\n0.001,-3,0,2e5,2e5\n"
-    assert np.array_equal(read_run(put(tmp_path, text)).u, [1.5, -3.0])
+@pytest.mark.parametrize("u", ["7", "-1.5", "50"])  # one stray cell in volts, a slip, percent
+def test_command_outside_unit_range_is_refused_with_its_line(tmp_path: Path, u: str) -> None:
+    text = HEADER + "\n0,1,0,2e5,2e5\n0.001,-1,0,2e5,2e5\n" + f"0.002,{u},0,2e5,2e5\n"
+    refused(put(tmp_path, text), line=4, column="u", says=f"{u} is outside [-1, 1]")
+
+
+@pytest.mark.parametrize("step, n", [("1.0", 30), ("0.1", 120_000)])  # 1 kHz in ms; 10 kHz in ms for 12 s
+def test_time_in_milliseconds_is_refused(tmp_path: Path, step: str, n: int) -> None:
+    text = HEADER + "\n" + "".join(f"{i * float(step):.1f},0,0,2e5,2e5\n" for i in range(n))
+    refused(put(tmp_path, text), line=n + 1, column="t", says="looks like a time in milliseconds")
+
+
+def test_slow_but_plausible_sampling_is_accepted(tmp_path: Path) -> None:
+    text = HEADER + "\n" + "".join(f"{i * 0.1:.1f},0,0,2e5,2e5\n" for i in range(100))  # 10 Hz for 10 s
+    assert read_run(put(tmp_path, text)).n == 100
+
+
+def test_unclosed_quote_in_a_big_file_is_located(tmp_path: Path) -> None:
+    # csv's reader, left to itself, swallows the rest of the file into one field ("field larger than field
+    # limit", which was an internal error)
+    body = "".join(f"{0.001 * i:.3f},0,0,2e5,2e5\n" for i in range(2, 30_000))
+    text = HEADER + '\n0,0,0,2e5,2e5\n0.001,"0,0,2e5,2e5\n' + body
+    refused(put(tmp_path, text), line=3, says="2 cells, but the header on line 1 has 5 columns")
 
 
 def test_negative_small_position_and_supply_column(tmp_path: Path) -> None:
@@ -304,9 +324,9 @@ def test_round_trip_is_exact(tmp_path: Path) -> None:
 
 
 def test_round_trip_awkward_values(tmp_path: Path) -> None:
-    t = np.array([0.0, 1e-9, 0.1, 1 / 3, 2 / 3, 1.0, 1e5 + 1e-7])
+    t = np.array([0.0, 1e-9, 0.1, 1 / 3, 2 / 3, 1.0, 9e3 + 1e-7])
     n = len(t)
-    run = Run(t=t, u=np.array([-0.0, 5e-324, 1e-300, -1 / 7, 1.0, -1.0, 2.5]),
+    run = Run(t=t, u=np.array([-0.0, 5e-324, 1e-300, -1 / 7, 1.0, -1.0, np.nextafter(1.0, 0)]),
               x=np.array([0.0, -1e-12, np.nextafter(0.1, 1), 9.999999999999998, 0.2, 1e-17, 3.0]),
               p1=np.full(n, 101325.00000000001), p2=np.linspace(2e4, 1e7, n), ps=np.full(n, 7e5 + 1 / 3))
     write_run(tmp_path / "r.csv", run)

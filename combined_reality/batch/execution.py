@@ -33,14 +33,19 @@ from sim.extension import check_combination
 from sim.friction_models import FrictionModel, parse_truth_spec
 
 from ..diagnose import DiagnoseOptions, diagnose
-from ..files import RunFormatError, atomic_write, cylinder_tag, read_run, recorded_elsewhere, write_run
+from ..files import (RunFormatError, atomic_write, check_run_against_cylinder, cylinder_tag, read_run,
+                     recorded_elsewhere, write_run)
 from ..friction import identify_model, model_parameters
 from ..identify import IdentificationError, IdentifyOptions, velocity_estimate
 from ..live import simulate_run
 from .manifest import CylinderJob
 from .report import write_batch_report
 
-__all__ = ["run_job", "run_batch", "BatchSummary", "columns", "write_results", "read_results_csv"]
+__all__ = ["run_job", "run_batch", "BatchSummary", "columns", "write_results", "read_results_csv", "RUNS_DIR",
+           "SIMULATED_RUNS"]
+
+RUNS_DIR = "runs"  # DIR/runs: the simulated runs, written by the client
+SIMULATED_RUNS = "simulated_runs"  # the key under which a task returns the runs it simulated
 
 
 # ------------------------------------------------------------------ one cylinder (the task)
@@ -68,13 +73,11 @@ def _load_inputs(job: CylinderJob):
         truth = ({f"truth_{k}": v for k, v in zip(model.param_names(), model.values())} if model is not None
                  else {f"truth_{k}": cyl.value(k) for k in ("Fc", "Fv", "kp")})
         for k in range(s.runs):
-            run = simulate_run(cyl, s.duration, s.seed + k, s.rate, effects, noise=s.noise)
-            if job.runs_dir:
-                out = Path(job.runs_dir) / f"{_safe(job.name)}_{k + 1}.csv"
-                out.parent.mkdir(parents=True, exist_ok=True)
-                write_run(out, run, comments=[cylinder_tag(cyl), f"combined-reality batch: virtual rig, seed "
-                                              f"{s.seed + k}; truth: {'; '.join(s.effects) or 'the cylinder file'}"])
-                run = replace(run, source=out)
+            # the task returns the run; the client writes it under --out (a worker's folder is not the user's)
+            name = f"{RUNS_DIR}/{job.stem}_{k + 1}.csv"
+            run = replace(simulate_run(cyl, s.duration, s.seed + k, s.rate, effects, noise=s.noise), source=Path(name),
+                          comments=(cylinder_tag(cyl), f"combined-reality batch: virtual rig, seed {s.seed + k}; "
+                                                       f"truth: {'; '.join(s.effects) or 'the cylinder file'}"))
             runs.append(run)
     else:
         for p in job.runs:
@@ -88,15 +91,15 @@ def _load_inputs(job: CylinderJob):
             if theirs is not None:
                 raise _RowError(f"run {Path(p).name} was recorded on the cylinder '{theirs}', not on the one "
                                 f"{Path(job.config).name} describes")
+            try:
+                check_run_against_cylinder(run, cyl)
+            except (RunFormatError, ConfigError) as e:
+                raise _RowError(str(e)) from None
             runs.append(run)
         rates = {round(r.sample_period, 9) for r in runs}
         if len(rates) > 1:
             raise _RowError("the runs have different sample rates; identify runs of one rig and rate together")
     return cyl, runs, truth
-
-
-def _safe(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)[:80] or "cylinder"
 
 
 def _run_statistics(cyl, runs) -> dict:
@@ -112,14 +115,17 @@ def _run_statistics(cyl, runs) -> dict:
 
 
 def run_job(job: CylinderJob) -> dict:
-    """Identify one cylinder: its row (never raises; failures are the row's status)."""
+    """Identify one cylinder: its row (never raises; failures are the row's status). The runs
+    the virtual rig made come back under SIMULATED_RUNS (run_batch writes them and takes the
+    key out of the row): a task writes no file, so that on a cluster nothing lands in a
+    worker's folder."""
     t0 = time.perf_counter()
     row: dict = {"name": job.name, "status": "failed", "error": "", "model": job.model,
                  "config": job.config, "source": "simulated" if job.simulate else "recorded",
                  "n_runs": job.simulate.runs if job.simulate else len(job.runs)}
     try:
         with np.errstate(all="ignore"):
-            row.update(_identify_row(job))
+            row.update(_identify_row(job, row))
         row["status"] = "ok"
     except _RowError as e:
         row["error"] = str(e)
@@ -130,8 +136,10 @@ def run_job(job: CylinderJob) -> dict:
     return row
 
 
-def _identify_row(job: CylinderJob) -> dict:
+def _identify_row(job: CylinderJob, row: dict) -> dict:
     cyl, runs, truth = _load_inputs(job)
+    if job.simulate is not None:
+        row[SIMULATED_RUNS] = runs  # kept also when the identification fails: they show why
     g = cyl.geometry
     out: dict = {"cylinder": cyl.name, "bore": g.bore, "rod": g.rod, "stroke": g.stroke,
                  "supply_pressure": cyl.supply.pressure, "atmosphere": cyl.supply.atmosphere,
@@ -286,7 +294,7 @@ class _Cache:
         self.dir.mkdir(parents=True, exist_ok=True)
 
     def _path(self, job: CylinderJob, key: str) -> Path:
-        return self.dir / f"{_safe(job.name)}.{key}.json"
+        return self.dir / f"{job.stem}.{key}.json"
 
     def get(self, job: CylinderJob, key: str) -> dict | None:
         try:
@@ -296,7 +304,7 @@ class _Cache:
         return row if row.get("status") == "ok" else None
 
     def put(self, job: CylinderJob, key: str, row: dict) -> None:
-        for old in self.dir.glob(f"{_safe(job.name)}.*.json"):
+        for old in self.dir.glob(f"{job.stem}.*.json"):
             old.unlink(missing_ok=True)
         atomic_write(self._path(job, key), json.dumps({k: _json_value(v) for k, v in row.items()}).encode())
 
@@ -327,6 +335,12 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
 
     def finished(i: int, row: dict) -> None:
         nonlocal done
+        simulated = row.pop(SIMULATED_RUNS, None)
+        if simulated:
+            (out_dir / RUNS_DIR).mkdir(parents=True, exist_ok=True)
+            for run in simulated:  # the client writes every file, under out_dir
+                write_run(out_dir / run.source, run, comments=run.comments)
+            row["run_files"] = "; ".join(str(run.source) for run in simulated)
         row["hash"] = keys[i]
         rows[i] = row
         if row.get("status") == "ok":

@@ -9,15 +9,19 @@ import json
 import math
 import os
 import tomllib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from ..friction import DYNAMIC_SPECS, check_model
 
-__all__ = ["MODELS_HELP", "ManifestError", "SimulateSpec", "CylinderJob", "load_manifest"]
+__all__ = ["MODELS_HELP", "MAX_SIMULATED_SAMPLES", "ManifestError", "SimulateSpec", "CylinderJob", "load_manifest",
+           "file_stem"]
 
 
 MODELS_HELP = "nominal (the cylinder file's Fc + Fv v + kp |dp|) or a friction model of the family"
+# samples a cylinder's simulated runs may hold in all (duration x rate x runs): 1000 s at 1 kHz.
+# Identification keeps sensitivities per sample, so memory grows with it; the papers' runs are 20 s.
+MAX_SIMULATED_SAMPLES = 1_000_000
 
 
 class ManifestError(ValueError):
@@ -45,7 +49,14 @@ class CylinderJob:
     simulate: SimulateSpec | None = None
     model: str = "nominal"
     diagnose: bool = False
-    runs_dir: str = ""  # where simulated runs are kept (DIR/runs)
+    # the name in file names (simulated runs, cache entries): unique in the manifest, also where two
+    # names differ only in characters a file name cannot hold or in case
+    file_stem: str = ""
+
+    @property
+    def stem(self) -> str:
+        """The name in file names (the manifest's unique one, else the name made safe)."""
+        return self.file_stem or file_stem(self.name)
 
     def content_hash(self) -> str:
         """Everything the row depends on; a missing file hashes as missing (and fails)."""
@@ -82,17 +93,37 @@ _CYLINDER_KEYS = {"name", "config", "runs", "simulate", "model"}
 _SIMULATE_KEYS = {"duration", "seed", "effect", "runs", "rate", "noise"}
 
 
-def load_manifest(path: str | os.PathLike[str], runs_dir: Path | None = None,
-                  diagnose: bool = False) -> list[CylinderJob]:
+def file_stem(name: str) -> str:
+    """A cylinder's name as it can stand in a file name on any system."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name).strip(".")[:80] or "cylinder"
+
+
+def _unique_stems(names: list[str]) -> list[str]:
+    """file_stem of each name; names whose stems collide (also by case: macOS and Windows file
+    systems ignore it) get a short hash of the exact name, so that the stems stay the same
+    however the manifest is reordered."""
+    stems = [file_stem(n) for n in names]
+    counts: dict[str, int] = {}
+    for st in stems:
+        counts[st.lower()] = counts.get(st.lower(), 0) + 1
+    return [st if counts[st.lower()] == 1 else f"{st}-{hashlib.sha256(n.encode()).hexdigest()[:6]}"
+            for n, st in zip(names, stems)]
+
+
+def load_manifest(path: str | os.PathLike[str], diagnose: bool = False) -> list[CylinderJob]:
     """The manifest's cylinders as jobs. Structural faults (TOML syntax, a missing name, an
     unknown key, duplicate names, an unknown model) raise ManifestError with one sentence;
     files that are missing or bad fail their own row later, not the batch."""
     path = Path(path)
     try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = path.read_bytes()
+        doc = tomllib.loads(data.decode("utf-8-sig"))
     except OSError as e:
         raise ManifestError(f"cannot read the manifest {path}: {e.strerror or e}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise ManifestError(f"{path}, line {line}: not UTF-8 text (a manifest is TOML, which is UTF-8).") from None
+    except tomllib.TOMLDecodeError as e:
         raise ManifestError(f"{path} is not valid TOML: {e}") from None
     unknown = set(doc) - {"cylinder", "model", "simulate"}
     if unknown:
@@ -143,9 +174,9 @@ def load_manifest(path: str | os.PathLike[str], runs_dir: Path | None = None,
             spec = _simulate_spec({**default_sim, **sim}, where, diagnose)
         jobs.append(CylinderJob(name=name, config=str((base / config).resolve()),
                                 runs=tuple(str((base / r).resolve()) for r in runs or ()),
-                                simulate=spec, model=model, diagnose=diagnose,
-                                runs_dir=str(runs_dir) if runs_dir is not None else ""))
-    return jobs
+                                simulate=spec, model=model, diagnose=diagnose))
+    stems = _unique_stems([j.name for j in jobs])
+    return [replace(j, file_stem=st) for j, st in zip(jobs, stems)]
 
 
 def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
@@ -168,6 +199,12 @@ def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
     duration, rate, seed, runs = float(raw["duration"]), float(raw["rate"]), raw["seed"], raw["runs"]
     if not (duration > 0 and math.isfinite(duration)) or not 10 <= rate <= 100_000 or runs < 1:
         raise ManifestError(f"{where}: simulate needs duration > 0 s, 10 <= rate <= 100000 Hz and runs >= 1.")
+    samples = duration * rate * runs
+    if samples > MAX_SIMULATED_SAMPLES:
+        raise ManifestError(f"{where}: simulate asks for {samples:.3g} samples (duration {duration:g} s x rate "
+                            f"{rate:g} Hz x {runs} run(s)); at most {MAX_SIMULATED_SAMPLES:.0e} per cylinder "
+                            f"(e.g. {MAX_SIMULATED_SAMPLES / rate / runs:g} s at this rate), which identifies "
+                            "friction many times over.")
     noise = sim.get("noise", True)
     if not isinstance(noise, bool):
         raise ManifestError(f"{where}: simulate.noise must be true or false.")

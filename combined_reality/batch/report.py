@@ -21,6 +21,7 @@ figure helpers are the single-cylinder report's (`diagnose_report`).
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -52,6 +53,7 @@ _DIRS = tuple((d, sfx, sign) for d, (sfx, sign) in DIRECTIONS.items())  # (direc
 _TABLE3 = (("Fs", "F<sub>s</sub> static", "N", 1.0), ("Fc", "F<sub>c</sub> Coulomb", "N", 1.0),
            ("B", "B viscous", "N s/m", 1.0), ("vs", "v<sub>s</sub> Stribeck", "mm/s", 1e3))
 _NOMINAL_AS = {"Fc": "Fc", "B": "Fv"}  # Table 3 quantity -> nominal parameter (one value, both directions)
+_ALIASES = {"B": ("Fv",)}  # Table 3 quantity -> its other names in the family
 _C_EXT, _C_RET = "#1f77b4", "#e8590c"
 _RULE_TEXT = f"{RULE_OF_THUMB[0]:.2f}–{RULE_OF_THUMB[1]:.2f}"
 _TOL_TEXT = f"{100 * REL_TOL:g} %"
@@ -283,8 +285,11 @@ def _table3_param(c: _Cyl, q: str, sfx: str) -> str | None:
     """The model's parameter for Table 3 quantity q in direction sfx, or None (no such)."""
     if c.family == "nominal":
         return _NOMINAL_AS.get(q)
-    n = f"{q}_{sfx}"
-    return n if n in c.names else None
+    for name in (q, *_ALIASES.get(q, ())):  # cv_dp writes the viscous coefficient as Fv, as the nominal law
+        n = f"{name}_{sfx}"
+        if n in c.names:
+            return n
+    return None
 
 
 def _param_text(c: _Cyl, p: str, k: float = 1.0) -> str:
@@ -422,6 +427,7 @@ def _make_plots(effs: Mapping[_Cyl, _Efficiency], ref_speed: float) -> dict[str,
 # ------------------------------------------------------------------ HTML sections
 
 _MORE_CSS = """
+.scroll{overflow-x:auto;max-width:100%}h3{font-size:1em;margin:1em 0 .2em}
 td.low{background:#e7f5ff}td.high{background:#fff4e6}
 th.sub{font-weight:normal;font-size:.85em}td.name{max-width:22em}
 .headline.fail{border-left-color:#c92a2a}.headline.clean{border-left-color:#2b8a3e}
@@ -589,25 +595,33 @@ def _other_params(c: _Cyl) -> str:
 
 
 def _table3_html(ok: Sequence[_Cyl]) -> str:
+    """Seed 004's Table 3 as two tables, one per direction (both in one table overflowed the
+    page at 1400 px), then the other parameters."""
     if not ok:
         return ""
-    head1 = "".join(f'<th colspan="2">{h} ({escape(u)})</th>' for _q, h, u, _k in _TABLE3)
-    head2 = '<th class="sub">extension</th><th class="sub">retraction</th>' * len(_TABLE3)
-    rows = []
-    for c in ok:
-        cells = []
-        for q, _h, _u, k in _TABLE3:
-            for _d, sfx, _g in _DIRS:
+    head = "".join(f"<th>{h} ({escape(u)})</th>" for _q, h, u, _k in _TABLE3)
+    tables = []
+    for word, sfx, _g in _DIRS:
+        rows = []
+        for c in ok:
+            cells = []
+            for q, _h, _u, k in _TABLE3:
                 p = _table3_param(c, q, sfx)
                 cells.append(f'<td class="num">{_param_text(c, p, k) if p else _DASH}</td>')
-        model = escape(c.model) if c.model else _NA
-        if c.family is None and c.model:
-            model += ' <span class="small">(unknown)</span>'
-        rows.append(f'<tr><td class="name">{escape(c.name)}</td><td>{model}</td>{"".join(cells)}'
-                    f'<td class="small">{_other_params(c)}</td></tr>')
+            model = escape(c.model) if c.model else _NA
+            if c.family is None and c.model:
+                model += ' <span class="small">(unknown)</span>'
+            rows.append(f'<tr><td class="name">{escape(c.name)}</td><td>{model}</td>{"".join(cells)}</tr>')
+        tables.append(f"<h3>{escape(word)}</h3>\n<table><tr><th>cylinder</th><th>model</th>{head}</tr>"
+                      f"{''.join(rows)}</table>")
+    others = [(c, _other_params(c)) for c in ok]
+    others_html = "".join(f'<tr><td class="name">{escape(c.name)}</td><td class="small">{o}</td></tr>'
+                          for c, o in others if o != _DASH)
+    if others_html:
+        tables.append(f"<h3>other parameters</h3>\n<table><tr><th>cylinder</th><th>parameters</th></tr>"
+                      f"{others_html}</table>")
     return f"""<h2>Friction parameters (as seed 004 Table 3)</h2>
-<table><tr><th rowspan="2">cylinder</th><th rowspan="2">model</th>{head1}<th rowspan="2">other parameters</th></tr>
-<tr>{head2}</tr>{''.join(rows)}</table>
+{chr(10).join(tables)}
 <p class="explain">Per direction: extension (v &gt; 0) and retraction (v &lt; 0). All values are magnitudes: seed 004
 prints the retraction forces and Stribeck velocities negative. ± one standard deviation where the identification gives
 it. — : the model has no such parameter (the nominal model has one Coulomb friction Fc and one viscous coefficient
@@ -756,12 +770,30 @@ def render_batch_report(rows: Sequence[Mapping[str, Any]], *, title: str = "Batc
     return _render(cs, effs, title, ref_speed, _make_plots(effs, ref_speed) if plots is None else plots)
 
 
+def scroll_wide_tables(page: str) -> str:
+    """Every table that is not inside another in a box that scrolls sideways: a table wider
+    than the page (long names, many parameters) scrolls instead of running off it."""
+    out, depth, pos = [], 0, 0
+    for m in re.finditer(r"<table\b[^>]*>|</table>", page):
+        out.append(page[pos:m.start()])
+        tag = m.group(0)
+        if tag.startswith("<table"):
+            out.append(('<div class="scroll">' if depth == 0 else "") + tag)
+            depth += 1
+        else:
+            depth -= 1
+            out.append(tag + ("</div>" if depth == 0 else ""))
+        pos = m.end()
+    out.append(page[pos:])
+    return "".join(out)
+
+
 def _render(cs: Sequence[_Cyl], effs: Mapping[_Cyl, _Efficiency], title: str, ref_speed: float,
             plots: Mapping[str, bytes]) -> str:
     img = {k: img_tag(v, alt) for k, alt in _PLOTS if (v := plots.get(k)) is not None}
     ok = [c for c in cs if c.ok]
     lines, cls = _headline(cs, effs, ref_speed)
-    return f"""<!DOCTYPE html>
+    return scroll_wide_tables(f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{escape(title)}</title>
 <meta name="viewport" content="width=device-width, initial-scale=1"><style>{CSS}{_MORE_CSS}</style></head><body>
 <h1>{escape(title)}</h1>
@@ -774,7 +806,7 @@ def _render(cs: Sequence[_Cyl], effs: Mapping[_Cyl, _Efficiency], title: str, re
 {_fit_html(ok)}
 <p class="small">combined_reality batch report, {len(cs)} cylinder{'s' if len(cs) != 1 else ''}.</p>
 </body></html>
-"""
+""")
 
 
 def write_batch_report(rows: Sequence[Mapping[str, Any]], path: str | Path, png_dir: str | Path | None = None,

@@ -12,7 +12,8 @@ from typing import Sequence
 
 from sim.cylinder import ConfigError
 
-from . import (batch, calibrate, demo, diagnose, friction_compare, friction_map, identify, live, procedure, simulate,
+from . import (batch, calibrate, demo, diagnose, friction_compare, friction_map, identify, import_run, live, procedure,
+               simulate,
                virtual_rig)
 from .common import UsageError, eprint
 
@@ -38,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     friction_compare.add_parser(sub)
     procedure.add_parser(sub)
     batch.add_parser(sub)
+    import_run.add_parser(sub)
     return p
 
 

@@ -28,8 +28,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
                     "{duration, seed, effect, runs} (the virtual rig makes the runs), and optionally model "
                     "(per cylinder, or once at the top for all: nominal, or a friction model of the family). "
                     "Relative paths are relative to the manifest. Writes DIR/results.csv, DIR/results.parquet, "
-                    "DIR/report.html and DIR/summary.json; re-running skips cylinders whose inputs and options "
-                    "are unchanged. Exit status 1 if some cylinders failed.")
+                    "DIR/report.html, DIR/summary.json and the simulated runs in DIR/runs (all on this machine, also "
+                    "with a cluster: workers return data); re-running skips cylinders whose inputs and options are "
+                    "unchanged. Simulations are bounded to 1e6 samples per cylinder. Exit status 1 if some "
+                    "cylinders failed, 2 for a bad manifest.")
     p.add_argument("manifest", metavar="MANIFEST.toml", help="the manifest: [[cylinder]] tables (docs/batch.md)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
     p.add_argument("--workers", type=int, default=None,
@@ -110,9 +112,13 @@ def run(args) -> int:
 
     out = Path(args.out)
     try:
-        jobs = load_manifest(args.manifest, runs_dir=out / "runs", diagnose=args.diagnose)
+        jobs = load_manifest(args.manifest, diagnose=args.diagnose)
     except ManifestError as e:
         raise UsageError(str(e)) from None
+    renamed = [j for j in jobs if j.file_stem != j.name]
+    if renamed and not args.quiet:  # which files belong to which cylinder
+        eprint("file names of cylinders whose names a file name cannot hold as they are: "
+               + "; ".join(f"'{j.name}' -> {j.file_stem}" for j in renamed))
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be at least 1, not {args.workers}.")
     if out.exists() and not out.is_dir():

@@ -159,8 +159,34 @@ def _value(x: float | None, s: float | None) -> str:
     return f"{x:.4g}±{s:.2g}" if math.isfinite(s) else f"{x:.4g}±inf"
 
 
+def _parameters(f) -> str:
+    """value±std per parameter; 'not determined' instead of a number the points do not pin down."""
+    out = []
+    for k, v in f.params.items():
+        if v is None and k not in f.not_determined:
+            continue
+        unit = parameter_unit(f.family, k)
+        text = "not determined" if k in f.not_determined else _value(v, f.std.get(k)) + (f" {unit}" if unit else "")
+        out.append(f"{k}={text}")
+    return ", ".join(out)
+
+
+def _verdict(name: str, f, best: str | None) -> str:
+    if name == best:
+        return "best"
+    if f.status != "converged":
+        return f.status
+    if f.not_determined:
+        return "not determined: " + ", ".join(f.not_determined)
+    if f.problems:  # in short; the sentences are in the JSON
+        return "; ".join("curve leaves the data's range" if "leaves" in p else "Fs below Fc" if "static level" in p
+                         else p for p in f.problems)
+    return ""
+
+
 def format_table(fmap: FrictionMap) -> str:
-    """Per direction: the points, the stick band, and every fit (metrics, parameters, flags)."""
+    """Per direction: the points, the stick band, what changed together, and every fit (metrics,
+    parameters, verdict, flags); the best fit is the lowest AICc among the preferable ones."""
     lines = []
     for direction, d in fmap.directions.items():
         band = d.stick_band
@@ -175,25 +201,33 @@ def format_table(fmap: FrictionMap) -> str:
             std = f" ± {band.breakaway_std:.2g}" if band.breakaway_std is not None else ""
             head += f"; {band.breakaway_count} breakaways, mean {band.breakaway_mean:.4g}{std} N"
         lines.append(head)
-        rows = [("model", "RMSE [N]", "R2", "MAE [N]", "AICc", "parameters (value±std)", "flags")]
-        scores = {n: f.aicc for n, f in d.fits.items() if f.aicc is not None}
-        best = min(scores, key=scores.get) if scores else None
+        for c in d.confounded:
+            lines.append(f"  note: {c.sentence(direction)}.")
+        rows = [("model", "RMSE [N]", "R2", "MAE [N]", "AICc", "parameters (value±std)", "verdict", "flags")]
+        best = d.best
         lin = d.linear
         if lin is not None:
             pars = f"Fc={_value(lin.Fc, lin.std['Fc'])} N, B={_value(lin.B, lin.std['B'])} N s/m"
-            rows.append(("linear", f"{lin.rmse:.3g}", f"{lin.r2:.5f}", f"{lin.mae:.3g}", "", pars, ""))
+            verdict = "B < 0: not physical" + (" (speed stands in for another quantity)" if d.confounded else "") \
+                if lin.B < 0 else ""
+            rows.append(("linear", f"{lin.rmse:.3g}", f"{lin.r2:.5f}", f"{lin.mae:.3g}", "", pars, verdict, ""))
         for name, f in d.fits.items():
-            pars = ", ".join(f"{k}={_value(v, f.std.get(k))}" + (f" {parameter_unit(f.family, k)}" if parameter_unit(f.family, k) else "")
-                             for k, v in f.params.items() if v is not None)
             flagged = ", ".join(dict.fromkeys(fl["param"] for fl in f.flags))
             aicc = "" if f.aicc is None else f"{f.aicc:.1f}" + (" *" if name == best else "")
-            rows.append((name, f"{f.rmse:.3g}", f"{f.r2:.5f}", f"{f.mae:.3g}", aicc, pars, flagged))
+            rows.append((name, f"{f.rmse:.3g}", f"{f.r2:.5f}", f"{f.mae:.3g}", aicc, _parameters(f),
+                         _verdict(name, f, best), flagged))
         if len(rows) > 1:
             widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
             lines.extend("  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+        lacking = {}
         for name, why in d.skipped.items():
-            lines.append(f"  skipped {name}: {why}")
+            if why.startswith(f"model {name} needs "):
+                lacking.setdefault(why.split(" needs ")[1].split(" for every point")[0], []).append(name)
+            else:
+                lines.append(f"  skipped {name}: {why}")
+        for what, names in lacking.items():
+            lines.append(f"  not fitted, the points carry no {what}: {', '.join(names)}")
     lines.append("Per direction: RMSE, R2 (seed 000 Eq. 10), MAE (mean |F - F_model|, seed 003's mean error), AICc "
-                 "(* lowest: the best fit for its number of parameters); flags name the parameters the points do not "
-                 "determine (reasons in the JSON).")
+                 "(* the best: lowest among the fits whose parameters the points determine and whose curve is sound); "
+                 "flags name the parameters the points do not determine well (reasons in the JSON).")
     return "\n".join(lines)

@@ -1,6 +1,8 @@
 """`combined-reality identify`: friction (or any estimable parameter) from recorded runs."""
 from __future__ import annotations
 
+from pathlib import Path
+
 from sim.cylinder import ESTIMABLE, FLOW_CHARACTERISTIC, Cylinder
 
 from .common import UsageError, eprint, estimate_list, load_config, parse_effects, progress_printer
@@ -12,7 +14,8 @@ def add_parser(sub) -> None:
                                    "fitted jointly, by multiple-shooting least squares: the model is driven by the "
                                    "recorded valve command and its parameters are adjusted until the simulated "
                                    "position and pressures match the measured ones. Prints the estimates with "
-                                   "standard deviations and the fit; exit status 1 if the solver did not converge.")
+                                   "standard deviations and the fit; exit status 1 if the solver did not converge, 2 "
+                                   "if the runs cannot determine a chosen parameter (the message says which and why).")
     i.add_argument("--config", required=True, help="cylinder TOML file (its values are the starting point)")
     i.add_argument("runs", nargs="+", metavar="RUN.csv", help="recorded runs")
     i.add_argument("--json", help="write the result as JSON (docs/formats.md)")
@@ -38,8 +41,10 @@ def format_table(result, truth: Cylinder | None = None) -> str:
     """The estimates of an IdentifyResult (value, std, unit, start; with `truth`, the true value and the error),
     the fit and the solver's status, as printed by identify and demo."""
     rows = [("parameter", "value", "std", "unit", "initial") + (("true", "error") if truth else ())]
+    unknown = set(not_determined(result))
     for n, e in result.params.items():
-        row = (n, f"{e.value:.6g}", f"{e.std:.3g}" + (" (at bound)" if e.at_bound else ""), e.unit, f"{e.initial:.4g}")
+        std = f"{e.std:.3g}" + (" (at bound)" if e.at_bound else "") + (" not determined" if n in unknown else "")
+        row = (n, f"{e.value:.6g}", std, e.unit, f"{e.initial:.4g}")
         if truth:
             tv = truth.value(n) if "." not in n else float("nan")
             err = (e.value - tv) / tv * 100 if tv else float("nan")
@@ -56,15 +61,33 @@ def format_table(result, truth: Cylinder | None = None) -> str:
         lines.append(f"(kp = {kp.value * 1e5:.4g} +- {kp.std * 1e5:.2g} N/bar)")
     s = result.solver
     lines.append("fit: " + "; ".join(fit))
-    lines.append(f"solver: {s['status']} after {s['iterations']} iterations, {s['wall_s']:.2f} s "
+    status = s["status"] if not unknown or s["status"] != "converged" else \
+        f"stopped, but the data do not determine {', '.join(sorted(unknown))} (std >= |value|),"
+    lines.append(f"solver: {status} after {s['iterations']} iterations, {s['wall_s']:.2f} s "
                  f"({result.drive} drive, {s['n_samples']} samples, residual sigma {s['residual_sigma']:.3g} x noise)")
     return "\n".join(lines)
+
+
+def not_determined(result) -> list[str]:
+    """Estimated parameters the data do not determine: no finite standard deviation, or, for a
+    quantity that is positive by nature and not held at a bound, one as large as the value (a
+    signed quantity such as a sensor offset may well be zero). Such a fit is never reported as
+    converged."""
+    import math
+
+    from sim.cylinder import PARAMETERS
+
+    def signed(n: str) -> bool:
+        return n in PARAMETERS and PARAMETERS[n].lower < 0
+
+    return [n for n, e in result.params.items()
+            if not math.isfinite(e.std) or (not signed(n) and not e.at_bound and e.std >= abs(e.value))]
 
 
 def run(args) -> int:
     from ..files import check_run_against_cylinder, clean_json, read_run, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import IdentificationError, IdentifyOptions, identify
+    from ..identify import IdentificationError, IdentifyOptions, check_determinable, identify
 
     cyl = load_config(args.config)
     runs = [read_run(p) for p in args.runs]
@@ -90,6 +113,7 @@ def run(args) -> int:
         raise UsageError(f"--interval must be positive, not {args.interval}.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
                            prefit=not args.no_prefit)
+    check_determinable(cyl, runs, estimate)  # before any progress line: a refusal is the only line on stderr
     prog = progress_printer(args.quiet)
     if prog:
         prog(f"identifying {', '.join(estimate)} from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
@@ -100,6 +124,11 @@ def run(args) -> int:
         eprint(f"combined-reality identify: {e}")
         return 1
     out = result.to_json()
+    unknown = not_determined(result)
+    for n, entry in out["params"].items():
+        entry["determined"] = n not in unknown
+    if unknown and out["solver"]["status"] == "converged":
+        out["solver"]["status"] = "not_determined"
     out["config"] = str(cyl.source)
     out["inputs"] = [str(p) for p in args.runs]
     if args.json:
@@ -107,6 +136,13 @@ def run(args) -> int:
     if args.write_config:
         write_cylinder_file(args.write_config, result.cylinder, note=f"identified from {', '.join(args.runs)}")
     print(format_table(result))
+    if unknown:
+        names = ", ".join(p.name for p in map(Path, args.runs))
+        worst = result.params[unknown[0]]
+        raise UsageError(f"{names}: {'this run' if len(args.runs) == 1 else 'these runs'} cannot determine "
+                         f"{', '.join(unknown)}: {unknown[0]} = {worst.value:.4g} +- {worst.std:.2g} {worst.unit}, a "
+                         "standard deviation as large as the value; record moves that excite it (both directions, "
+                         "several speeds and pressure differences) or leave it out of --estimate.")
     status = result.solver["status"]
     if status != "converged":
         eprint(f"combined-reality identify: the solver stopped without converging ({status}); "

@@ -12,7 +12,7 @@ Each candidate effect extends the one plant, is re-identified on TRAIN (friction
 effect's own parameters, from the nominal fit and from the effect's alternative starts;
 the start with the lowest TRAIN cost is kept) and scored the same way. Candidates are
 ranked by the improvement of the noise-weighted validation error of all outputs (x, p1,
-p2), less a penalty per added parameter; `shrink` is the position RMSE's, as FORMATS.md
+p2), less a penalty per added parameter; `shrink` is the position RMSE's, as docs/formats.md
 defines it. An improvement is significant when no sensor noise could make the nominal
 model look that much worse than the candidate (z above `min_z`, see validation_gain) and
 the all-output error shrinks by `min_shrink` at least; the verdict is `none` when no
@@ -282,7 +282,7 @@ def _score(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOpt
 
 @dataclass
 class Diagnosis:
-    """Everything a diagnosis found; `to_json()` is the FORMATS.md document, the arrays feed
+    """Everything a diagnosis found; `to_json()` is the docs/formats.md document, the arrays feed
     the report and Rerun."""
 
     cylinder: Cylinder  # with the nominal friction identified on TRAIN

@@ -455,7 +455,7 @@ def _make_plots(d) -> dict[str, bytes]:
 
 def _unphysical_note(d) -> str:
     """A sentence when the nominal model's simulation of VALID leaves the physical range: the
-    nominal model has no end stops (MODEL.md), so a model that far off runs past them."""
+    nominal model has no end stops (docs/model.md), so a model that far off runs past them."""
     sim = d.base_validation.simulated
     o = d.base_validation.outputs
     x = sim[o.index("x")]

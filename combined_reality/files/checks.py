@@ -3,11 +3,13 @@ read as on its own (files.runs) can still be the wrong unit, origin or cylinder 
 file. Each check refuses with one sentence naming the file (RunFormatError: bad input)."""
 from __future__ import annotations
 
-from sim.cylinder import Cylinder
+import numpy as np
+
+from sim.cylinder import ConfigError, Cylinder
 
 from .runs import Run, RunFormatError, cylinder_identity, recorded_elsewhere
 
-__all__ = ["check_run_against_cylinder", "check_train_and_valid"]
+__all__ = ["check_run_against_cylinder", "check_pressures_absolute", "supply_seen", "check_train_and_valid"]
 
 
 def check_run_against_cylinder(run: Run, cyl: Cylinder) -> None:
@@ -23,6 +25,67 @@ def check_run_against_cylinder(run: Run, cyl: Cylinder) -> None:
     if pmax > 1.5 * cyl.supply.pressure:
         raise RunFormatError(f"{run.source}: chamber pressure reaches {pmax:.4g} Pa, far above the supply pressure "
                              f"{cyl.supply.pressure:.4g} Pa of {cyl.source or 'the cylinder file'}.")
+    check_pressures_absolute(run, cyl)
+
+
+# an exhausted chamber sits near the atmosphere; gauge readings sit near 0 for a while
+_GAUGE_SHARE = 0.01  # of the samples below half the atmosphere
+_REST_SPEED = 2e-3  # m/s: the piston rests (at an end) below this
+_OPEN = 0.3  # |u| at which the valve is open enough to bring a resting chamber to the supply
+_PLATEAU_S = 0.2  # s at rest with the valve open that show the supply pressure
+
+
+def check_pressures_absolute(run: Run, cyl: Cylinder) -> None:
+    """Refuse chamber pressures that are gauge, and a supply pressure in the cylinder file that
+    is gauge. Gauge chambers sit below half the atmosphere for more than 1 % of a run that
+    exhausts a chamber. Where the piston rests (at an end) with the valve open for a while,
+    the filled chamber shows the supply pressure: a supply one atmosphere above the file's
+    means the file's is gauge, one atmosphere below means the run's pressures are. A run that
+    never exhausts a chamber nor rests with the valve open cannot tell (docs/formats.md)."""
+    pa, ps = cyl.supply.atmosphere, cyl.supply.pressure
+    cyl_file = cyl.source or "the cylinder file"
+    for name in ("p1", "p2"):
+        p = getattr(run, name)
+        low = p < 0.5 * pa  # NaN (not measured) is not low
+        if low.sum() > _GAUGE_SHARE * np.isfinite(p).sum():
+            i = int(np.argmax(low))
+            raise RunFormatError(f"{run.source}, column '{name}' at t = {run.t[i]:.6g} s: {p[i]:.4g} Pa, and "
+                                 f"{100 * low.mean():.3g} % of the run below half the atmosphere ({pa:g} Pa in "
+                                 f"{cyl_file}), look like gauge pressures; a run holds absolute Pa (import converts "
+                                 "gauge readings with gauge = true).")
+    seen = supply_seen(run)
+    if seen is None:
+        return
+    supply, i = seen
+    if supply > ps + 0.5 * pa:
+        raise ConfigError(f"{cyl_file}: key 'supply.pressure' = {ps:g} Pa looks like gauge: with the valve open and "
+                          f"the piston at rest, the filled chamber of {run.source} holds {supply:.4g} Pa (from t = "
+                          f"{run.t[i]:.6g} s), which is the supply; give it absolute (gauge + {pa:g} Pa).")
+    if supply < ps - 0.5 * pa:
+        raise RunFormatError(f"{run.source}, from t = {run.t[i]:.6g} s: with the valve open and the piston at rest "
+                             f"the filled chamber holds {supply:.4g} Pa, about one atmosphere below the supply "
+                             f"{ps:g} Pa of {cyl_file}: the run's pressures look gauge (absolute Pa required), or "
+                             "the supply in the file is wrong.")
+
+
+def supply_seen(run: Run) -> tuple[float, int] | None:
+    """The supply pressure the run shows, and where: the filled chamber (p1 for u > 0, p2 for
+    u < 0) while the valve is open and the piston rests for at least 0.2 s in all; None if
+    the run never does so."""
+    if run.n < 50:
+        return None
+    dt = float(np.median(np.diff(run.t)))
+    h = 10  # central difference over 2h samples: the sensor noise of x stays far below the rest speed
+    v = np.full(run.n, np.inf)
+    v[h:-h] = (run.x[2 * h:] - run.x[:-2 * h]) / (run.t[2 * h:] - run.t[:-2 * h])
+    rest = (np.abs(v) < _REST_SPEED) & (np.abs(run.u) > _OPEN)
+    filled = np.where(run.u > 0, run.p1, run.p2)
+    rest &= np.isfinite(filled)
+    if rest.sum() * dt < _PLATEAU_S:
+        return None
+    idx = np.flatnonzero(rest)
+    # the chamber is still filling at first: the upper part of its values is the plateau
+    return float(np.percentile(filled[idx], 90)), int(idx[0])
 
 
 def check_train_and_valid(cyl: Cylinder, train: Run, valid: Run, train_name: str, valid_name: str,

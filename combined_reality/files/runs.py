@@ -1,4 +1,4 @@
-"""Recorded runs: the CSV layout of FORMATS.md ("A recorded run: CSV").
+"""Recorded runs: the CSV layout of docs/formats.md ("A recorded run: CSV").
 
 A run is the sampled time series ``t, u, x, p1, p2`` (s, 1, m, Pa absolute), an optional
 measured supply pressure ``ps`` and any further columns, which are kept so that a rewrite
@@ -18,16 +18,12 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from .atomic import atomic_write
+from .plausibility import first_implausible, time_unit_problem
 
 __all__ = ["REQUIRED_COLUMNS", "RunFormatError", "Run", "read_run", "write_run", "RunRecorder", "split_at_gaps",
            "cylinder_identity", "cylinder_tag", "recorded_cylinder", "recorded_elsewhere"]
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("t", "u", "x", "p1", "p2")
-_PRESSURES = ("p1", "p2", "ps")
-# Below this no absolute pressure on a pneumatic rig is plausible, while bar (7.0), kPa (700),
-# psi (100) and gauge Pa (around 0) all are: catches the usual unit slips.
-_MIN_ABS_PRESSURE = 2.0e4  # Pa
-_MAX_ABS_POSITION = 10.0  # m; a stroke in mm exceeds this almost immediately
 
 # fail(message, line=None, column=None) -> the error to raise, prefixed with file, line and column
 _Fail = Callable[..., "RunFormatError"]
@@ -131,7 +127,7 @@ def _as_column(value: object, name: str) -> np.ndarray:
 
 
 def read_run(path: str | os.PathLike[str]) -> Run:
-    """Load a run CSV, refusing anything FORMATS.md does not allow with a RunFormatError."""
+    """Load a run CSV, refusing anything docs/formats.md does not allow with a RunFormatError."""
     path = Path(path)
     lines = _read_lines(path)
 
@@ -169,7 +165,7 @@ def read_run(path: str | os.PathLike[str]) -> Run:
 
     columns = _parse_cells(rows, linenos, names, header_line, fail)
 
-    # Extra columns are not checked: FORMATS.md says they are ignored (but kept).
+    # Extra columns are not checked: docs/formats.md says they are ignored (but kept).
     standard = [c for c in REQUIRED_COLUMNS + ("ps",) if c in columns]
     for name in standard:
         bad = np.flatnonzero(~np.isfinite(columns[name]))
@@ -185,19 +181,13 @@ def read_run(path: str | os.PathLike[str]) -> Run:
                    f"{_cell_text(rows[i - 1], names.index('t'))} s of line {linenos[i - 1]}; "
                    "times must be strictly increasing.", linenos[i], "t")
 
-    for name in _PRESSURES:
-        if name in columns:
-            bad = np.flatnonzero(columns[name] < _MIN_ABS_PRESSURE)
-            if bad.size:
-                i = int(bad[0])
-                raise fail(f"{_cell_text(rows[i], names.index(name))} looks like bar or gauge pressure; "
-                           "absolute Pa required.", linenos[i], name)
-
-    bad = np.flatnonzero(np.abs(columns["x"]) > _MAX_ABS_POSITION)
-    if bad.size:
-        i = int(bad[0])
-        raise fail(f"{_cell_text(rows[i], names.index('x'))} is beyond {_MAX_ABS_POSITION:g} m, which looks "
-                   "like millimetres; metres required.", linenos[i], "x")
+    odd = first_implausible(columns)
+    if odd is not None:
+        i = odd.index
+        raise fail(f"{_cell_text(rows[i], names.index(odd.column))} {odd.reason}.", linenos[i], odd.column)
+    why = time_unit_problem(t)
+    if why is not None:
+        raise fail(f"{why}.", linenos[-1], "t")
 
     return Run(
         t=columns["t"], u=columns["u"], x=columns["x"], p1=columns["p1"], p2=columns["p2"],
@@ -260,7 +250,8 @@ def _header(line: str, lineno: int, fail: _Fail) -> list[str]:
         what = "column" if len(missing) == 1 else "columns"
         found = ", ".join(repr(n) for n in names)
         raise fail(f"missing required {what} {', '.join(repr(c) for c in missing)} "
-                   f"(the header has {found}).", lineno)
+                   f"(the header has {found}); a recording with other columns or units converts with "
+                   "'combined-reality import'.", lineno)
     return names
 
 
@@ -278,7 +269,10 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
 
     # Slow path: also locates the exact line and column of a problem.
     if any('"' in r for r in rows):
-        cells = list(csv.reader(rows))
+        try:
+            cells = list(csv.reader(rows))
+        except csv.Error:  # a quote left open swallowed the rest of the file ("field larger than field limit")
+            cells = []
         if len(cells) != len(rows):  # a quote left open swallowed line breaks: go row by row
             cells = [_split(r) for r in rows]
     else:
@@ -303,7 +297,7 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
             except ValueError:
                 if name in REQUIRED_COLUMNS or name == "ps":
                     raise fail(f"{s.strip()!r} is not a number.", linenos[i], name) from None
-                # FORMATS.md: further columns are ignored, so text there is kept, not refused.
+                # docs/formats.md: further columns are ignored, so text there is kept, not refused.
                 columns[name] = np.array(col, dtype=str)
                 break
         else:

@@ -34,7 +34,7 @@ from .map import FIT_SPECS, FitSpec, FrictionMapError, MapPoint, fit_model
 
 # models whose dynamic identification is offered (the map's "cvs_delta" is cvs with a free exponent)
 DYNAMIC_SPECS: tuple[str, ...] = ("cv", "karnopp", "threlfall", "cvs", "cvs_delta", "lugre", "cv_load",
-                                  "cvs_load", "belforte")
+                                  "cvs_load", "belforte", "cv_dp")
 _BINS_PER_DIRECTION = 24
 # a condition of a static curve that the plant, which has no such signal, holds as a constant
 # parameter: an input of the dynamic fit, not an estimate

@@ -43,9 +43,9 @@ from ..files import Run, split_at_gaps
 from ..identify import derivative_kernels, friction_from_newton
 
 __all__ = ["FrictionMapError", "PointsFormatError", "TooFewPointsError", "SegmentOptions", "MapPoint",
-           "Breakaway", "RunPoints", "StickBand", "LinearFit", "ModelFit", "FitSpec", "FIT_SPECS",
-           "DirectionMap", "FrictionMap", "points_from_run", "read_points", "is_points_table", "linear_fit",
-           "fit_model", "build_map", "plot_map"]
+           "Breakaway", "RunPoints", "StickBand", "LinearFit", "ModelFit", "FitSpec", "FIT_SPECS", "Confounding",
+           "confounded_quantities", "DirectionMap", "FrictionMap", "points_from_run", "read_points", "is_points_table",
+           "linear_fit", "fit_model", "build_map", "plot_map"]
 
 
 class FrictionMapError(ValueError):
@@ -337,6 +337,12 @@ class FitSpec:
     family: str  # key of sim.friction_models.FRICTION_MODELS
     fixed: Mapping[str, float]
     description: str
+    # the operating conditions the points must carry (None: all of the family's); a condition
+    # of the family left out is 0 in the curve, and its parameters are held at 0 by `fixed`
+    conditions: tuple[str, ...] | None = None
+
+    def needs(self) -> tuple[str, ...]:
+        return FRICTION_MODELS[self.family].CONDITIONS if self.conditions is None else self.conditions
 
 
 FIT_SPECS: dict[str, FitSpec] = {s.name: s for s in (
@@ -349,12 +355,17 @@ FIT_SPECS: dict[str, FitSpec] = {s.name: s for s in (
     FitSpec("cv_load", "cv_load", {}, "Coulomb-viscous with normal-load terms (seed 003 Eq. 5)"),
     FitSpec("cvs_load", "cvs_load", {}, "Stribeck with normal-load terms (seed 003 Eq. 8)"),
     FitSpec("belforte", "belforte", {}, "pressure-dependent (Belforte, seed 004 Eq. 2)"),
+    FitSpec("belforte_dp", "belforte", {"K3": 0.0}, "Belforte without the counter-pressure term (points with dp only)",
+            conditions=("dp",)),
+    FitSpec("cv_dp", "cv_dp", {}, "the product's own law per direction: (Fc + kp dp) + Fv v"),
+    FitSpec("efficiency", "efficiency", {}, "friction proportional to dp (seed 004 Eq. 1, the efficiency factor)"),
 )}
 
 # families whose Fs is the breakaway force itself (no load or pressure terms): breakaway rows fix it
 _FS_FROM_BREAKAWAY_ROWS = frozenset({"cvs", "lugre"})
 _CONDITION_HELP = {"dp": "dp (|p1 - p2|, Pa)", "pc": "pc (counter pressure, Pa gauge)", "load": "load (N)"}
 _STRONG_CORRELATION = 0.999
+_REACH = 0.05  # a static force of which less reaches any point is extrapolated, not measured
 
 
 @dataclass(frozen=True)
@@ -397,10 +408,18 @@ class ModelFit:
     flags: tuple[Mapping[str, str], ...]
     status: str
     nfev: int
+    not_determined: tuple[str, ...] = ()  # parameters whose value the points do not pin down
+    problems: tuple[str, ...] = ()  # what is wrong with the fitted curve as a whole (shape, order of levels)
 
     @property
     def free(self) -> tuple[str, ...]:
         return tuple(self.start)
+
+    @property
+    def preferable(self) -> bool:
+        """May be ranked (by AICc) and preferred: converged, every parameter determined, a
+        curve within the data's range with the static level not below the Coulomb level."""
+        return self.status == "converged" and not self.not_determined and not self.problems
 
     def model_values(self) -> dict[str, float]:
         """The fitted values under the model's parameter names (Fc_pos / Fc_neg)."""
@@ -413,7 +432,9 @@ class ModelFit:
                 "ci95": {k: (list(v) if v is not None else None) for k, v in self.ci95.items()},
                 "fixed": dict(self.fixed), "start": dict(self.start), "r2": self.r2, "rmse": self.rmse,
                 "mae": self.mae, "n_points": self.n_points, "dof": self.dof, "aicc": self.aicc,
-                "flags": [dict(f) for f in self.flags], "status": self.status, "nfev": self.nfev}
+                "flags": [dict(f) for f in self.flags], "status": self.status, "nfev": self.nfev,
+                "not_determined": list(self.not_determined), "problems": list(self.problems),
+                "preferable": self.preferable}
 
 
 def _metrics(F: np.ndarray, pred: np.ndarray) -> tuple[float, float, float]:
@@ -453,14 +474,16 @@ def linear_fit(points: Sequence[MapPoint]) -> LinearFit:
                      r2=r2, rmse=rmse, mae=mae, n_points=n)
 
 
-def _conditions(cls: type[FrictionModel], points: Sequence[MapPoint], direction: str) -> dict[str, np.ndarray]:
+def _conditions(spec: FitSpec, points: Sequence[MapPoint], direction: str) -> dict[str, np.ndarray]:
     cond = {}
-    for key in cls.CONDITIONS:
+    for key in spec.needs():
         vals = np.array([getattr(p, key) for p in points], float)
         if not np.all(np.isfinite(vals)):
-            raise FrictionMapError(f"model {cls.name} needs {_CONDITION_HELP[key]} for every point, and the "
+            raise FrictionMapError(f"model {spec.name} needs {_CONDITION_HELP[key]} for every point, and the "
                                    f"{direction} points lack it (tables: add a column '{key}').")
         cond[key] = vals
+    for key in FRICTION_MODELS[spec.family].CONDITIONS:
+        cond.setdefault(key, np.zeros(len(points)))  # left out of this fit: its terms are held at 0
     return cond
 
 
@@ -485,8 +508,12 @@ def _starts(cls: type[FrictionModel], free: Sequence[str], v: np.ndarray, F: np.
         L = cond["load"]
         guess["Fc"], guess["mu"], guess["B"], guess["mu_v"] = lin([one, L, a, a * L], fast)
         guess["Fs"], guess["mu_s"] = max(float(f[order[0]] - guess["B"] * a[order[0]]), guess["Fc"]), guess["mu"]
-    if "dp" in cond:
+    if "dp" in cond and "pc" in cond:
         guess["FA"], guess["K2"], guess["K3"] = lin([one, cond["dp"], cond["pc"]], order)
+    if "dp" in cond:
+        if "kp" in cls.BASE:  # cv_dp, efficiency: linear in their parameters
+            cols = {"Fc": one, "kp": cond["dp"], "Fv": a}
+            guess.update(zip(cls.BASE, lin([cols[b] for b in cls.BASE], order)))
     scales = [n for n in free if n in cls.SCALES]
     if not scales:
         return [{n: float(guess[n]) for n in free}]
@@ -549,7 +576,7 @@ def _flags(cls, free, values, std, ci, lower, upper, corr, v, J_full, suffix) ->
             flags.append({"param": n, "reason": f"the standard deviation {s:.3g} exceeds the value {x:.3g}"})
         # how much of the parameter reaches the points at all (e.g. Fs behind a tiny Stribeck velocity)
         col = J_full[:, cls.param_index(f"{n}_{suffix}")]
-        if n in ("Fs", "mu_s") and float(np.max(np.abs(col))) < 0.05:
+        if n in ("Fs", "mu_s") and float(np.max(np.abs(col))) < _REACH:
             flags.append({"param": n, "reason": f"at most {100 * float(np.max(np.abs(col))):.2g} % of {n} reaches "
                                                  f"the points: it is extrapolated below the slowest speed"})
     if corr is not None:
@@ -559,6 +586,35 @@ def _flags(cls, free, values, std, ci, lower, upper, corr, v, J_full, suffix) ->
                     flags.append({"param": free[j], "reason": f"correlated with {free[i]} (r = {corr[i, j]:.4f}): "
                                                               f"the points cannot separate the two"})
     return flags
+
+
+# the part of the points' force spread within which a parameter's effect must be pinned
+_DETERMINED_SHARE = 0.5
+
+
+def _not_determined(cls, free, values, std, lower, upper, corr, J_full, suffix, F) -> set[str]:
+    """Free parameters the points do not pin down: no finite standard deviation, stuck at a
+    bound other than zero (the fit wanted beyond), inseparable from another (|r| > 0.999), a
+    static force that hardly reaches the points, or an uncertainty whose effect on the curve
+    (std x largest sensitivity) exceeds half the spread of the points' forces. A parameter
+    near 0 with a small effect is determined: the points say it is small."""
+    spread = float(np.ptp(np.abs(F))) or float(np.mean(np.abs(F))) or 1.0
+    out = set()
+    for n in free:
+        x, s = values[n], std[n]
+        i = cls.param_index(f"{n}_{suffix}")
+        lo, hi = lower[free.index(n)], upper[free.index(n)]
+        at_bound = (abs(x - hi) <= 1e-6 * max(1.0, abs(hi))) or (lo != 0 and abs(x - lo) <= 1e-6 * max(1.0, abs(lo)))
+        reach = float(np.max(np.abs(J_full[:, i])))
+        if not math.isfinite(s) or at_bound or reach * s > _DETERMINED_SHARE * spread or \
+                (n in ("Fs", "mu_s") and reach < _REACH):
+            out.add(n)
+    if corr is not None:
+        for i in range(len(free)):
+            for j in range(i + 1, len(free)):
+                if abs(corr[i, j]) > _STRONG_CORRELATION:
+                    out.update((free[i], free[j]))
+    return out
 
 
 def fit_model(points: Sequence[MapPoint], spec: FitSpec | str, fixed: Mapping[str, float] | None = None,
@@ -587,7 +643,7 @@ def fit_model(points: Sequence[MapPoint], spec: FitSpec | str, fixed: Mapping[st
                                 f"parameters (at least {k + 1} points).")
     v = np.array([p.v for p in points])
     F = np.array([p.F for p in points])
-    cond = _conditions(cls, points, direction)
+    cond = _conditions(spec, points, direction)
     names = list(cls.PARAMS)
     p_full = np.array([cls.defaults()[m] for m in names])
     for b, val in fixed_all.items():
@@ -629,8 +685,9 @@ def fit_model(points: Sequence[MapPoint], spec: FitSpec | str, fixed: Mapping[st
     for i, b in enumerate(free):
         values[b], std[b] = float(theta[i]), float(std_v[i])
         ci[b] = (values[b] - tq * std[b], values[b] + tq * std[b]) if math.isfinite(std[b]) else None
-    flags = _flags(cls, free, values, std, ci, lower, upper, corr, v, cls.static_jacobian(v, full(theta), **kw),
-                   suffix)
+    J_all = cls.static_jacobian(v, full(theta), **kw)
+    flags = _flags(cls, free, values, std, ci, lower, upper, corr, v, J_all, suffix)
+    undetermined = _not_determined(cls, free, values, std, lower, upper, corr, J_all, suffix, F)
     for b, val in fixed_all.items():
         values[b] = float(val) if math.isfinite(val) else None
         std.setdefault(b, None)
@@ -648,7 +705,9 @@ def fit_model(points: Sequence[MapPoint], spec: FitSpec | str, fixed: Mapping[st
                                                            if b not in free},
                     start=best_start, r2=r2, rmse=rmse, mae=mae, n_points=n, dof=dof, aicc=_aicc(2 * best.cost, n, k),
                     flags=tuple(flags),
-                    status="converged" if best.status > 0 else f"not converged ({best.message})", nfev=int(best.nfev))
+                    status="converged" if best.status > 0 else f"not converged ({best.message})", nfev=int(best.nfev),
+                    not_determined=tuple(b for b in order if b in undetermined or (b in fixed_all and values[b] is None
+                                                                                   and b not in cls.DYNAMIC)))
 
 
 def _aicc(ssr: float, n: int, k: int) -> float | None:
@@ -724,6 +783,49 @@ class StickBand:
 
 
 @dataclass(frozen=True)
+class Confounding:
+    """Two quantities of a direction's points that changed together: a friction term growing
+    with one cannot be told from one growing with the other."""
+
+    first: str  # "speed", "dp", "pc", "load"
+    second: str
+    r: float  # correlation over the sliding points
+
+    def sentence(self, direction: str) -> str:
+        return (f"{_QUANTITY_WORDS[self.first]} and {_QUANTITY_WORDS[self.second]} changed together in the "
+                f"{direction} points (r = {self.r:.3f}), so friction growing with one is hard to tell from friction "
+                f"growing with the other; their terms are reported only where the points still determine them")
+
+    def to_json(self) -> dict:
+        return {"quantities": [self.first, self.second], "r": self.r}
+
+
+_QUANTITY_WORDS = {"speed": "speed", "dp": "|p1 - p2|", "pc": "the counter pressure", "load": "the normal load"}
+_CONFOUNDED = 0.9  # |r| from which two quantities count as changed together
+
+
+def confounded_quantities(points: Sequence[MapPoint]) -> tuple[Confounding, ...]:
+    """Pairs of speed, dp, pc, load that changed together over the sliding points (|r| >= 0.9)."""
+    slide = [p for p in points if not p.breakaway]
+    if len(slide) < 3:
+        return ()
+    series = {"speed": np.abs([p.v for p in slide])}
+    for key in ("dp", "pc", "load"):
+        vals = np.array([getattr(p, key) for p in slide], float)
+        if np.all(np.isfinite(vals)):
+            series[key] = vals
+    series = {k: v for k, v in series.items() if np.std(v) > 1e-12 * max(1.0, float(np.mean(np.abs(v))))}
+    names = list(series)
+    out = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            r = float(np.corrcoef(series[a], series[b])[0, 1])
+            if abs(r) >= _CONFOUNDED:
+                out.append(Confounding(a, b, r))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
 class DirectionMap:
     direction: str
     points: tuple[MapPoint, ...]
@@ -731,9 +833,19 @@ class DirectionMap:
     linear: LinearFit | None
     fits: Mapping[str, ModelFit]
     skipped: Mapping[str, str]  # model -> why it was not fitted
+    confounded: tuple[Confounding, ...] = ()
+
+    @property
+    def best(self) -> str | None:
+        """The fit with the lowest AICc among those that may be preferred (every parameter
+        determined, a sound curve), or None."""
+        ranked = {n: f.aicc for n, f in self.fits.items() if f.preferable and f.aicc is not None}
+        return min(ranked, key=ranked.get) if ranked else None
 
     def to_json(self) -> dict:
         return {"models": {k: f.to_json() for k, f in self.fits.items()},
+                "best": self.best, "confounded": [c.to_json() for c in self.confounded],
+                "notes": [c.sentence(self.direction) for c in self.confounded],
                 "linear": self.linear.to_json() if self.linear else None,
                 "points": [p.to_json() for p in self.points], "stick_band": self.stick_band.to_json(),
                 "skipped": dict(self.skipped)}
@@ -815,14 +927,47 @@ def build_map(points: Sequence[MapPoint], models: Sequence[str] | None = None,
                     fit = _fs_from_breakaways(fit, band)
                 elif "Fs" in fixed:
                     fit = _fs_from_breakaways(fit, rows_only)
-                fits[name] = fit
+                fits[name] = _assess(fit, pts)
             except FrictionMapError as e:
                 if strict:
                     raise
                 skipped[name] = str(e)
         dirs[direction] = DirectionMap(direction=direction, points=pts, stick_band=band, linear=linear,
-                                       fits=fits, skipped=skipped)
+                                       fits=fits, skipped=skipped, confounded=confounded_quantities(pts))
     return FrictionMap(directions=dirs)
+
+
+# how far beyond the points' forces a fitted curve may go (in spreads of those forces)
+_RANGE_MARGIN = 0.5
+
+
+def _assess(fit: ModelFit, points: Sequence[MapPoint]) -> ModelFit:
+    """What is wrong with the fitted curve as a whole: between the slowest and the fastest point
+    it leaves the range of the points' forces (by more than half their spread), or its static
+    level lies below its Coulomb level."""
+    problems = list(fit.problems)
+    slide = [p for p in points if not p.breakaway]
+    curve = _fit_curve(fit, points)
+    if curve is not None and slide:
+        s = DIRECTIONS[fit.direction][1]
+        if FIT_SPECS[fit.model].needs():  # a curve of the points' pressures or loads: the model at the points
+            mag = s * _predicted(fit, slide)
+        else:
+            vv, FF = curve
+            speeds = np.abs([p.v for p in slide])
+            inside = (np.abs(vv) >= speeds.min()) & (np.abs(vv) <= speeds.max())  # where there are points
+            mag = s * FF[inside] if inside.any() else s * FF
+        forces = np.abs([p.F for p in points])
+        spread = max(float(np.ptp(forces)), 0.1 * float(np.mean(forces)))
+        low, high = float(forces.min()) - _RANGE_MARGIN * spread, float(forces.max()) + _RANGE_MARGIN * spread
+        if np.any(~np.isfinite(mag)) or mag.min() < low or mag.max() > high:
+            problems.append(f"the fitted curve leaves the data's range ({float(np.nanmin(mag)):.3g} to "
+                            f"{float(np.nanmax(mag)):.3g} N against points of {forces.min():.3g} to "
+                            f"{forces.max():.3g} N)")
+    Fs, Fc = fit.params.get("Fs"), fit.params.get("Fc")
+    if Fs is not None and Fc is not None and Fs < Fc * (1 - 1e-3):
+        problems.append(f"the static level Fs = {Fs:.3g} N lies below the Coulomb level Fc = {Fc:.3g} N")
+    return replace(fit, problems=tuple(problems)) if problems != list(fit.problems) else fit
 
 
 def _fs_from_breakaways(fit: ModelFit, band: StickBand) -> ModelFit:
@@ -859,7 +1004,8 @@ def _fs_from_breakaways(fit: ModelFit, band: StickBand) -> ModelFit:
 
 def plot_map(fmap: FrictionMap, path: str | os.PathLike[str], title: str = "") -> None:
     """The map (points with their friction spread, breakaway rows apart) and every fitted curve, both
-    directions; the friction axis spans the points (a curve that runs off beyond them is cut)."""
+    directions (a model of the points' pressures or loads as its value at each point); the
+    friction axis spans the points (a curve that runs off beyond them is cut)."""
     try:
         import matplotlib
 
@@ -887,23 +1033,42 @@ def plot_map(fmap: FrictionMap, path: str | os.PathLike[str], title: str = "") -
             ax.axvspan(0, s * d.stick_band.dv * 1e3, color="0.9", zorder=0,
                        label="stick band" if direction == "extension" else None)
         for name, fit in d.fits.items():
+            i = list(FIT_SPECS).index(name)  # one colour (and style) per model in both directions
+            # the best bold, fits that may not be preferred (parameters not determined, an unsound curve) faint
+            style = {"color": colours[i % len(colours)], "label": name if direction == "extension" else None,
+                     "alpha": 1.0 if fit.preferable else 0.35, "lw": 2.5 if name == d.best else 1.2}
+            if FIT_SPECS[name].needs():
+                # the curve depends on the points' pressures or loads: the model at each point, not one line
+                pts = [p for p in d.points if not p.breakaway]
+                at = _predicted(fit, pts)
+                ax.plot([p.v * 1e3 for p in pts], at, "x" if i < len(colours) else "+", ms=6, ls="none", **style)
+                continue
             curve = _fit_curve(fit, d.points)
             if curve is None:
                 continue
             vv, FF = curve
-            i = list(FIT_SPECS).index(name)  # one colour per model in both directions
-            ax.plot(vv * 1e3, FF, color=colours[i % len(colours)], label=name if direction == "extension" else None)
+            ax.plot(vv * 1e3, FF, ls="-" if i < len(colours) else "--", **style)
     lo, hi = min(F_all), max(F_all)
     ax.set_ylim(lo - 0.15 * (hi - lo), hi + 0.15 * (hi - lo))
     ax.axhline(0, color="0.5", lw=0.5)
     ax.axvline(0, color="0.5", lw=0.5)
     ax.set_xlabel("velocity v [mm/s]")
     ax.set_ylabel("friction F [N]")
-    ax.set_title(title or "static friction map")
+    ax.set_title((title or "static friction map") + "\nbold: the best fit; faint: fits not to be preferred")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _predicted(fit: ModelFit, points: Sequence[MapPoint]) -> np.ndarray:
+    """The fitted model at each point (with the point's own conditions)."""
+    cls = FRICTION_MODELS[fit.family]
+    p = cls.defaults()
+    p.update(fit.model_values())
+    needs = FIT_SPECS[fit.model].needs()
+    cond = {k: np.array([getattr(q, k) if k in needs else 0.0 for q in points], float) for k in cls.CONDITIONS}
+    return cls.static_force(np.array([q.v for q in points]), [p[k] for k in cls.PARAMS], **cond)
 
 
 def _fit_curve(fit: ModelFit, points: Sequence[MapPoint]) -> tuple[np.ndarray, np.ndarray] | None:
@@ -916,5 +1081,6 @@ def _fit_curve(fit: ModelFit, points: Sequence[MapPoint]) -> tuple[np.ndarray, n
     vv = s * np.linspace(max(a.min() * 0.05, 1e-5), a.max() * 1.05, 300)
     p = cls.defaults()
     p.update(fit.model_values())
-    cond = {k: float(np.nanmean([getattr(q, k) for q in points])) for k in cls.CONDITIONS}
+    needs = FIT_SPECS[fit.model].needs() if fit.model in FIT_SPECS else cls.CONDITIONS
+    cond = {k: float(np.nanmean([getattr(q, k) for q in points])) if k in needs else 0.0 for k in cls.CONDITIONS}
     return vv, cls.static_force(vv, [p[k] for k in cls.PARAMS], **cond)

@@ -255,7 +255,7 @@ def write_points(path, rows: Sequence[Mapping[str, float]], comments: Sequence[s
 # ------------------------------------------------------------------ cylinder quantities
 
 def net_force(cyl: Cylinder, p1, p2):
-    """Net pneumatic force minus the weight along the axis, N (MODEL.md's piston equation without
+    """Net pneumatic force minus the weight along the axis, N (docs/model.md's piston equation without
     friction and inertia): what friction holds while the piston is at rest."""
     g, m = cyl.geometry, cyl.mechanics
     A1, A2 = g.area_cap, g.area_rod
@@ -270,7 +270,7 @@ def force_limits(cyl: Cylinder) -> tuple[float, float]:
 
 
 def _phi(r: float, b: float) -> float:
-    """ISO 6358 flow function (without MODEL.md's laminar end: for controller gains only)."""
+    """ISO 6358 flow function (without docs/model.md's laminar end: for controller gains only)."""
     if r <= b:
         return 1.0
     a = min((r - b) / (1 - b), 1.0)

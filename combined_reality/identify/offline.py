@@ -32,12 +32,12 @@ from sim.plant import build_plant
 
 from ..files import Run, split_at_gaps
 from .newton import equation_error_friction
+from .preflight import check_determinable
 from .shooting import (IdentificationError, PriorRow, RunLayout, ShootingProblem, at_bounds, cluster_covariance,
                        condense, covariance, drives_with_measured_inputs, fit_metrics, free_parameters,
-                       interval_residual_sigma, line_search, linearize,
-                       parameter_bounds,
-                       parameter_unit, pooled_fit, prior_matrix, residual_scales, run_layout, simulate_layout,
-                       solve_bounded, standard_deviations, warm_nodes, with_effect_values)
+                       interval_residual_sigma, line_search, linearize, parameter_bounds, parameter_unit, pooled_fit,
+                       prior_matrix, residual_scales, run_layout, simulate_layout, solve_bounded, standard_deviations,
+                       warm_nodes, with_effect_values)
 
 
 # a model whose residual is this many times the sensor noise does not explain the run: its
@@ -128,6 +128,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     t_start = time.perf_counter()
     if not runs:
         raise IdentificationError("no runs to identify from.")
+    check_determinable(cyl, runs, options.estimate)  # no "converged" on runs that cannot say
     n_runs = len(runs)
     pieces = [piece for r in runs for piece in split_at_gaps(r)]
     if len(pieces) > n_runs:

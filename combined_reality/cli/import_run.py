@@ -1,0 +1,65 @@
+"""`combined-reality import`: a lab recording (delimited text, Parquet, MATLAB, TDMS, MDF, CAN
+log) in its own units into a run CSV, through a mapping file (docs/formats.md)."""
+from __future__ import annotations
+
+import argparse
+import math
+
+from .common import UsageError, progress_printer
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "import", help="convert a lab recording (its own units and format) into a run CSV",
+        description="Convert a lab recording into the run format (t, u, x, p1, p2 in s, 1, m, Pa absolute): the "
+                    "mapping file names for each channel its source column, its unit (any unit pint knows: ms, "
+                    "mm, bar, psi, kPa, V, percent, ...), whether a pressure is gauge (then [atmosphere] pressure "
+                    "is added) and for the command a linear map u = (value - zero) / span. Sources: delimited text "
+                    "(delimiter and decimal mark given or detected), Parquet, MATLAB .mat (v7.3 needs the mat73 "
+                    "extra), TDMS (tdms extra), MDF4 (mdf extra) and CAN logs decoded with a DBC. Irregular "
+                    "sampling is reported; --resample puts the run on a regular grid. The written run says in "
+                    "its header where it came from and how each channel was converted. Exit status 2 when the "
+                    "recording or the mapping cannot give a run (the message names the line or key).")
+    p.add_argument("raw", metavar="RAW", help="the recording (format from its suffix or [source] format)")
+    p.add_argument("--map", required=True, metavar="MAP.toml", help="the mapping file (docs/formats.md)")
+    p.add_argument("-o", "--output", required=True, metavar="RUN.csv", help="the run to write (replaced atomically)")
+    p.add_argument("--resample", metavar="RATE",
+                   help="resample to RATE Hz: measurements interpolated linearly, the command held from its last "
+                        "sample; instants inside gaps of lost samples are left out")
+    p.add_argument("--json", metavar="OUT.json", help="write what was done (sampling report, conversions) as JSON")
+    p.add_argument("-q", "--quiet", action="store_true", help="no report on stderr")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from ..files import clean_json, write_json_atomic, write_run
+    from ..importing import MappingError, import_recording, load_mapping
+
+    rate = None
+    if args.resample is not None:
+        try:
+            rate = float(args.resample)
+        except ValueError:
+            rate = math.nan
+        if not (math.isfinite(rate) and rate > 0):
+            raise UsageError(f"--resample must be a sampling rate in Hz (a positive number), not {args.resample!r}.")
+    say = progress_printer(args.quiet)
+    try:
+        mapping = load_mapping(args.map)
+        result = import_recording(args.raw, mapping, rate)
+    except MappingError as e:
+        raise UsageError(str(e).rstrip(".") + ".") from None
+    write_run(args.output, result.run, comments=result.comments)
+    if say:
+        say(f"{args.raw}: {result.comments[0].split(', ', 1)[1]}")
+        say(f"  {result.sampling.describe()}")
+        for note in result.notes:
+            say(f"  note: {note}")
+        say(f"wrote {args.output}: {result.run.n} samples, {result.run.duration:.6g} s")
+    if args.json:
+        write_json_atomic(args.json, clean_json({
+            "input": str(args.raw), "mapping": str(args.map), "output": str(args.output),
+            "samples": result.run.n, "sampling": result.sampling.to_json(), "resampled_hz": rate,
+            "header": list(result.comments), "notes": list(result.notes)}))
+    return 0
