@@ -293,6 +293,14 @@ def condense(lin, E, Draw, layouts, has_next, nx, nth):
     """The reduced normal equations (N, g) in (ds0 per run, dtheta), with P, Q, q of `reduce_nodes`
     and the per-interval gradient contributions."""
     P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, Draw, has_next, nx, nth)
+    N, g, scores = normal_equations(Js, Jt, r0, layouts, nx, nth)
+    return N, g, P, Q, q, scores
+
+
+def normal_equations(Js, Jt, r0, layouts, nx, nth):
+    """(N, g, scores) of the reduced problem in (ds0 of every run or gap-free piece, dtheta):
+    `layouts` give each piece's first interval (node0) and its number of intervals (K);
+    scores are the per-interval gradient contributions (for the cluster-robust covariance)."""
     Ktot, R = Js.shape[0], len(layouts)
     nred = R * nx + nth
     N = np.zeros((nred, nred))
@@ -315,7 +323,7 @@ def condense(lin, E, Draw, layouts, has_next, nx, nth):
         N[R * nx:, R * nx:] += jt.T @ jt
         g[a] = js.T @ rr
         g[R * nx:] += jt.T @ rr
-    return N, g, P, Q, q, scores
+    return N, g, scores
 
 
 def covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndarray | None:
