@@ -601,6 +601,17 @@ class LinkRig:
             self._events.flush(force=True)
         self._dispatch()
 
+    def drain(self) -> list[Sample]:
+        """The samples received but not read yet, in order (after stop(): all the link took in
+        before it closed), leaving none behind."""
+        with self._lock:
+            out = list(self._queue)
+            self._queue.clear()
+        self._dispatch()
+        if out:
+            self._last_read_seq = out[-1].seq
+        return out
+
     def __enter__(self):
         return self
 
