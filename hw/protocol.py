@@ -24,6 +24,7 @@ from typing import Callable, Union
 
 from cobs import cobs
 
+from .realtime import make_realtime
 from .rig import LinkLost, LinkStats, Sample, Status, bounded
 
 __all__ = [
@@ -600,6 +601,10 @@ class LinkRig:
         with self._lock:
             self._events.flush(force=True)
         self._dispatch()
+
+    def realtime(self, priority: int) -> str | None:
+        """Run the reader thread under SCHED_FIFO at `priority` (hw.realtime): None when granted."""
+        return make_realtime(priority, self._thread) if self._thread is not None else "the link is closed"
 
     def drain(self) -> list[Sample]:
         """The samples received but not read yet, in order (after stop(): all the link took in

@@ -11,6 +11,11 @@ from .common import (EFFECT_HELP, UsageError, estimate_list, load_config, open_r
                      rerun_mode)
 
 
+# SCHED_FIFO priority of a live session's acquisition: below the virtual rig's loop (10) and
+# its reader (9), which may run on the same machine
+_ACQUISITION_PRIORITY = 5
+
+
 def _add_online_arguments(a) -> None:
     a.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
     a.add_argument("--json", help="write the final online estimate (identify format, plus its history)")
@@ -175,6 +180,8 @@ class _Signals:
 
 def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, inline: bool,
                  console) -> int:
+    from hw.realtime import realtime_available
+
     from ..files import clean_json, cylinder_tag, write_json_atomic
     from ..live import ConsoleSink, InlineEstimator, LockstepSimulator, ProcessEstimator, run_session
 
@@ -203,14 +210,22 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         if not args.quiet:
             console.say("preparing the model (compiled once, then cached) ...")
         simulator = LockstepSimulator(cyl)
-        estimator = (InlineEstimator if inline else ProcessEstimator)(cyl, sample_period, options)
+        # a live rig is acquired at real-time priority where the OS grants it; the estimator
+        # then needs to stand back no further
+        realtime = None if args.command == "replay" else _ACQUISITION_PRIORITY
+        if inline:
+            estimator = InlineEstimator(cyl, sample_period, options)
+        else:
+            estimator = ProcessEstimator(cyl, sample_period, options,
+                                         nice=0 if realtime is not None and realtime_available() else 10)
         comments = [cylinder_tag(cyl), f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
                     f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
         t_wall = time.perf_counter()
         signals.in_loop = True
         result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, record_to=record,
                              record_comments=comments, sinks=sinks, simulator=simulator, on_event=console.say,
-                             give_up_s=args.give_up, expected_period=sample_period, stop=signals.stop)
+                             give_up_s=args.give_up, expected_period=sample_period, stop=signals.stop,
+                             realtime=realtime)
     finally:
         signals.restore()
         if estimator is not None:

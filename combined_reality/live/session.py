@@ -21,6 +21,7 @@ from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
+from hw.realtime import make_normal, make_realtime
 from hw.rig import Rig, Sample, Status
 from hw.virtual_rig import VirtualRig
 from sim.compiled import shooting_functions
@@ -132,13 +133,13 @@ class InlineEstimator:
         pass
 
 
-def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent: int) -> None:
+def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent: int, nice: int) -> None:
     """The estimator process: take rows, update whenever a window is due, send estimates.
     It ends with its parent, even one killed outright (no orphan keeps computing)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the session's: it ends this process
     try:
         try:
-            os.nice(10)  # best effort: acquisition and the rig's link come first on a busy machine
+            os.nice(nice)  # acquisition and the rig's link come first on a busy machine
         except OSError:
             pass
         mhe = MovingHorizonEstimator(cyl, sample_period, options, effects)
@@ -177,12 +178,15 @@ class ProcessEstimator:
     """The moving-horizon estimator in its own process: acquisition never waits for it."""
 
     def __init__(self, cyl: Cylinder, sample_period: float, options: OnlineOptions, effects: Sequence[Effect] = (),
-                 start_timeout: float = 120.0):
+                 start_timeout: float = 120.0, nice: int = 10):
+        """`nice`: how far below acquisition the estimator runs (0 when acquisition has
+        real-time priority: then it needs no more room, and the estimate keeps up on a busy
+        machine)."""
         ctx = mp.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
         self.proc = ctx.Process(target=_estimator_main, name="combined-reality-estimator", daemon=True,
                                 args=(cyl, sample_period, options, tuple(effects), self.inbox, self.outbox,
-                                      os.getpid()))
+                                      os.getpid(), nice))
         self.proc.start()
         self.error: str | None = None
         kind, _ = self._get(start_timeout)
@@ -448,13 +452,17 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
                 sinks: Sequence[Sink] = (), simulator: LockstepSimulator | None = None,
                 on_event: Callable[[str], None] | None = None, block: int = 20,
                 give_up_s: float = 3.0, expected_period: float | None = None,
-                stop: Callable[[], str | None] | None = None, finish_timeout_s: float = 30.0) -> SessionResult:
+                stop: Callable[[], str | None] | None = None, finish_timeout_s: float = 30.0,
+                realtime: int | None = None) -> SessionResult:
     """Acquire until `duration` of rig time, the end of a replayed run, a rig that stays
     silent for `give_up_s`, Ctrl-C, or `stop()` returning a reason (checked at least every
     0.1 s: a signal handler sets it). Every sample received is recorded the moment it
     arrives, in order, also the ones still queued when acquisition stops; a channel the rig
     did not measure (missing or not finite) is an empty cell. After a stop the estimator gets
-    at most 0.3 s to finish (the session ends within a second), else `finish_timeout_s`."""
+    at most 0.3 s to finish (the session ends within a second), else `finish_timeout_s`.
+    With `realtime`, acquisition (this thread and the rig's reader) runs under SCHED_FIFO
+    at that priority where the OS grants it: other processes then cannot delay the answer
+    to a sample."""
     events: list[str] = []
 
     def event(msg: str) -> None:
@@ -542,6 +550,11 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     gc.collect()
     gc.freeze()
     rig.start()
+    if realtime is not None:
+        why = make_realtime(realtime) or getattr(rig, "realtime", lambda _p: None)(realtime)
+        if why is not None:
+            event(f"acquisition runs without real-time priority ({why}): on a busy machine the answers to samples "
+                  "come late more often (give this user an rtprio limit to change that)")
     try:
         while True:
             why = stop() if stop is not None else None
@@ -578,6 +591,8 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         finally:
             gc.unfreeze()
             rec.close()
+            if realtime is not None:
+                make_normal()
     if stopped:
         event(f"{reason}: valve centred, recording closed")
     flush_block()
