@@ -180,6 +180,7 @@ class MovingHorizonEstimator:
         self._seen = 0  # stream index one past the newest row
         self._last_row: tuple[float, float] | None = None  # (t, u) of the newest row
         self._virtual: list[int] = []  # stream indices of the rows that mark where bridged gaps begin
+        self._virtual_gone = 0  # such rows no window can need any more (dropped from the list)
         # complete shooting intervals: first row, rows, and how each joins the one before
         # (_NEW_PIECE, _JOINED, or _BRIDGED across lost samples)
         self._iv_start: list[int] = []
@@ -280,12 +281,8 @@ class MovingHorizonEstimator:
 
     @property
     def _complete(self) -> int:
-        """One past the newest complete interval a window may end with: not one that ends where a
-        bridged gap begins, as long as the interval after the gap is not complete."""
-        k1 = self._iv_base + len(self._iv_rows)
-        while k1 > self._iv_base and self._ends_at_gap(k1 - 1):
-            k1 -= 1
-        return k1
+        """One past the newest complete interval."""
+        return self._iv_base + len(self._iv_rows)
 
     @property
     def backlog(self) -> int:
@@ -300,7 +297,9 @@ class MovingHorizonEstimator:
     def ready(self) -> bool:
         if self._prev is None:
             return self.backlog >= self.N
-        return self.backlog >= self.slide_min or (self._ended and self.backlog > 0)
+        # intervals end early at gaps, so the data come in uneven steps: slide as soon as the
+        # nearest whole-interval amount to update_s is there, so updates keep their rate
+        return self.backlog >= self.slide_min - self.M // 2 or (self._ended and self.backlog > 0)
 
     # ------------------------------------------------------------ the window
     def _next_window(self) -> tuple[int, int, int]:
@@ -321,12 +320,10 @@ class MovingHorizonEstimator:
             k1 -= 1  # fallen behind by more than a window: catch up over the next updates
         return k0, k1 - k0, k0 - old0
 
-    def _ends_at_gap(self, g: int) -> bool:
-        """Whether complete interval g ends with the row that marks a bridged gap."""
-        a = g - self._iv_base
-        last = self._iv_start[a] + self._iv_rows[a] - 1
-        i = bisect.bisect_left(self._virtual, last)
-        return i < len(self._virtual) and self._virtual[i] == last
+    def _is_virtual(self, row: int) -> bool:
+        """Whether stream row `row` marks where a bridged gap begins (nothing measured there)."""
+        i = bisect.bisect_left(self._virtual, row)
+        return i < len(self._virtual) and self._virtual[i] == row
 
     def _layout(self, k0: int, Kw: int):
         """Inputs (the held commands, without the offsets over bridged gaps), step lengths,
@@ -397,6 +394,11 @@ class MovingHorizonEstimator:
         R, G = len(pieces), len(lay["after_gap"])
         r_first = lay["starts"][0]
         r_last = lay["starts"][-1] + lay["lens"][-1] - 1
+        # the estimate is of the window's last real sample, not of a row that marks a gap
+        last_k, last_row = Kw - 1, lay["lens"][-1] - 1
+        if self._is_virtual(self._base + r_last):
+            r_last -= 1
+            last_k, last_row = (last_k, last_row - 1) if last_row else (Kw - 2, lay["lens"][-2] - 1)
         t_first, t_last = float(self._buf[0, r_first]), float(self._buf[0, r_last])
 
         if prev is not None:
@@ -527,12 +529,14 @@ class MovingHorizonEstimator:
         t0 = self._buf[0, lay["starts"]]
         self._prev = {"k0": k0, "Kw": Kw, "S": S, "X": X, "Js": Js, "Jt": Jt, "r": r_acc, "theta": self.theta,
                       "piece_of": piece_of, "mask": lay["mask"], "t0": t0}
-        seen = self._base + r_last + 1 - bisect.bisect_right(self._virtual, self._base + r_last)
+        seen = self._base + r_last + 1 - self._virtual_gone - bisect.bisect_right(self._virtual, self._base + r_last)
         # what later windows can still need
-        drop = r_first - self._base
-        if drop > 0:
-            self._buf = self._buf[:, drop:]
-            self._base = r_first
+        if r_first > 0:  # (buffer positions)
+            self._buf = self._buf[:, r_first:]
+            self._base += r_first
+            gone_rows = bisect.bisect_left(self._virtual, self._base)
+            del self._virtual[:gone_rows]
+            self._virtual_gone += gone_rows
         gone = k0 - self._iv_base
         if gone > 0:
             del self._iv_start[:gone], self._iv_rows[:gone], self._iv_link[:gone]
@@ -544,8 +548,7 @@ class MovingHorizonEstimator:
         w = self.wts
         rmse = {f"rmse_{n}": float(np.sqrt(np.sum(E[..., j] ** 2) / max(lay["mask"][..., j].sum(), 1))) / w[j]
                 for j, n in enumerate(self.plant.output_names)}
-        n_last = lay["lens"][-1]
-        state = S[:, Kw - 1] if n_last == 1 else X[:, Kw - 1, n_last - 2]
+        state = S[:, last_k] if last_row == 0 else X[:, last_k, last_row - 1]
         return OnlineEstimate(
             t=t_last, values=dict(zip(self.names, self.theta.tolist())), std=dict(zip(self.names, std.tolist())),
             units=self.units, window=(t_first, t_last), samples_seen=int(seen), sigma=math.sqrt(sigma2), rmse=rmse,
