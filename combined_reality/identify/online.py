@@ -72,7 +72,7 @@ class OnlineOptions:
     # the estimator runs beside acquisition (in its own, niced process): one core's worth
     threads: int = 1
     bridge_s: float = 0.01  # lost samples up to this long are bridged (their command estimated)
-    max_bridged: int = 40  # bridged gaps per window at most (each adds an unknown); more start new pieces
+    max_bridged: int = 100  # bridged gaps per window at most (each adds an unknown); more start new pieces
     cluster_s: float = 1.0  # residuals may be correlated within about this long (the robust std)
 
 
@@ -462,9 +462,11 @@ class MovingHorizonEstimator:
         E, D = prob.residuals(S, X)
         lam, mu, it = 0.0, 0.0, 0
         lin_at = step_taken = None
-        # a piece that starts in the new data (after an outage) starts cold, like the first window
-        cold = prev is None or any(pc.node0 >= keep for pc in pieces)
-        n_iter = self.options.first_iterations if cold else self.options.max_iterations
+        # the first window starts cold; a piece that starts in the new data (after an outage)
+        # gets a few more iterations than a warm start
+        n_iter = self.options.first_iterations if prev is None else self.options.max_iterations
+        if prev is not None and any(pc.node0 >= keep for pc in pieces):
+            n_iter = max(n_iter, min(3, self.options.first_iterations))
         nu = nth + G
         th_sl = slice(R * nx, R * nx + nu)
         for it in range(1, n_iter + 1):

@@ -283,9 +283,11 @@ def reduce_nodes(lin, E, Draw, has_next, nx, nth):
             Q[k] = A[j] @ Q[j] + B[j]
             q[k] = A[j] @ q[j] + Draw[:, link]
             link += 1
-    Js = np.einsum("kmoi,kij->kmoj", G, P)
-    Jt = np.einsum("kmoi,kij->kmoj", G, Q) + Hth
-    r0 = E + np.einsum("kmoi,ki->kmo", G, q)
+    # batched matrix products (BLAS) rather than einsum: the same sums, several times faster
+    Gf = G.reshape(Ktot, -1, nx)
+    Js = (Gf @ P).reshape(G.shape[:3] + (nx,))
+    Jt = (Gf @ Q).reshape(G.shape[:3] + (Q.shape[-1],)) + Hth
+    r0 = E + (Gf @ q[:, :, None]).reshape(E.shape)
     return P, Q, q, Js, Jt, r0
 
 
