@@ -20,11 +20,15 @@ import pytest
 from combined_reality.cli import main
 from combined_reality.live import PositionProgram
 from hw.can_rig import CanRig
+from hw.realtime import make_normal, make_realtime
 from hw.rig import Status, bounded
 from hw.serial_rig import SerialRig
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = ROOT / "configs" / "cyl_a_32x100.toml"
+
+# real time is tested with two busy processes beside (conftest.busy_machine)
+pytestmark = pytest.mark.usefixtures("busy_machine")
 
 
 class Server:
@@ -78,15 +82,20 @@ def closed_loop(rig, cyl, duration, *, seed=1, quiet_after=None, until=None):
     # long-lived objects before it starts the loop
     gc.collect()
     gc.freeze()
+    # like a live session: the loop and the link's reader at real-time priority where granted
+    granted = make_realtime(5) is None
     try:
         _loop(rig, program, samples, replies, duration, quiet_after, until)
     finally:
         gc.unfreeze()
+        if granted:
+            make_normal()
     return samples, replies
 
 
 def _loop(rig, program, samples, replies, duration, quiet_after, until):
     rig.start()
+    rig.realtime(5)
     t_end = time.monotonic() + duration
     while time.monotonic() < t_end:
         if until is not None and until(samples):

@@ -75,7 +75,7 @@ def _headless_env() -> dict:
     ("SIGINT", ["spawn"]),  # no display here: falls back to a .rrd next to the recording
     ("SIGTERM", ["connect", "rerun+http://127.0.0.1:9/proxy"]),  # a viewer that never answers
 ])
-def test_a_session_ends_within_a_second_of_a_signal_whatever_the_viewer_does(tmp_path, how, rerun):
+def test_a_session_ends_within_a_second_of_a_signal_whatever_the_viewer_does(tmp_path, how, rerun, busy_machine):
     """SIGINT and SIGTERM end a live session within a second (valve centred, every file
     complete), with a viewer that cannot start or never answers; SIGKILL leaves a recording
     of whole lines."""
