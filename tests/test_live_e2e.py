@@ -148,4 +148,5 @@ def test_a_rig_that_vanishes_for_good_ends_the_session_with_one_clear_line(cyl_a
     assert code == 1
     assert "no samples for" in err
     run = read_run(rec)
-    assert 2500 < run.n < 3500
+    # recorded from when the host got going (later on a busy machine) to the vanishing at 3 s
+    assert abs(run.t[-1] - 3.0) < 0.05 and run.n > 500

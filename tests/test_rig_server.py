@@ -121,9 +121,11 @@ def check_stream(samples, replies, stats, quantise):
     assert np.std(dt) > 2e-6  # the rig's clock has jitter and the samples carry it
     sent = {k: quantise(u) for k, u in replies.items()}
     # healthy: a missed deadline (the machine's load) or the rig's soft stroke limit (a late
-    # host overshooting) may show, nothing else
-    assert all(s.status & ~(Status.OVERRUN | Status.SOFT_LIMIT) == 0 for s in samples), \
-        [s for s in samples if s.status]
+    # host overshooting) may show; on a busy machine the rig's watchdog too, when the host was
+    # held up for 50 ms (the rig says so, and the valve is centred meanwhile)
+    allowed = Status.OVERRUN | Status.SOFT_LIMIT | (Status.WATCHDOG if stats.rig_errors else 0)
+    assert all(s.status & ~allowed == 0 for s in samples), [s for s in samples if s.status & ~allowed]
+    assert all(s.u_applied == 0.0 for s in samples if s.status & Status.WATCHDOG)
     free = [s for s in samples[1:] if not s.status & Status.SOFT_LIMIT]
     # timing contract: sample k+1 reports the reply to sample k, unless that reply was late
     mismatch = [s for s in free if s.u_applied != sent[s.seq - 1]]
@@ -228,7 +230,8 @@ def test_watchdog_centres_the_valve_within_100_ms_of_the_last_command(servers, c
     assert r.code == 0
     last_answered = max(r.replies)
     t_last = next(s.t for s in r.samples if s.seq == last_answered)
-    tripped = next(s for s in r.samples if s.status & Status.WATCHDOG)
+    # (a busy machine may have held the host up long enough for an earlier trip)
+    tripped = next(s for s in r.samples if s.status & Status.WATCHDOG and s.seq > last_answered)
     assert 0.05 < tripped.t - t_last <= 0.1  # measured on the rig's clock
     after = [s for s in r.samples if s.seq >= tripped.seq]
     assert len(after) > 100 and all(s.u_applied == 0.0 and s.status & Status.WATCHDOG for s in after)

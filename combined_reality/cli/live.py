@@ -223,7 +223,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         t_wall = time.perf_counter()
         signals.in_loop = True
         result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, record_to=record,
-                             record_comments=comments, sinks=sinks, simulator=simulator, on_event=console.say,
+                             record_comments=comments, sinks=sinks, simulator=simulator, on_event=console.warn,
                              give_up_s=args.give_up, expected_period=sample_period, stop=signals.stop,
                              realtime=realtime)
     finally:

@@ -22,6 +22,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from hw.protocol import EventLimiter
 from hw.realtime import make_normal, make_realtime
 from hw.rig import Rig, Sample, Status
 from hw.virtual_rig import VirtualRig
@@ -474,6 +475,14 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         if on_event:
             on_event(msg)
 
+    # what may come with every sample (a sensor that dropped out) is said once a second at most
+    per_sample = EventLimiter(1.0)
+
+    def sample_event(key: str, msg: str) -> None:
+        per_sample.say(key, msg)
+        for line in per_sample.pop_lines():
+            event(line)
+
     pending: list[tuple] = []
     estimates: list[OnlineEstimate] = []
     counters = {"samples": 0, "gaps": 0, "estimates": 0, "incomplete": 0, "invalid": 0, "rig_overruns": 0}
@@ -515,8 +524,8 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         if not (math.isfinite(s.t) and math.isfinite(s.u_applied)) or (t_prev is not None and s.t <= t_prev):
             # a row needs its time (after the one before) and the command the valve held
             counters["invalid"] += 1
-            event(f"a sample without a valid time or command (t = {s.t!r}, u = {s.u_applied!r}) cannot be a row "
-                  "of the run; left out")
+            sample_event("invalid", f"a sample without a valid time or command (t = {s.t!r}, u = {s.u_applied!r}) "
+                                    "cannot be a row of the run; left out")
             return False
         if t0 is None:
             t0 = s.t
@@ -539,7 +548,8 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         if not (math.isfinite(x) and math.isfinite(p1) and math.isfinite(p2)):
             counters["incomplete"] += 1
             missing = ", ".join(n for n, v in (("x", x), ("p1", p1), ("p2", p2)) if not math.isfinite(v))
-            event(f"sample at t = {s.t - t0:.3f} s: {missing} not measured (recorded as an empty cell)")
+            sample_event("incomplete", f"sample at t = {s.t - t0:.3f} s: {missing} not measured (recorded as an "
+                                       "empty cell)")
         if s.status & Status.OVERRUN:
             counters["rig_overruns"] += 1
         rec.append(s.t, s.u_applied, x, p1, p2, None if math.isnan(ps) else ps)
