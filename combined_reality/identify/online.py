@@ -10,12 +10,12 @@ one window. A finite `memory_s` discounts old information, to follow slowly drif
 
 Lost samples: multiple shooting needs no sample where none arrived. The stream is cut into
 shooting intervals of up to `interval_s`, and an interval ends at a gap. Across a short gap
-(up to `bridge_s`) the simulation runs on through the lost period with the command held
-from the sample before, plus an unknown offset that is estimated with the window (the rig
-latched some command while the samples were lost, most often the next one; one sample
-period of a wrong command moves a chamber pressure by kilopascals, so holding the old one
-is not good enough): position and velocity stay continuous, the pressures take what the
-data after the gap say. Only a gap long enough to lose the state (or more bridged gaps in
+(up to `bridge_s`) the simulation runs on: the sample before the gap held its command for
+one period (known); from the first lost tick on, the rig latched commands nobody saw, most
+often the one reported after the gap (a host answers only what it receives). That command
+is one unknown per gap, estimated with the window (one sample period of a wrong command
+moves a chamber pressure by kilopascals, so holding the old one does not fit): position
+and velocity stay continuous, the pressures take what the data after the gap say. Only a gap long enough to lose the state (or more bridged gaps in
 a window than `max_bridged`) starts a new gap-free piece with a free node state. A window
 thus holds one or more pieces and is never restarted: the estimate goes on across lost
 samples and outages alike. Outputs not measured at a sample (NaN) have no residual there.
