@@ -173,8 +173,9 @@ class MovingHorizonEstimator:
         self.prior_mean = self.theta.copy()
         self.units = {n: parameter_unit(plant, n) for n in self.names}
         self._prob: _PaddedProblem | None = None
-        # one step for each side of the central differences over every bridged gap a window may hold
-        self._gap_steps = NumpyCall(self.sf.step.map(2 * max(1, options.max_bridged)))
+        # one step for each side of the central differences over the bridged gaps of a window,
+        # by size in steps of 8 (a few compiled maps, few unused columns)
+        self._gap_steps: dict[int, NumpyCall] = {}
         self._buf = np.empty((5, 0))  # rows t, u, x, p1, p2
         self._base = 0  # stream index of _buf[:, 0]
         self._seen = 0  # stream index one past the newest row
@@ -570,12 +571,14 @@ class MovingHorizonEstimator:
         xb = X[:, before, np.maximum(n - 2, 0)]  # the state at the last sample before each gap
         xb[:, n == 1] = S[:, before[n == 1]]
         u, h = W[0, lay["gap_w"]], lay["H"][0, lay["gap_h"]]
-        eps, cols = 1e-4, max(1, self.options.max_bridged)  # the unused columns take zero-length steps
+        eps, cols = 1e-4, -(-Gn // 8) * 8  # the unused columns take zero-length steps
+        if cols not in self._gap_steps:
+            self._gap_steps[cols] = NumpyCall(self.sf.step.map(2 * cols))
         xs, us, hs = np.zeros((xb.shape[0], 2 * cols)), np.zeros(2 * cols), np.zeros(2 * cols)
         for side, d in enumerate((eps, -eps)):
             xs[:, side * cols:side * cols + Gn], us[side * cols:side * cols + Gn] = xb, u + d
             hs[side * cols:side * cols + Gn] = h
-        xn = self._gap_steps(xs, us[None], us[None], p[:npar, None], hs[None])[0]
+        xn = self._gap_steps[cols](xs, us[None], us[None], p[:npar, None], hs[None])[0]
         dxdu = (xn[:, :Gn] - xn[:, cols:cols + Gn]) / (2 * eps)
         nth = Hth.shape[-1]
         Hth = np.concatenate([Hth, np.zeros(Hth.shape[:-1] + (Gn,))], axis=-1)
