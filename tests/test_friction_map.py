@@ -483,3 +483,20 @@ def test_command_on_a_virtual_rig_run(cvs_rig_run, tmp_path, capsys):
         # the slowest points are far above the true Stribeck velocities: cvs cannot be trusted there
         assert d["models"]["karnopp"]["params"]["dv"] == pytest.approx(band["dv"], rel=1e-12)
     assert "constant-velocity points" in capsys.readouterr().err
+
+
+def test_points_from_a_run_with_channels_not_measured(cyl_a, run_a):
+    """Empty cells (NaN) cut Newton's-law friction into stretches: no point spans a sample
+    not measured, and the rest of the run still gives its points."""
+    from dataclasses import replace
+
+    from combined_reality.friction.map import points_from_run
+
+    full = points_from_run(cyl_a, run_a)
+    x = run_a.x.copy()
+    x[::2000] = np.nan  # one position in two seconds not measured
+    holey = points_from_run(cyl_a, replace(run_a, x=x))
+    t_nan = run_a.t[::2000]
+    assert len(holey.points) >= 0.5 * len(full.points) > 0
+    for pt in holey.points:
+        assert not np.any((t_nan >= pt.t_start - 0.016) & (t_nan <= pt.t_end + 0.016)), pt
