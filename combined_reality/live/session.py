@@ -127,7 +127,7 @@ class InlineEstimator:
             out.append(self.mhe.update())
         return out
 
-    def finish(self, timeout: float = 30.0) -> list[OnlineEstimate]:
+    def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = lambda: False) -> list[OnlineEstimate]:
         self.mhe.flush()
         return self.poll(final=True)
 
@@ -223,18 +223,19 @@ class ProcessEstimator:
             elif kind == "error":
                 self.error = value
 
-    def finish(self, timeout: float = 30.0) -> list[OnlineEstimate]:
-        """Let the estimator take in everything sent so far; its last estimates."""
+    def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = lambda: False) -> list[OnlineEstimate]:
+        """Let the estimator take in everything sent so far (for at most `timeout`, or until
+        `cancelled()`); its last estimates."""
         out = self.poll()
         if self.error or not self.proc.is_alive():
             return out
         self.inbox.put("finish")
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            kind, value = self._get(max(0.01, deadline - time.monotonic()))
+        while time.monotonic() < deadline and not cancelled():
+            kind, value = self._get(min(0.1, max(0.01, deadline - time.monotonic())))
             if kind == "estimate":
                 out.append(value)
-            elif kind in ("done", "error", None):
+            elif kind in ("done", "error") or (kind is None and not self.proc.is_alive()):
                 break
         return out
 
@@ -610,7 +611,9 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     if stopped:
         event(f"{reason}: valve centred, recording closed")
     flush_block()
-    for e in estimator.finish(0.3 if stopped else finish_timeout_s):
+    # a signal while the estimator finishes ends that too (the session ends within a second)
+    for e in estimator.finish(0.3 if stopped else finish_timeout_s,
+                              cancelled=lambda: stop is not None and stop() is not None):
         take(e)
     if getattr(estimator, "error", None):
         event(f"online estimator failed: {estimator.error}")
