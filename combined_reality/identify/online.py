@@ -466,7 +466,8 @@ class MovingHorizonEstimator:
         # the first window starts cold; a piece that starts in the new data (after an outage)
         # gets a few more iterations than a warm start
         n_iter = self.options.first_iterations if prev is None else self.options.max_iterations
-        if prev is not None and any(pc.node0 >= keep for pc in pieces):
+        # (so does a window mostly of new data: an estimator that fell behind slides far)
+        if prev is not None and (any(pc.node0 >= keep for pc in pieces) or keep < Kw // 2):
             n_iter = max(n_iter, min(3, self.options.first_iterations))
         nu = nth + G
         th_sl = slice(R * nx, R * nx + nu)
