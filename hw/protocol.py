@@ -18,7 +18,7 @@ import struct
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 from typing import Callable, Union
 
@@ -496,6 +496,7 @@ class LinkRig:
         self._queue: deque[Sample] = deque()
         self._queue_size = queue_size
         self._host_overflow = 0
+        self._stale = 0  # samples thrown away by start(): they came before the START that asked for them
         self._corrupt_reported = 0  # frames_corrupt already counted into the fault messages
         self._reconnects = 0
         self._commands_sent = 0
@@ -537,7 +538,8 @@ class LinkRig:
             self._launch()
         with self._lock:
             self._session.restart()
-            self._queue.clear()  # samples from before START are stale
+            self._stale += len(self._queue)  # samples from before START are stale: not counted as received
+            self._queue.clear()
             self._streaming = True
             self._last_start = time.monotonic()
         self._send_frame(Start())
@@ -627,9 +629,10 @@ class LinkRig:
     def stats(self) -> LinkStats:
         corrupt, discarded = self._frame_counts()
         with self._lock:
-            return self._session.stats(frames_corrupt=corrupt, bytes_discarded=discarded,
-                                       reconnects=self._reconnects, commands_sent=self._commands_sent,
-                                       host_overflow=self._host_overflow)
+            st = self._session.stats(frames_corrupt=corrupt, bytes_discarded=discarded,
+                                     reconnects=self._reconnects, commands_sent=self._commands_sent,
+                                     host_overflow=self._host_overflow)
+            return replace(st, samples=st.samples - self._stale)
 
     @property
     def sample_period(self) -> float | None:

@@ -190,7 +190,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
 
     def hurry() -> None:  # a stopped session gives its views a second, not a minute
         if rr_sink is not None:
-            rr_sink.close_timeout_s = 0.3
+            rr_sink.close_timeout_s = 0.2
 
     signals = _Signals(hurry)
     estimator = None
@@ -231,7 +231,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         if estimator is not None:
             estimator.close()
         if rr_sink is not None and rr_sink.proc.is_alive():
-            rr_sink.close_timeout_s = 0.3
+            rr_sink.close_timeout_s = 0.2
             rr_sink.close()
         console.close()
     wall = time.perf_counter() - t_wall

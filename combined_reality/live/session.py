@@ -465,7 +465,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     0.1 s: a signal handler sets it). Every sample received is recorded the moment it
     arrives, in order, also the ones still queued when acquisition stops; a channel the rig
     did not measure (missing or not finite) is an empty cell. After a stop the estimator gets
-    at most 0.3 s to finish (the session ends within a second), else `finish_timeout_s`.
+    at most 0.2 s to finish (the session ends within a second), else `finish_timeout_s`.
     With `realtime`, acquisition (this thread and the rig's reader) runs under SCHED_FIFO
     at that priority where the OS grants it: other processes then cannot delay the answer
     to a sample."""
@@ -493,6 +493,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     first_dts: list[float] = []
     reason = "duration reached"
     stopped = False
+    stats = None
     last_sample_wall = time.monotonic()
     rec = _Recording(record_to, record_comments, event)
 
@@ -603,6 +604,8 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
             # what arrived but was not read yet is recorded too: nothing received is lost
             for s in getattr(rig, "drain", lambda: [])():
                 take_sample(s)
+            # the link's counters as the recording closes: they and the recording tell the same
+            stats = getattr(rig, "stats", None)
         finally:
             gc.unfreeze()
             rec.close()
@@ -612,14 +615,13 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         event(f"{reason}: valve centred, recording closed")
     flush_block()
     # a signal while the estimator finishes ends that too (the session ends within a second)
-    for e in estimator.finish(0.3 if stopped else finish_timeout_s,
+    for e in estimator.finish(0.2 if stopped else finish_timeout_s,
                               cancelled=lambda: stop is not None and stop() is not None):
         take(e)
     if getattr(estimator, "error", None):
         event(f"online estimator failed: {estimator.error}")
     for s in sinks:
         s.close()
-    stats = getattr(rig, "stats", None)
     if stats is not None:
         counters.update({k: v for k, v in vars(stats).items() if isinstance(v, (int, float))})
     return SessionResult(run=rec.run(), estimates=estimates, stop_reason=reason, counters=counters, events=events,
