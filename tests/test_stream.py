@@ -108,7 +108,7 @@ def test_a_session_ends_within_a_second_of_a_signal_whatever_the_viewer_does(tmp
     assert json.loads(out.read_text())["solver"]["n_samples"] == run.n
     if rerun == ["spawn"]:
         rrd = rec.with_suffix(".rrd")
-        lines = [ln for ln in err.splitlines() if "Rerun" in ln]
+        lines = [ln for ln in err.splitlines() if "Rerun viewer" in ln]
         assert lines == [f"no Rerun viewer (no display: neither DISPLAY nor WAYLAND_DISPLAY is set): saving to "
                          f"{rrd} instead (open it with: rerun {rrd})"], err
         from rerun.chunk import RrdReader

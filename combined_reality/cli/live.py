@@ -188,9 +188,9 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
     options = _online_options(args, cyl)
     rr_sink = None
 
-    def hurry() -> None:  # a stopped session gives its views a second, not a minute
+    def hurry() -> None:  # a stopped session gives its view a fraction of a second, not a minute
         if rr_sink is not None:
-            rr_sink.close_timeout_s = 0.2
+            rr_sink.hurry()
 
     signals = _Signals(hurry)
     estimator = None
@@ -231,7 +231,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         if estimator is not None:
             estimator.close()
         if rr_sink is not None and rr_sink.proc.is_alive():
-            rr_sink.close_timeout_s = 0.2
+            rr_sink.hurry()
             rr_sink.close()
         console.close()
     wall = time.perf_counter() - t_wall

@@ -33,7 +33,7 @@ from sim.plant import build_plant
 
 from ..files import Run
 from ..identify import OnlineEstimate, friction_from_newton
-from ..report.rerun import close_recording, open_recording
+from ..report.rerun import close_recording, display_available, open_recording
 
 
 class RerunSink:
@@ -144,7 +144,14 @@ class RerunProcessSink:
                                       self.inbox, self.outbox, os.getpid()))
         self.proc.start()
         self.failed = False
-        self.close_timeout_s = 60.0  # how long close() lets the view finish (a session that is stopped: less)
+        self.close_timeout_s = 60.0  # how long close() lets the view finish (see hurry)
+        # a file cannot hang; a viewer can
+        self._to_file = mode == "save" or (mode == "spawn" and not display_available())
+
+    def hurry(self) -> None:
+        """The session was stopped (it ends within a second): a file gets 0.5 s to be complete,
+        a viewer 0.2 s to take the last data."""
+        self.close_timeout_s = 0.5 if self._to_file else 0.2
 
     def rows(self, rows: np.ndarray, sim: np.ndarray | None) -> None:
         self._poll()
