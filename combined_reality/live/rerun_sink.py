@@ -103,7 +103,7 @@ class RerunSink:
 
 
 def _rerun_main(mode: str, target: str | None, fallback: str | None, cyl: Cylinder, window_s: float, inbox, outbox,
-                parent: int) -> None:
+                parent: int, hurry) -> None:
     """The sink process: open the recording (a viewer that cannot start: the fallback file),
     log what arrives, flush at "close". It ends with its parent, even one killed outright."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the session's: it ends this process
@@ -118,6 +118,8 @@ def _rerun_main(mode: str, target: str | None, fallback: str | None, cyl: Cylind
                     return
                 continue
             kind, value = msg
+            if hurry.is_set():  # a stopped session: what is still queued is dropped, the view closed
+                kind = "close"
             if kind == "rows":
                 sink.rows(*value)
             elif kind == "estimate":
@@ -138,10 +140,11 @@ class RerunProcessSink:
                  fallback: str | os.PathLike | None = None, say: Callable[[str], None] | None = None):
         ctx = mp.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
+        self._hurry = ctx.Event()
         self.say = say or (lambda m: None)
         self.proc = ctx.Process(target=_rerun_main, name="combined-reality-rerun", daemon=True,
                                 args=(mode, target, None if fallback is None else str(fallback), cyl, window_s,
-                                      self.inbox, self.outbox, os.getpid()))
+                                      self.inbox, self.outbox, os.getpid(), self._hurry))
         self.proc.start()
         self.failed = False
         self.close_timeout_s = 60.0  # how long close() lets the view finish (see hurry)
@@ -149,9 +152,11 @@ class RerunProcessSink:
         self._to_file = mode == "save" or (mode == "spawn" and not display_available())
 
     def hurry(self) -> None:
-        """The session was stopped (it ends within a second): a file gets 0.5 s to be complete,
-        a viewer 0.2 s to take the last data."""
-        self.close_timeout_s = 0.5 if self._to_file else 0.2
+        """The session was stopped (it ends within a second): what the view has not logged yet
+        is dropped, and a file gets 0.4 s to be closed complete, a viewer 0.2 s to take the
+        data."""
+        self.close_timeout_s = 0.4 if self._to_file else 0.2
+        self._hurry.set()
 
     def rows(self, rows: np.ndarray, sim: np.ndarray | None) -> None:
         self._poll()

@@ -465,7 +465,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     0.1 s: a signal handler sets it). Every sample received is recorded the moment it
     arrives, in order, also the ones still queued when acquisition stops; a channel the rig
     did not measure (missing or not finite) is an empty cell. After a stop the estimator gets
-    at most 0.2 s to finish (the session ends within a second), else `finish_timeout_s`.
+    at most 0.1 s to finish (the session ends within a second), else `finish_timeout_s`.
     With `realtime`, acquisition (this thread and the rig's reader) runs under SCHED_FIFO
     at that priority where the OS grants it: other processes then cannot delay the answer
     to a sample."""
@@ -615,7 +615,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         event(f"{reason}: valve centred, recording closed")
     flush_block()
     # a signal while the estimator finishes ends that too (the session ends within a second)
-    for e in estimator.finish(0.2 if stopped else finish_timeout_s,
+    for e in estimator.finish(0.1 if stopped else finish_timeout_s,
                               cancelled=lambda: stop is not None and stop() is not None):
         take(e)
     if getattr(estimator, "error", None):
