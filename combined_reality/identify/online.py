@@ -18,7 +18,8 @@ moves a chamber pressure by kilopascals, so holding the old one does not fit): p
 and velocity stay continuous, the pressures take what the data after the gap say. Only a
 gap long enough to lose the state (or more bridged gaps in a window than `max_bridged`)
 starts a new gap-free piece with a free node state. A window thus holds one or more
-pieces and is never restarted: the estimate goes on across lost samples and outages alike. Outputs not measured at a sample (NaN) have no residual there.
+pieces and is never restarted: the estimate goes on across lost samples and outages alike.
+Outputs not measured at a sample (NaN) have no residual there.
 
 Windows slide by whole intervals and never by more than a window, so no sample is skipped
 when the estimator falls behind (it then slides further per update instead).
