@@ -62,6 +62,8 @@ class ServerStats:
     frames_corrupted: int = 0  # by fault injection
     tx_overflow: int = 0  # frames dropped because the host did not read
     overruns: int = 0  # ticks missed entirely
+    # (rig time, lateness) of the missed deadlines, s: which ticks the rig did not keep
+    overrun_at: deque = field(default_factory=lambda: deque(maxlen=1000), repr=False)
     watchdog_trips: int = 0
     # the last 10^5 ticks: actual - target wake-up time, and t_k - t_k-1 of streamed samples
     late_us: deque = field(default_factory=lambda: deque(maxlen=100_000), repr=False)
@@ -82,8 +84,14 @@ class ServerStats:
         cpu = f", CPU {100 * self.cpu_s / self.wall_s:.0f} %" if self.wall_s > 0 else ""
         faults = f"; faults injected: {self.frames_dropped} frames dropped, {self.frames_corrupted} corrupted" \
             if self.frames_dropped or self.frames_corrupted else ""
-        return (f"{self.ticks} ticks, {self.samples_sent} samples sent; {jitter}{late_s}; {self.overruns} overruns, "
-                f"{self.watchdog_trips} watchdog trips, {self.tx_overflow} frames dropped for a slow host{faults}{cpu}")
+        missed = ""
+        if self.overrun_at:
+            shown = list(self.overrun_at)[:10]
+            missed = " (deadlines missed at " + ", ".join(f"{t:.3f} s by {late * 1e3:.1f} ms" for t, late in shown) \
+                + (f" and {self.overruns - len(shown)} more" if self.overruns > len(shown) else "") + ")"
+        return (f"{self.ticks} ticks, {self.samples_sent} samples sent; {jitter}{late_s}; {self.overruns} overruns"
+                f"{missed}, {self.watchdog_trips} watchdog trips, {self.tx_overflow} frames dropped for a slow host"
+                f"{faults}{cpu}")
 
 
 class Link:

@@ -18,12 +18,13 @@ import struct
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 from typing import Callable, Union
 
 from cobs import cobs
 
+from .realtime import make_realtime
 from .rig import LinkLost, LinkStats, Sample, Status, bounded
 
 __all__ = [
@@ -497,6 +498,7 @@ class LinkRig:
         self._queue: deque[Sample] = deque()
         self._queue_size = queue_size
         self._host_overflow = 0
+        self._stale = 0  # samples thrown away by start(): they came before the START that asked for them
         self._corrupt_reported = 0  # frames_corrupt already counted into the fault messages
         self._reconnects = 0
         self._commands_sent = 0
@@ -538,7 +540,8 @@ class LinkRig:
             self._launch()
         with self._lock:
             self._session.restart()
-            self._queue.clear()  # samples from before START are stale
+            self._stale += len(self._queue)  # samples from before START are stale: not counted as received
+            self._queue.clear()
             self._streaming = True
             self._last_start = time.monotonic()
         self._send_frame(Start())
@@ -603,6 +606,21 @@ class LinkRig:
             self._events.flush(force=True)
         self._dispatch()
 
+    def realtime(self, priority: int) -> str | None:
+        """Run the reader thread under SCHED_FIFO at `priority` (hw.realtime): None when granted."""
+        return make_realtime(priority, self._thread) if self._thread is not None else "the link is closed"
+
+    def drain(self) -> list[Sample]:
+        """The samples received but not read yet, in order (after stop(): all the link took in
+        before it closed), leaving none behind."""
+        with self._lock:
+            out = list(self._queue)
+            self._queue.clear()
+        self._dispatch()
+        if out:
+            self._last_read_seq = out[-1].seq
+        return out
+
     def __enter__(self):
         return self
 
@@ -613,9 +631,10 @@ class LinkRig:
     def stats(self) -> LinkStats:
         corrupt, discarded = self._frame_counts()
         with self._lock:
-            return self._session.stats(frames_corrupt=corrupt, bytes_discarded=discarded,
-                                       reconnects=self._reconnects, commands_sent=self._commands_sent,
-                                       host_overflow=self._host_overflow)
+            st = self._session.stats(frames_corrupt=corrupt, bytes_discarded=discarded,
+                                     reconnects=self._reconnects, commands_sent=self._commands_sent,
+                                     host_overflow=self._host_overflow)
+            return replace(st, samples=st.samples - self._stale)
 
     @property
     def sample_period(self) -> float | None:

@@ -27,6 +27,7 @@ from sim.effects import Effect
 from .links import CanBusLink, FaultSpec, Link, SerialPtyLink, ServerStats
 from .protocol import (Command, ErrorCode, ErrorFrame, EventLimiter, Frame, Heartbeat, HostFrame, SampleFrame, Start,
                        StatusFrame, Stop)
+from .realtime import make_realtime
 from .rig import Status, bounded
 from .slcan_server import SlcanPtyLink
 from .virtual_rig import VirtualRig
@@ -268,6 +269,7 @@ class RigServer:
                     if overrun:
                         self._overrun_us = (now - target) // 1000
                         self.stats.overruns += 1
+                        self.stats.overrun_at.append(((now - t0) // 1000 * 1e-6, self._overrun_us * 1e-6))
                         self._events.count("overrun", 1, "virtual rig: {n} sampling deadline{s} missed in the "
                                                          "last second (the machine is busy)")
                 if not self._tick((now - t0) // 1000, overrun):
@@ -304,22 +306,18 @@ class RigServer:
         return link
 
     def _realtime(self) -> None:
-        try:  # this thread only (pid 0); the kernel still keeps 5 % of each second for others
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
-            self._realtime_ok = True
-        except (AttributeError, OSError) as e:
-            self.log(f"runs without real-time priority ({e.strerror if isinstance(e, OSError) else e}); "
-                     "expect more jitter")
+        # this thread only; the kernel still keeps 5 % of each second for others
+        why = make_realtime(10)
+        self._realtime_ok = why is None
+        if why is not None:
+            self.log(f"runs without real-time priority ({why}); expect more jitter")
         self._realtime_helpers()
 
     def _realtime_helpers(self) -> None:
         """The pty reader thread too: preempted while holding the GIL it would stall the loop."""
         reader = getattr(self.link, "reader", None)
-        if self._realtime_ok and reader is not None and reader.native_id is not None:
-            try:
-                os.sched_setscheduler(reader.native_id, os.SCHED_FIFO, os.sched_param(9))
-            except OSError:
-                pass
+        if self._realtime_ok and reader is not None:
+            make_realtime(9, reader)
 
     def _wait(self, target_ns: int, spin_ns: int) -> None:
         # sleep until shortly before the deadline, then spin: time.sleep alone overshoots by

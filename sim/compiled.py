@@ -29,7 +29,7 @@ import numpy as np
 from .integrator import IntegratorOptions, StepBuilder
 from .plant import Plant
 
-CODE_REVISION = 5  # bump when generated functions change shape or meaning
+CODE_REVISION = 6  # bump when generated functions change shape or meaning
 
 
 def cache_dir() -> Path:
@@ -220,6 +220,16 @@ class ShootingFunctions:
         return X[:, :n + 1]
 
 
+def _skipping_zero_steps(f: ca.Function, name: str) -> ca.Function:
+    """f(x, w0, w1, p, h, *carried) -> (x_next, *carried_next) with a step of length 0 (the
+    padding of a short interval) short-circuited to leave everything unchanged: what the
+    step computes for h = 0 anyway, without computing it."""
+    sym = f.mx_in()
+    hold = ca.Function(f"{name}_hold", sym, [sym[0], *sym[5:]])
+    switch = ca.Function.conditional(f"{name}_switch", [hold], f)
+    return ca.Function(name, sym, switch.call([sym[4] > 0, *sym]), f.name_in(), f.name_out())
+
+
 def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int] = (),
                        opts: IntegratorOptions = IntegratorOptions(), progress=None,
                        with_sens: bool | None = None) -> ShootingFunctions:
@@ -244,12 +254,12 @@ def shooting_functions(plant: Plant, interval_len: int = 100, free: Sequence[int
         p = ca.MX.sym("p", npar)
         H = ca.MX.sym("H", 1, M)
         P = ca.repmat(p, 1, M)
-        acc = step.mapaccum("acc", M)
+        acc = _skipping_zero_steps(step, "step_or_hold").mapaccum("acc", M)
         X = acc(s, W[:, :M], W[:, 1:], P, H)
         interval = ca.Function(names[1], [s, W, p, H], [X], ["s", "W", "p", "H"], ["X"])
         funcs = [step, interval]
         if with_sens:
-            sstep = sb.sensitivity_step(free)
+            sstep = _skipping_zero_steps(sb.sensitivity_step(free), "sens_or_hold")
             acc_s = sstep.mapaccum("acc_s", M, [0, 5], [0, 1])
             S0 = ca.horzcat(ca.MX.eye(nx), ca.MX.zeros(nx, len(free)))
             Xs, Ss = acc_s(s, W[:, :M], W[:, 1:], P, H, S0)

@@ -564,3 +564,20 @@ def test_a_static_level_below_the_coulomb_level_is_flagged_and_not_preferred():
         assert cvs.aicc < d.fits["cv"].aicc  # the better fit by the numbers ...
         assert any("below the Coulomb level" in p for p in cvs.problems) and not cvs.preferable
         assert d.best == "cv"  # ... is not the one preferred
+
+
+def test_points_from_a_run_with_channels_not_measured(cyl_a, run_a):
+    """Empty cells (NaN) cut Newton's-law friction into stretches: no point spans a sample
+    not measured, and the rest of the run still gives its points."""
+    from dataclasses import replace
+
+    from combined_reality.friction.map import points_from_run
+
+    full = points_from_run(cyl_a, run_a)
+    x = run_a.x.copy()
+    x[::2000] = np.nan  # one position in two seconds not measured
+    holey = points_from_run(cyl_a, replace(run_a, x=x))
+    t_nan = run_a.t[::2000]
+    assert len(holey.points) >= 0.5 * len(full.points) > 0
+    for pt in holey.points:
+        assert not np.any((t_nan >= pt.t_start - 0.016) & (t_nan <= pt.t_end + 0.016)), pt

@@ -131,3 +131,61 @@ def test_offline_identification_never_bridges_lost_samples(cyl_a, run_a):
     assert res.solver["residual_sigma"] < 1.05
     for n in ("Fc", "Fv", "kp"):
         assert abs(res.params[n].value - cyl_a.value(n)) < 4 * res.params[n].std
+
+
+def _with_holes(run, seed=0, share=0.01):
+    """The run with `share` of each of x, p1, p2 not measured (NaN), at random samples."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(seed)
+    cols = {}
+    for name in ("x", "p1", "p2"):
+        c = getattr(run, name).copy()
+        c[rng.random(run.n) < share] = np.nan
+        cols[name] = c
+    return replace(run, **cols)
+
+
+@pytest.mark.parametrize("drive", ["command", "pressure"])
+def test_channels_not_measured_are_skipped_not_guessed(cyl_a, run_a, drive):
+    """1 % of each channel not measured: the fit uses what was measured (its residual count
+    says so), stays at the noise and agrees with the fit of the complete run."""
+    holey = _with_holes(run_a)
+    full = identify(cyl_a, [run_a], IdentifyOptions(drive=drive))
+    res = identify(cyl_a, [holey], IdentifyOptions(drive=drive))
+    assert res.solver["status"] == "converged"
+    for n in ("Fc", "Fv", "kp"):  # within the std of the fit with less information
+        assert abs(res.params[n].value - full.params[n].value) < 2 * res.params[n].std, n
+    if drive == "command":
+        assert 0.95 < res.solver["residual_sigma"] < 1.05
+        assert res.solver["n_samples"] == run_a.n  # every sample kept, only missing residuals skipped
+        assert np.isfinite(res.fit["rmse_x"]) and res.fit["rmse_p1"] < 1.1 * cyl_a.sensors.pressure_noise
+    else:  # the measured pressures drive this plant: where one is missing the run is cut
+        assert len(res.fit_per_run) > 100 and res.solver["n_samples"] < run_a.n
+
+
+def test_newton_friction_uses_no_window_with_a_missing_or_lost_sample(cyl_a, run_a):
+    from dataclasses import replace
+
+    from combined_reality.identify import friction_from_newton
+
+    run = run_a.slice(0, 4000)
+    x = run.x.copy()
+    x[1000] = np.nan
+    p2 = run.p2.copy()
+    p2[2000] = np.nan
+    keep = np.ones(run.n, bool)
+    keep[3000] = False  # a lost sample
+    holey = replace(run, x=x, p2=p2).slice(0, run.n)
+    idx_full, _, F_full = friction_from_newton(cyl_a, run)
+    cut = replace(holey, **{n: getattr(holey, n)[keep] for n in ("t", "u", "x", "p1", "p2")})
+    idx, v, F = friction_from_newton(cyl_a, cut)
+    assert np.all(np.isfinite(v)) and np.all(np.isfinite(F))
+    t = cut.t[idx]
+    for t_bad, reach in ((run.t[1000], 15), (run.t[2000], 0)):  # x: the whole window; p2: its own sample
+        assert not np.any(np.abs(t - t_bad) <= reach * 1e-3 + 1e-9)
+    # no window across the lost sample: those of the 15 samples either side and its own
+    assert not np.any((t > run.t[2984] + 1e-9) & (t < run.t[3016] - 1e-9))
+    same = np.isin(run.t[idx_full], t)
+    assert same.sum() == len(idx) == len(idx_full) - 31 - 1 - 31
+    np.testing.assert_allclose(F, F_full[same])

@@ -1,5 +1,7 @@
 """End to end: `combined-reality live` against `combined-reality virtual-rig` over a real
-pseudo-terminal (serial protocol with pyserial, SLCAN with python-can), 60 s at 1 kHz."""
+pseudo-terminal (serial protocol with pyserial, SLCAN with python-can) at 1 kHz, with two
+busy processes beside (conftest.busy_machine): what must hold under load is asserted, not
+how fast the machine is."""
 import json
 import os
 import subprocess
@@ -9,9 +11,10 @@ import numpy as np
 import pytest
 
 from combined_reality.cli import main
+from combined_reality.files import read_run
 from sim.cylinder import cylinder_to_toml
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("busy_machine")]
 
 
 def _start_rig(*args):
@@ -32,18 +35,31 @@ def _stop(p):
         return p.communicate()
 
 
-@pytest.mark.parametrize("transport", ["serial", "can"])
-def test_sixty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, capsys):
+def _received_all(run, link, duration: float) -> int:
+    """What must hold on any machine: every sample received is recorded (in order: the file is
+    read back, times increasing), and every 1 ms instant of the session is either recorded or
+    missing; returns how many are missing."""
+    assert run.n == link["samples"]  # nothing received is dropped
+    assert np.all(np.diff(run.t) > 0)
+    missing = int(np.sum(np.round(np.diff(run.t) / 1e-3) - 1))
+    assert run.n + missing == pytest.approx(duration * 1000, abs=0.002 * duration * 1000)
+    return missing
+
+
+@pytest.mark.parametrize("transport, drop", [("serial", 0.01), ("can", 0.0)])
+def test_thirty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, drop, capsys):
+    """With two busy processes beside: the estimate reaches the truth and keeps coming, every
+    sample received is recorded, and what was lost is counted and said."""
     # the host starts from friction far from the rig's truth
     start = cyl_a.with_values({"Fc": 1.5 * cyl_a.friction.Fc, "Fv": 0.6 * cyl_a.friction.Fv,
                                "kp": 2.0 * cyl_a.friction.kp})
     host_cfg = tmp_path / "host.toml"
     host_cfg.write_text(cylinder_to_toml(start))
-    rig, path = _start_rig("--config", str(cyl_a.source), f"--{transport}", "--seed", "3")
+    rig, path = _start_rig("--config", str(cyl_a.source), f"--{transport}", "--seed", "3", "--drop", str(drop))
     rec, out = tmp_path / "run.csv", tmp_path / "live.json"
     try:
         source = ["--serial", path] if transport == "serial" else ["--can", path, "--interface", "slcan"]
-        code = main(["live", "--config", str(host_cfg), *source, "--duration", "60", "--record", str(rec),
+        code = main(["live", "--config", str(host_cfg), *source, "--duration", "30", "--record", str(rec),
                      "--json", str(out), "-q"])
     finally:
         _, rig_err = _stop(rig)
@@ -52,13 +68,14 @@ def test_sixty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, 
     res = json.loads(out.read_text())
     link = res["link"]
     print(f"{transport}: {link}, {res['solver']}")
-    # 60 s of rig time; a loaded machine makes the rig's tick late now and then (a longer
-    # period, not a lost sample: the sequence numbers say so)
-    assert res["solver"]["n_samples"] >= 59_000
-    assert link["samples_lost"] == 0 and link["frames_corrupt"] == 0 and link["gaps"] == 0
-    # Fc and Fv within 5 % of the truth within 30 s, and from then on
-    late = [h for h in res["history"] if h["t"] - res["history"][0]["t"] + 2.0 >= 30.0]
-    assert len(late) > 50  # updates kept coming for the second half of the run
+    missing = _received_all(read_run(rec), link, 30.0)
+    assert link["samples_lost"] <= missing and link["gaps"] <= link["samples_lost"]
+    if drop:  # the link lost frames: counted, said, and bridged by the estimator
+        assert link["samples_lost"] > 100 and "samples lost (sequence gaps)" in err
+    # Fc and Fv within 5 % of the truth within 10 s, and from then on, updates on to the end
+    # (how many depends on how much of the busy machine the estimator gets)
+    late = [h for h in res["history"] if h["t"] >= 10.0]
+    assert len(late) >= 5 and res["history"][-1]["t"] > 25.0
     for h in late:
         for n in ("Fc", "Fv"):
             assert abs(h["values"][n] - cyl_a.value(n)) < 0.05 * cyl_a.value(n), (h["t"], n)
@@ -73,7 +90,6 @@ def test_sixty_seconds_live_against_the_virtual_rig(cyl_a, tmp_path, transport, 
 def test_faulty_link_is_counted_reported_and_recorded_honestly(cyl_a, tmp_path, capsys):
     """Corrupted bytes and dropped frames: rejected and counted, each reported, never
     interpolated; the recording holds exactly the samples that arrived intact."""
-    from combined_reality.files import read_run
 
     rig, path = _start_rig("--config", str(cyl_a.source), "--serial", "--corrupt", "0.01", "--drop", "0.01")
     rec, out = tmp_path / "run.csv", tmp_path / "live.json"
@@ -88,10 +104,7 @@ def test_faulty_link_is_counted_reported_and_recorded_honestly(cyl_a, tmp_path, 
     link = doc["link"]
     run = read_run(rec)
     assert link["frames_corrupt"] > 10 and link["samples_lost"] > 10
-    assert run.n == link["samples"]  # every intact sample recorded, nothing invented
-    # the 6 s of rig time asked for: every 1 ms instant recorded or missing
-    missing = int(np.sum(np.round(np.diff(run.t) / 1e-3) - 1))
-    assert run.n + missing == pytest.approx(6000, abs=5)
+    missing = _received_all(run, link, 6.0)  # every intact sample recorded, nothing invented
     # a missing sample was lost on the link (counted), or never sent: a rig on a busy machine
     # skips the ticks it missed or drops what a slow host does not read, and says so (once,
     # under the load of the full suite, 66 of 6000 were missing and not counted lost)
@@ -103,7 +116,6 @@ def test_faulty_link_is_counted_reported_and_recorded_honestly(cyl_a, tmp_path, 
 
 
 def test_a_vanished_serial_rig_is_reported_and_picked_up_again(cyl_a, tmp_path, capsys):
-    from combined_reality.files import read_run
 
     link_path = tmp_path / "rig0"
     rig, _ = _start_rig("--config", str(cyl_a.source), "--serial", "--link", str(link_path),
@@ -125,7 +137,6 @@ def test_a_vanished_serial_rig_is_reported_and_picked_up_again(cyl_a, tmp_path, 
 
 
 def test_a_rig_that_vanishes_for_good_ends_the_session_with_one_clear_line(cyl_a, tmp_path, capsys):
-    from combined_reality.files import read_run
 
     rig, path = _start_rig("--config", str(cyl_a.source), "--serial", "--vanish-at", "3")
     rec = tmp_path / "run.csv"
@@ -138,4 +149,5 @@ def test_a_rig_that_vanishes_for_good_ends_the_session_with_one_clear_line(cyl_a
     assert code == 1
     assert "no samples for" in err
     run = read_run(rec)
-    assert 2500 < run.n < 3500
+    # recorded from when the host got going (later on a busy machine) to the vanishing at 3 s
+    assert abs(run.t[-1] - 3.0) < 0.05 and run.n > 500

@@ -2,8 +2,10 @@
 import numpy as np
 import pytest
 
+from combined_reality.files import Run
 from combined_reality.identify import IdentifyOptions, identify
 from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
+from combined_reality.live import simulate_run
 
 
 def _stream(mhe, run, chunk=100):
@@ -70,22 +72,88 @@ def test_rejects_unknown_parameters(cyl_a):
         MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions(estimate=("Fc", "bogus")))
 
 
-def test_no_window_bridges_lost_samples(cyl_a, run_a):
-    """A lost sample hides the command held over its period; windows stop before a gap and
-    start again after it, keeping what they learnt, so the fit stays at the noise."""
-    from combined_reality.files import Run
+@pytest.fixture(scope="module")
+def lossy_a(cyl_a):
+    """20 s of the virtual rig over a link that loses 1 % of the samples: the host neither
+    records nor answers them, so the rig holds the command it had (what --drop 0.01 does)."""
+    return simulate_run(cyl_a, 20.0, seed=1, drop=0.01)
 
+
+def test_lost_samples_are_bridged_and_the_commands_held_meanwhile_estimated(cyl_a, run_a, lossy_a):
+    """Every gap of the lossy link is bridged (no piece restarts), every sample received enters
+    the estimate, the windows fit to the noise and the estimate is as good as without loss."""
+    lost = run_a.n - lossy_a.n
+    assert 150 < lost < 250
+    mhe = MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions())
+    est = _stream(mhe, lossy_a)
+    mhe.flush()
+    while mhe.ready():
+        est.append(mhe.update())
+    gaps = int(np.sum(np.diff(lossy_a.t) > 1.5e-3))
+    assert mhe.gaps_bridged == gaps and mhe.gaps_cut == 0
+    assert est[-1].samples_seen == lossy_a.n
+    assert len(est) > 60 and all(e.pieces == 1 for e in est)
+    assert np.mean([e.gaps for e in est]) > 10  # the windows hold the gaps, and fit across them
+    sigma = np.array([e.sigma for e in est])
+    # one Gauss-Newton iteration per update: a window with new gaps may fit a little worse
+    # until the next update has taken it up again
+    assert np.percentile(sigma, 95) < 1.05 and sigma.max() < 1.25
+    for n in ("Fc", "Fv", "kp"):
+        assert abs(est[-1].values[n] - cyl_a.value(n)) < 3 * est[-1].std[n], n
+    assert abs(est[-1].values["Fv"] - cyl_a.value("Fv")) < 0.01 * cyl_a.value("Fv")
+
+
+def test_holding_the_last_command_across_a_gap_would_not_fit(cyl_a, lossy_a):
+    """Why the command over a gap is estimated: held from the sample before, the windows do
+    not fit (the estimator's bridge must beat this)."""
+    mhe = MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions())
+    held = lossy_a.slice(0, 4000)
+    mhe.add(held.t, held.u, held.x, held.p1, held.p2, lost_before=np.zeros(held.n, bool))
+    assert mhe.update().sigma > 3
+
+
+def test_an_outage_starts_a_new_piece_and_the_estimate_goes_on(cyl_a, run_a):
     keep = np.ones(run_a.n, bool)
-    keep[[4321, 9876]] = False  # two lost samples
-    keep[12000:13000] = False  # and a 1 s outage
-    idx = np.flatnonzero(keep)
-    run = Run(t=run_a.t[idx], u=run_a.u[idx], x=run_a.x[idx], p1=run_a.p1[idx], p2=run_a.p2[idx])
-    mhe = MovingHorizonEstimator(cyl_a, run_a.sample_period, OnlineOptions())
+    keep[9000:10000] = False  # the link is gone for 1 s
+    run = Run(t=run_a.t[keep], u=run_a.u[keep], x=run_a.x[keep], p1=run_a.p1[keep], p2=run_a.p2[keep])
+    mhe = MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions())
     est = _stream(mhe, run)
-    gaps = [(run_a.t[i - 1], run_a.t[i + 1]) for i in (4321, 9876)] + [(run_a.t[11999], run_a.t[13000])]
-    for e in est:
-        assert e.sigma < 1.15
-        for a, b in gaps:
-            assert not (e.window[0] <= a and e.window[1] >= b), (e.window, a, b)
+    assert mhe.gaps_cut == 1 and mhe.gaps_bridged == 0
+    spanning = [e for e in est if e.window[0] < 9.0 < 10.0 < e.window[1]]
+    assert spanning and all(e.pieces == 2 for e in spanning)
+    assert len(est) > 80 and max(e.sigma for e in est) < 1.1
     for n in ("Fc", "Fv"):
-        assert abs(est[-1].values[n] - cyl_a.value(n)) < 4 * est[-1].std[n]
+        assert abs(est[-1].values[n] - cyl_a.value(n)) < 3 * est[-1].std[n], n
+
+
+def test_channels_not_measured_have_no_residual(cyl_a, run_a):
+    rng = np.random.default_rng(3)
+    cols = {n: getattr(run_a, n).copy() for n in ("x", "p1", "p2")}
+    for c in cols.values():
+        c[rng.random(run_a.n) < 0.01] = np.nan
+    mhe = MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions())
+    est = _stream(mhe, Run(t=run_a.t, u=run_a.u, **cols))
+    assert len(est) > 80 and max(e.sigma for e in est) < 1.05
+    assert all(np.isfinite(v) for e in est for v in e.rmse.values())
+    for n in ("Fc", "Fv", "kp"):
+        assert abs(est[-1].values[n] - cyl_a.value(n)) < 3 * est[-1].std[n], n
+
+
+@pytest.mark.slow
+def test_the_reported_std_covers_the_truth_over_20_seeds(cyl_a):
+    """Honest uncertainty: over 20 lossy runs (1 % of the samples lost) with different seeds,
+    the truth lies within 3 reported std of the final estimate in >= 90 % of the runs, for
+    every parameter (benchmarks/online_coverage.py measures it on longer runs)."""
+    f = cyl_a.friction
+    start = cyl_a.with_values({"Fc": 1.3 * f.Fc, "Fv": 0.7 * f.Fv, "kp": 1.3 * f.kp})
+    inside = {"Fc": 0, "Fv": 0, "kp": 0}
+    for seed in range(300, 320):
+        run = simulate_run(cyl_a, 8.0, seed=seed, drop=0.01)
+        mhe = MovingHorizonEstimator(start, 1e-3, OnlineOptions())
+        est = _stream(mhe, run, chunk=20)
+        mhe.flush()
+        while mhe.ready():
+            est.append(mhe.update())
+        for n in inside:
+            inside[n] += abs(est[-1].values[n] - cyl_a.value(n)) <= 3 * est[-1].std[n]
+    assert all(k >= 18 for k in inside.values()), inside

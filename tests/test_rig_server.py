@@ -20,11 +20,15 @@ import pytest
 from combined_reality.cli import main
 from combined_reality.live import PositionProgram
 from hw.can_rig import CanRig
+from hw.realtime import make_normal, make_realtime
 from hw.rig import Status, bounded
 from hw.serial_rig import SerialRig
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = ROOT / "configs" / "cyl_a_32x100.toml"
+
+# real time is tested with two busy processes beside (conftest.busy_machine)
+pytestmark = pytest.mark.usefixtures("busy_machine")
 
 
 class Server:
@@ -78,15 +82,20 @@ def closed_loop(rig, cyl, duration, *, seed=1, quiet_after=None, until=None):
     # long-lived objects before it starts the loop
     gc.collect()
     gc.freeze()
+    # like a live session: the loop and the link's reader at real-time priority where granted
+    granted = make_realtime(5) is None
     try:
         _loop(rig, program, samples, replies, duration, quiet_after, until)
     finally:
         gc.unfreeze()
+        if granted:
+            make_normal()
     return samples, replies
 
 
 def _loop(rig, program, samples, replies, duration, quiet_after, until):
     rig.start()
+    rig.realtime(5)
     t_end = time.monotonic() + duration
     while time.monotonic() < t_end:
         if until is not None and until(samples):
@@ -112,9 +121,11 @@ def check_stream(samples, replies, stats, quantise):
     assert np.std(dt) > 2e-6  # the rig's clock has jitter and the samples carry it
     sent = {k: quantise(u) for k, u in replies.items()}
     # healthy: a missed deadline (the machine's load) or the rig's soft stroke limit (a late
-    # host overshooting) may show, nothing else
-    assert all(s.status & ~(Status.OVERRUN | Status.SOFT_LIMIT) == 0 for s in samples), \
-        [s for s in samples if s.status]
+    # host overshooting) may show; on a busy machine the rig's watchdog too, when the host was
+    # held up for 50 ms (the rig says so, and the valve is centred meanwhile)
+    allowed = Status.OVERRUN | Status.SOFT_LIMIT | (Status.WATCHDOG if stats.rig_errors else 0)
+    assert all(s.status & ~allowed == 0 for s in samples), [s for s in samples if s.status & ~allowed]
+    assert all(s.u_applied == 0.0 for s in samples if s.status & Status.WATCHDOG)
     free = [s for s in samples[1:] if not s.status & Status.SOFT_LIMIT]
     # timing contract: sample k+1 reports the reply to sample k, unless that reply was late
     mismatch = [s for s in free if s.u_applied != sent[s.seq - 1]]
@@ -219,7 +230,8 @@ def test_watchdog_centres_the_valve_within_100_ms_of_the_last_command(servers, c
     assert r.code == 0
     last_answered = max(r.replies)
     t_last = next(s.t for s in r.samples if s.seq == last_answered)
-    tripped = next(s for s in r.samples if s.status & Status.WATCHDOG)
+    # (a busy machine may have held the host up long enough for an earlier trip)
+    tripped = next(s for s in r.samples if s.status & Status.WATCHDOG and s.seq > last_answered)
     assert 0.05 < tripped.t - t_last <= 0.1  # measured on the rig's clock
     after = [s for s in r.samples if s.seq >= tripped.seq]
     assert len(after) > 100 and all(s.u_applied == 0.0 and s.status & Status.WATCHDOG for s in after)

@@ -238,7 +238,6 @@ def test_blank_line_inside_the_data(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("cell, says", [
     ("abc", "'abc' is not a number"),
-    ("", "'' is not a number"),
     ("3,0e5", ""),  # a decimal comma shifts the cells: caught as a wrong cell count
     ("1_000", "is not a number"),  # Python would take it; numpy and spreadsheets would not
     ("0x10", "is not a number"),
@@ -335,6 +334,47 @@ def test_round_trip_awkward_values(tmp_path: Path) -> None:
     assert np.signbit(back.u[0])
 
 
+def test_empty_cells_are_channels_not_measured_and_round_trip(tmp_path: Path) -> None:
+    """FORMATS.md: an empty cell in x, p1, p2 or ps means not measured at that sample (NaN in
+    the Run); written back as an empty cell, so the round trip is exact."""
+    text = ("t,u,x,p1,p2,ps,note\n0,0.1,0.05,3e5,2e5,7e5,a\n0.001,0.1,,3e5,2e5,,b\n"
+            "0.002,0.1,0.05, ,2e5,7e5,c\n0.003,0.2,0.06,3e5,,7e5,d\n")
+    run = read_run(put(tmp_path, text))
+    assert np.array_equal(run.x, [0.05, np.nan, 0.05, 0.06], equal_nan=True)
+    assert np.array_equal(run.p1, [3e5, 3e5, np.nan, 3e5], equal_nan=True)
+    assert np.array_equal(run.p2, [2e5, 2e5, 2e5, np.nan], equal_nan=True)
+    assert np.array_equal(run.ps, [7e5, np.nan, 7e5, 7e5], equal_nan=True)
+    write_run(tmp_path / "back.csv", run)
+    assert (tmp_path / "back.csv").read_text().splitlines()[2] == "0.001,0.1,,300000.0,200000.0,,b"
+    back = read_run(tmp_path / "back.csv")
+    for name in ("t", "u", "x", "p1", "p2", "ps"):
+        assert np.array_equal(getattr(back, name), getattr(run, name), equal_nan=True), name
+
+
+@pytest.mark.parametrize("column, says", [
+    ("t", "empty cell: every sample needs its time"),
+    ("u", "empty cell: a sample whose command is unknown cannot be simulated, so leave the line out"),
+])
+def test_an_empty_time_or_command_is_refused(tmp_path: Path, column: str, says: str) -> None:
+    good = {"t": "0.002", "u": "0", "x": "0", "p1": "2e5", "p2": "2e5"}
+    bad_row = ",".join("" if n == column else good[n] for n in good)
+    text = HEADER + "\n0,0,0,2e5,2e5\n0.001,0,0,2e5,2e5\n" + bad_row + "\n"
+    refused(put(tmp_path, text), line=4, column=column, says=says)
+
+
+def test_split_at_gaps_cuts_at_lost_samples_and_at_channels_not_measured() -> None:
+    from combined_reality.files import split_at_gaps
+
+    t = np.r_[np.arange(10), np.arange(12, 20)] * 1e-3  # samples 10 and 11 lost
+    p1 = np.full(len(t), 3e5)
+    p1[[3, 4, 15]] = np.nan
+    run = Run(t=t, u=np.zeros(len(t)), x=np.zeros(len(t)), p1=p1, p2=np.full(len(t), 2e5))
+    assert [(p.t[0], p.n) for p in split_at_gaps(run)] == [(0.0, 10), (0.012, 8)]
+    pieces = split_at_gaps(run, channels=("p1",))
+    assert [(round(p.t[0] * 1e3), p.n) for p in pieces] == [(0, 3), (5, 5), (12, 5), (18, 2)]
+    assert all(np.all(np.isfinite(p.p1)) for p in pieces)
+
+
 def test_round_trip_keeps_extra_columns_and_comments(tmp_path: Path) -> None:
     text = ("# from the rig\n"
             "t,u,x,p1,p2,ps,T1,note\n"
@@ -406,9 +446,28 @@ def test_recorder_ps_must_match_its_header(tmp_path: Path) -> None:
     with RunRecorder(tmp_path / "a.csv") as rec:
         with pytest.raises(ValueError, match="with_ps"):
             rec.append(0.0, 0, 0, 2e5, 2e5, ps=7e5)
-    with RunRecorder(tmp_path / "b.csv", with_ps=True) as rec:
-        with pytest.raises(ValueError, match="with_ps"):
-            rec.append(0.0, 0, 0, 2e5, 2e5)
+
+
+def test_recorder_writes_missing_and_non_finite_channels_as_empty_cells(tmp_path: Path) -> None:
+    """A supply sensor that stops reporting, a NaN or infinite reading: an empty cell (not
+    measured at that sample), so the file stays readable and nothing else is lost."""
+    path = tmp_path / "holes.csv"
+    with RunRecorder(path, with_ps=True) as rec:
+        rec.append(0.0, 0.1, 0.01, 2e5, 3e5, ps=7e5)
+        rec.append(0.001, 0.2, float("nan"), 2e5, 3e5, ps=None)
+        rec.append(0.002, 0.3, 0.01, float("inf"), None, ps=float("nan"))
+        rec.append(0.003, 0.4, 0.02, 2e5, 3e5, ps=7e5)
+        with pytest.raises(ValueError, match="time and the command"):
+            rec.append(0.004, float("nan"), 0.02, 2e5, 3e5)
+    assert path.read_text().splitlines()[1:4] == ["0.0,0.1,0.01,200000.0,300000.0,700000.0",
+                                                 "0.001,0.2,,200000.0,300000.0,",
+                                                 "0.002,0.3,0.01,,,"]
+    run = read_run(path)
+    assert run.n == 4 and np.array_equal(run.u, [0.1, 0.2, 0.3, 0.4])
+    assert np.array_equal(run.x, [0.01, np.nan, 0.01, 0.02], equal_nan=True)
+    assert np.array_equal(run.p1, [2e5, 2e5, np.nan, 2e5], equal_nan=True)
+    assert np.array_equal(run.p2, [3e5, 3e5, np.nan, 3e5], equal_nan=True)
+    assert np.array_equal(run.ps, [7e5, np.nan, np.nan, 7e5], equal_nan=True)
 
 
 def test_recorder_lines_reach_the_file_at_once(tmp_path: Path) -> None:

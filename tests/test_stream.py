@@ -16,6 +16,7 @@ from combined_reality.identify import OnlineOptions
 from combined_reality.files import read_run, write_run
 from conftest import assert_refused
 from combined_reality.live import InlineEstimator, LockstepSimulator, ReplayRig, run_session
+from hw.rig import Sample
 
 
 @pytest.fixture(scope="module")
@@ -52,8 +53,8 @@ def test_replay_as_fast_as_possible_records_every_sample_and_estimates(cyl_a, ru
     assert abs(res.final.values["Fc"] - cyl_a.friction.Fc) < 0.01 * cyl_a.friction.Fc
 
 
-def _cli(*args, **kw):
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+def _cli(*args, env=None, **kw):
+    env = dict(env or os.environ, PYTHONUNBUFFERED="1")
     # as from a terminal: a suite started in the background (`cmd &`) ignores SIGINT, and a
     # child inheriting that would never see the Ctrl-C this test sends
     return subprocess.Popen([sys.executable, "-m", "combined_reality", *args], stdout=subprocess.PIPE,
@@ -61,28 +62,62 @@ def _cli(*args, **kw):
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
 
 
+def _headless_env() -> dict:
+    env = dict(os.environ)
+    env.pop("DISPLAY", None)
+    env.pop("WAYLAND_DISPLAY", None)
+    return env
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("how", ["SIGKILL", "SIGINT", "SIGTERM"])
-def test_recording_stays_valid_when_the_host_is_killed_or_interrupted(tmp_path, how):
+@pytest.mark.parametrize("how, rerun", [
+    ("SIGKILL", ["off"]),
+    ("SIGINT", ["spawn"]),  # no display here: falls back to a .rrd next to the recording
+    ("SIGTERM", ["connect", "rerun+http://127.0.0.1:9/proxy"]),  # a viewer that never answers
+])
+def test_a_session_ends_within_a_second_of_a_signal_whatever_the_viewer_does(tmp_path, how, rerun, busy_machine):
+    """SIGINT and SIGTERM end a live session within a second (valve centred, every file
+    complete), with a viewer that cannot start or never answers; SIGKILL leaves a recording
+    of whole lines."""
     rec = tmp_path / "run.csv"
     out = tmp_path / "o.json"
-    p = _cli("live", "--virtual", "--duration", "60", "--record", str(rec), "--json", str(out))
+    p = _cli("live", "--virtual", "--duration", "60", "--record", str(rec), "--json", str(out), "--rerun", *rerun,
+             env=_headless_env())
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:  # wait until a few seconds have been recorded
-        time.sleep(0.5)
+        time.sleep(0.2)
         if rec.exists() and rec.stat().st_size > 200_000:
             break
     os.kill(p.pid, getattr(signal, how))
-    _, err = p.communicate(timeout=60)
+    t_signal = time.monotonic()
+    try:
+        p.wait(timeout=5)
+    finally:
+        ended_after = time.monotonic() - t_signal
+        _, err = p.communicate(timeout=60)
     run = read_run(rec)  # whole lines only, whatever the moment of the kill
     assert run.n > 2000
     assert np.all(np.diff(run.t) > 0)
-    if how != "SIGKILL":  # Ctrl-C and SIGTERM end the session cleanly
-        assert p.returncode == 0, err
-        assert "interrupted" in err
-        assert json.loads(out.read_text())["solver"]["n_samples"] == run.n
-    else:
+    if how == "SIGKILL":
         assert p.returncode == -signal.SIGKILL
+        return
+    assert p.returncode == 0, err
+    # the session's own waits after a signal are bounded to half a second (estimator 0.1 s,
+    # view 0.2 s or 0.4 s for a file); the interpreter's exit comes on top, and on this
+    # 2-core machine with two busy processes and other work beside it took up to 0.6 s more
+    assert ended_after < 1.5, (ended_after, err)
+    said = "interrupted (Ctrl-C)" if how == "SIGINT" else "terminated (SIGTERM)"
+    assert f"{said}: valve centred, recording closed" in err
+    assert json.loads(out.read_text())["solver"]["n_samples"] == run.n
+    if rerun == ["spawn"]:
+        rrd = rec.with_suffix(".rrd")
+        lines = [ln for ln in err.splitlines() if "Rerun viewer" in ln]
+        assert lines == [f"no Rerun viewer (no display: neither DISPLAY nor WAYLAND_DISPLAY is set): saving to "
+                         f"{rrd} instead (open it with: rerun {rrd})"], err
+        from rerun.chunk import RrdReader
+
+        paths = {chunk.entity_path for chunk in RrdReader(rrd).stream()}
+        assert "/position/measured" in paths
 
 
 def test_replay_cli_writes_identify_format_and_a_rerun_recording(cyl_a, run_a, tmp_path, capsys):
@@ -154,3 +189,118 @@ def test_a_rig_sampling_at_another_rate_than_expected_is_reported(cyl_a, run_a):
     assert any("samples every 1 ms, not every 0.5 ms" in e for e in res.events)
     res = run_session(cyl_a, ReplayRig(run_a.slice(0, 300), math.inf), estimator=est, expected_period=1e-3)
     assert not res.events
+
+
+def test_supply_pressure_that_goes_missing_mid_run_is_recorded_as_empty_cells(cyl_a, run_a, tmp_path):
+    """A rig that reports supply pressure, then stops (a sensor unplugged): the session goes
+    on, the recording holds the supply pressure while it was measured and empty cells after."""
+    from dataclasses import replace
+
+    ps = np.full(3000, 7.0e5)
+    ps[1500:] = np.nan
+    run = replace(run_a.slice(0, 3000), ps=ps)
+    est = InlineEstimator(cyl_a, run.sample_period, OnlineOptions())
+    res = run_session(cyl_a, ReplayRig(run, math.inf), estimator=est, record_to=tmp_path / "r.csv")
+    assert res.stop_reason == "end of the recorded run" and res.counters["samples"] == 3000
+    back = read_run(tmp_path / "r.csv")
+    np.testing.assert_array_equal(back.ps, ps)
+    assert (tmp_path / "r.csv").read_text().splitlines()[-1].endswith(",")
+    assert res.final is not None
+
+
+def test_a_sample_with_a_channel_not_measured_is_recorded_as_missing(cyl_a, run_a, tmp_path):
+    """NaN or infinite readings: empty cells in the recording (which the tool reads back),
+    counted and said once; the lock-step model and the estimate carry on at the noise."""
+    from dataclasses import replace
+
+    run = run_a.slice(0, 4000)
+    x, p1 = run.x.copy(), run.p1.copy()
+    x[1000] = np.nan
+    p1[2500] = np.inf
+    events = []
+    est = InlineEstimator(cyl_a, run.sample_period, OnlineOptions())
+    res = run_session(cyl_a, ReplayRig(replace(run, x=x, p1=p1), math.inf), estimator=est,
+                      record_to=tmp_path / "r.csv", simulator=LockstepSimulator(cyl_a), on_event=events.append)
+    back = read_run(tmp_path / "r.csv")
+    assert back.n == 4000 and np.isnan(back.x[1000]) and np.isnan(back.p1[2500])
+    np.testing.assert_array_equal(np.delete(back.x, 1000), np.delete(run.x, 1000))
+    assert res.counters["incomplete"] == 2 and res.counters["invalid"] == 0
+    assert any("x not measured (recorded as an empty cell)" in e for e in events)
+    assert res.final.sigma < 1.05 and len(res.estimates) >= 2
+
+
+class _QueuedRig:
+    """A link rig whose last samples are still queued when the session stops it."""
+
+    def __init__(self, run, stop_after: int):
+        self.samples = [Sample(t=float(run.t[k]), x=float(run.x[k]), p1=float(run.p1[k]), p2=float(run.p2[k]),
+                               u_applied=float(run.u[k]), seq=k + 1) for k in range(run.n)]
+        self.k, self.stop_after, self.sent = 0, stop_after, 0
+
+    def start(self):
+        pass
+
+    def read(self, timeout=None):
+        if self.k >= self.stop_after:
+            return None
+        self.k += 1
+        return self.samples[self.k - 1]
+
+    def send(self, u):
+        self.sent += 1
+
+    def stop(self):
+        pass
+
+    def drain(self):
+        out, self.k = self.samples[self.k:], len(self.samples)
+        return out
+
+
+def test_samples_still_queued_when_the_session_stops_are_recorded_too(cyl_a, run_a, tmp_path):
+    from combined_reality.live import PositionProgram
+
+    run = run_a.slice(0, 1200)
+    rig = _QueuedRig(run, stop_after=1000)
+    stops = iter([None] * 1000 + ["stopped by the test"])
+    est = InlineEstimator(cyl_a, run.sample_period, OnlineOptions())
+    res = run_session(cyl_a, rig, estimator=est, program=PositionProgram(cyl_a, 5.0), record_to=tmp_path / "r.csv",
+                      stop=lambda: next(stops))
+    assert res.stop_reason == "stopped by the test"
+    back = read_run(tmp_path / "r.csv")
+    assert back.n == res.run.n == res.counters["samples"] == 1200  # every sample received, in order
+    np.testing.assert_array_equal(back.t, run.t)
+    assert rig.sent == 1000  # the queued ones are recorded, not answered
+
+
+def test_the_console_keeps_one_status_line_and_holds_back_repeated_warnings(tmp_path):
+    import io
+
+    from combined_reality.live import Console
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    now = [0.0]
+    tty = Tty()
+    con = Console(tty, clock=lambda: now[0], quiet_s=10.0, refresh_s=0.25)
+    for k in range(30):  # updates every 0.125 s, each with a warning of one kind
+        now[0] = 0.125 * k
+        con.status(f"t {now[0]:.1f} s")
+        con.warn(f"serial link: {k + 3} samples lost (sequence gaps) in the last second")
+    now[0] = 12.0
+    con.warn("serial link: 7 samples lost (sequence gaps) in the last second")
+    con.close()
+    text = tty.getvalue()
+    assert text.count("\n") == 3  # two warnings and the end of the status line: no scrolling status
+    assert text.count("\rt ") == 15 and "\rt 0.2 s\x1b[K" in text  # redrawn in place, every other update
+    assert "serial link: 3 samples lost" in text and "serial link: 7 samples lost (sequence gaps) in the last " \
+           "second (29 more like it in the last 12 s)" in text
+    assert con.summary() == ["31 × 'serial link: 3 samples lost (sequence gaps) in the last second' (and the like)"]
+    plain = io.StringIO()
+    con = Console(plain, clock=lambda: now[0], plain_every_s=5.0)
+    for k in range(120):
+        now[0] = 0.1 * k
+        con.status(f"t {now[0]:.1f} s")
+    assert plain.getvalue().splitlines() == ["t 0.0 s", "t 5.0 s", "t 10.0 s"]  # a log file: every 5 s

@@ -100,22 +100,24 @@ def rerun_mode(words: Sequence[str]) -> tuple[str, str | None]:
     return mode, (rest[0] if rest else None)
 
 
-def open_rig(args, cyl: Cylinder, effects: Sequence = (), *, rate: float = 1000.0, paced: bool = True):
+def open_rig(args, cyl: Cylinder, effects: Sequence = (), *, rate: float = 1000.0, paced: bool = True,
+             on_event: Callable[[str], None] = eprint):
     """The rig named by --serial PORT, --can CH [--interface], else the virtual rig in this
-    process (paced to real time, or as fast as the CPU allows)."""
+    process (paced to real time, or as fast as the CPU allows). `on_event` takes the link's
+    one-line fault messages."""
     from hw.rig import RigError
 
     try:
         if args.serial:
             from hw.serial_rig import SerialRig
 
-            return SerialRig(args.serial, on_event=eprint)
+            return SerialRig(args.serial, on_event=on_event)
         if args.can:
             from hw.can_rig import CanRig
 
             # python-can's slcan waits 2 s after opening unless told otherwise
             extra = {"sleep_after_open": 0.1} if args.interface == "slcan" else {}
-            return CanRig(args.can, interface=args.interface, on_event=eprint, **extra)
+            return CanRig(args.can, interface=args.interface, on_event=on_event, **extra)
     except RigError as e:
         raise UsageError(f"{e}.") from None
     from hw.virtual_rig import VirtualRig

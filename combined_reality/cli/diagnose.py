@@ -62,12 +62,13 @@ def run(args) -> int:
             eprint(f"wrote the report {args.report}")
     if mode != "off":
         from ..diagnose.rerun import log_diagnosis
-        from ..report.rerun import open_recording
+        from ..report.rerun import close_recording, fallback_path, open_recording
 
-        rec = open_recording(mode, target)
+        # without a display, next to the report (or the validation run)
+        rec = open_recording(mode, target, fallback=fallback_path(args.report or args.validate), say=eprint)
         log_diagnosis(diagnosis, rec)
-        rec.flush()  # the .rrd (or the viewer) holds everything before the process ends
-        rec.disconnect()
+        if not close_recording(rec):  # the .rrd (or the viewer) holds everything before the process ends
+            eprint("the Rerun viewer did not take the diagnosis (it went away)")
     return 0
 
 

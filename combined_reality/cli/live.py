@@ -7,22 +7,29 @@ import signal
 import time
 from pathlib import Path
 
-from .common import (EFFECT_HELP, UsageError, eprint, estimate_list, load_config, open_rig, parse_effects,
-                     positive_float, rerun_mode)
+from .common import (EFFECT_HELP, UsageError, estimate_list, load_config, open_rig, parse_effects, positive_float,
+                     rerun_mode)
+
+
+# SCHED_FIFO priority of a live session's acquisition: below the virtual rig's loop (10) and
+# its reader (9), which may run on the same machine
+_ACQUISITION_PRIORITY = 5
 
 
 def _add_online_arguments(a) -> None:
     a.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
     a.add_argument("--json", help="write the final online estimate (identify format, plus its history)")
     a.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
-                   help="spawn | connect ADDR | save FILE | off (default off)")
+                   help="spawn | connect ADDR | save FILE | off (default off); spawn without a display (or when "
+                        "the viewer does not start) saves a .rrd next to the recording instead")
     a.add_argument("--estimate", help="comma-separated parameters (default Fc,Fv,kp)")
     a.add_argument("--window", type=float, default=2.0, help="moving horizon, s (default 2)")
     a.add_argument("--update", type=float, default=0.2, help="data between estimator updates, s (default 0.2)")
     a.add_argument("--memory", type=float, default=math.inf,
                    help="forgetting time constant of old data, s (default inf: keep all)")
     a.add_argument("--give-up", type=float, default=5.0, help="end the session after this long without samples, s")
-    a.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    a.add_argument("-q", "--quiet", action="store_true",
+                   help="no status line (warnings and the summary are still printed)")
 
 
 def add_parsers(sub) -> None:
@@ -57,7 +64,7 @@ def add_parsers(sub) -> None:
 
 
 def run_live(args) -> int:
-    from ..live import make_program
+    from ..live import Console, make_program
 
     cyl = load_config(args.config)
     if not (args.duration > 0 and math.isfinite(args.duration)):
@@ -74,13 +81,15 @@ def run_live(args) -> int:
     effects = parse_effects(args.effect)
     if effects and not args.virtual:
         raise UsageError("--effect switches effects on in the virtual rig; it needs --virtual.")
-    rig = open_rig(args, cyl, effects, rate=args.rate, paced=True)
-    return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, inline=False)
+    console = Console(status=not args.quiet)
+    rig = open_rig(args, cyl, effects, rate=args.rate, paced=True, on_event=console.warn)
+    return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, inline=False,
+                        console=console)
 
 
 def run_replay(args) -> int:
     from ..files import check_run_against_cylinder, read_run
-    from ..live import ReplayRig
+    from ..live import Console, ReplayRig
 
     cyl = load_config(args.config)
     run = read_run(args.run)
@@ -89,7 +98,7 @@ def run_replay(args) -> int:
         raise UsageError(f"{args.run}: a run needs at least 3 samples.")
     speed = math.inf if args.speed == "max" else positive_float(args.speed, "--speed")
     return _run_session(args, cyl, ReplayRig(run, speed), None, None, None, run.sample_period,
-                        inline=speed == math.inf)
+                        inline=speed == math.inf, console=Console(status=not args.quiet))
 
 
 def _online_options(args, cyl):
@@ -107,14 +116,16 @@ def _online_options(args, cyl):
     return OnlineOptions(window_s=args.window, update_s=args.update, memory_s=args.memory, estimate=names)
 
 
-def _rerun_sink(args, cyl, window_s: float):
+def _rerun_sink(args, cyl, window_s: float, near: str, say):
+    """The Rerun view in its own process; `spawn` without a display saves next to `near`."""
     mode, target = rerun_mode(args.rerun)
     if mode == "off":
         return None
-    from ..live.rerun_sink import RerunSink
-    from ..report.rerun import open_recording
+    from ..live.rerun_sink import RerunProcessSink
+    from ..report.rerun import fallback_path
 
-    return RerunSink(open_recording(mode, target), cyl, window_s)
+    return RerunProcessSink(mode, target, cyl, window_s, fallback=fallback_path(near) if mode == "spawn" else None,
+                            say=say)
 
 
 def _session_json(result, options, wall_s: float) -> dict:
@@ -127,62 +138,122 @@ def _session_json(result, options, wall_s: float) -> dict:
         "updates": len(result.estimates), "window_s": options.window_s, "wall_s": round(wall_s, 3),
         "update_ms_p50": float(np.percentile(walls, 50)) if len(walls) else None,
         "update_ms_p95": float(np.percentile(walls, 95)) if len(walls) else None,
-        "n_samples": int(result.run.n), "stop_reason": result.stop_reason},
+        "n_samples": int(result.run.n), "stop_reason": result.stop_reason, "rig_time_at_start": result.t0},
         "link": result.counters, "events": result.events,
-        "history": [{"t": e.t, "values": e.values, "std": e.std, "sigma": e.sigma} for e in result.estimates]}
+        # t: s since the session's first sample; t_rig: the rig's clock (the recording's t)
+        "history": [{"t": e.t - result.t0, "t_rig": e.t, "values": e.values, "std": e.std, "sigma": e.sigma}
+                    for e in result.estimates]}
     if final:
-        out["params"] = {n: {"value": final.values[n], "std": final.std[n], "unit": final.units[n]} for n in final.values}
+        out["params"] = {n: {"value": final.values[n], "std": final.std[n], "unit": final.units[n]}
+                         for n in final.values}
         out["fit"] = {**final.rmse, "sigma": final.sigma, "window": list(final.window)}
     return out
 
 
-def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, inline: bool) -> int:
+class _Signals:
+    """SIGINT and SIGTERM while a session runs: the first asks the session to stop (it ends
+    within a second: valve centred, files complete); before the session loop, and for a
+    second signal, they interrupt at once."""
+
+    NAMES = {signal.SIGINT: "interrupted (Ctrl-C)", signal.SIGTERM: "terminated (SIGTERM)"}
+
+    def __init__(self, on_stop=None):
+        self.reason: str | None = None
+        self.in_loop = False
+        self.on_stop = on_stop
+        self._previous = {sig: signal.signal(sig, self._handle) for sig in self.NAMES}
+
+    def _handle(self, signum, _frame) -> None:
+        if self.reason is not None or not self.in_loop:
+            raise KeyboardInterrupt
+        self.reason = self.NAMES[signum]
+        if self.on_stop:
+            self.on_stop()
+
+    def stop(self) -> str | None:
+        return self.reason
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, inline: bool,
+                 console) -> int:
+    from hw.realtime import realtime_available
+
     from ..files import clean_json, cylinder_tag, write_json_atomic
     from ..live import ConsoleSink, InlineEstimator, LockstepSimulator, ProcessEstimator, run_session
 
     options = _online_options(args, cyl)
+    rr_sink = None
+
+    def hurry() -> None:  # a stopped session gives its view a fraction of a second, not a minute
+        if rr_sink is not None:
+            rr_sink.hurry()
+
+    signals = _Signals(hurry)
+    estimator = None
     try:
-        rr_sink = _rerun_sink(args, cyl, options.window_s)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
+        try:
+            rr_sink = _rerun_sink(args, cyl, options.window_s, record or args.run, console.warn)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
 
-    def link_counters() -> dict:
-        stats = getattr(rig, "stats", None)
-        return {} if stats is None else {"lost": stats.samples_lost, "corrupt": stats.frames_corrupt}
+        def link_counters() -> dict:
+            stats = getattr(rig, "stats", None)
+            if stats is None:
+                return {}
+            return {"lost": stats.samples_lost, "corrupt": stats.frames_corrupt, "late": stats.commands_late}
 
-    sinks = [s for s in (None if args.quiet else ConsoleSink(eprint, 1.0, link_counters), rr_sink) if s is not None]
-    if not args.quiet:
-        eprint("preparing the model (compiled once, then cached) ...")
-    simulator = LockstepSimulator(cyl)
-    estimator = (InlineEstimator if inline else ProcessEstimator)(cyl, sample_period, options)
-    comments = [cylinder_tag(cyl), f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
-                f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
-
-    # SIGTERM ends a session like Ctrl-C: valve centred, files complete
-    def _term(*_):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, _term)
-    t_wall = time.perf_counter()
-    try:
+        sinks = [s for s in (ConsoleSink(console, link_counters), rr_sink) if s is not None]
+        if not args.quiet:
+            console.say("preparing the model (compiled once, then cached) ...")
+        simulator = LockstepSimulator(cyl)
+        # a live rig is acquired at real-time priority where the OS grants it; the estimator
+        # then needs to stand back no further
+        realtime = None if args.command == "replay" else _ACQUISITION_PRIORITY
+        if inline:
+            estimator = InlineEstimator(cyl, sample_period, options)
+        else:
+            estimator = ProcessEstimator(cyl, sample_period, options,
+                                         nice=0 if realtime is not None and realtime_available() else 10)
+        comments = [cylinder_tag(cyl), f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
+                    f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
+        t_wall = time.perf_counter()
+        signals.in_loop = True
         result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, record_to=record,
-                             record_comments=comments, sinks=sinks, simulator=simulator, on_event=eprint,
-                             give_up_s=args.give_up, expected_period=sample_period)
+                             record_comments=comments, sinks=sinks, simulator=simulator, on_event=console.warn,
+                             give_up_s=args.give_up, expected_period=sample_period, stop=signals.stop,
+                             realtime=realtime)
     finally:
-        signal.signal(signal.SIGTERM, previous)
-        estimator.close()
+        signals.restore()
+        if estimator is not None:
+            estimator.close()
+        if rr_sink is not None and rr_sink.proc.is_alive():
+            rr_sink.hurry()
+            rr_sink.close()
+        console.close()
     wall = time.perf_counter() - t_wall
     c = result.counters
     summary = (f"{result.stop_reason}: {c['samples']} samples in {wall:.1f} s"
-               + "".join(f", {c[k]} {k.replace('_', ' ')}" for k in ("samples_lost", "frames_corrupt", "gaps",
-                                                                     "reconnects", "rig_errors") if k in c))
-    eprint(summary)
+               + "".join(f", {c[k]} {label}" for k, label in (
+                   ("samples_lost", "samples lost"), ("frames_corrupt", "frames corrupt"), ("gaps", "gaps"),
+                   ("incomplete", "samples with a channel not measured"), ("invalid", "samples unusable"),
+                   ("rig_overruns", "samples after a missed rig deadline"), ("commands_late", "commands late"),
+                   ("host_overflow", "samples dropped by a full host queue"), ("reconnects", "reconnects"),
+                   ("rig_errors", "rig errors")) if c.get(k)))
+    console.say(summary)
+    for line in console.summary():
+        console.say(f"  {line}")
     if record:
-        eprint(f"recorded {result.run.n} samples to {record}")
+        received = c.get("samples", 0) + c.get("invalid", 0) + c.get("host_overflow", 0)
+        console.say(f"recorded {result.run.n} samples to {record}"
+                    + ("" if "host_overflow" not in c else f" (the link received {received})"))
     final = result.final
     if final:
-        print(f"online estimate at t = {final.t:.2f} s ({len(result.estimates)} updates, residual σ = "
-              f"{final.sigma:.2f} × noise):")
+        print(f"online estimate at t = {final.t - result.t0:.2f} s of the session ({len(result.estimates)} updates, "
+              f"residual σ = {final.sigma:.2f} × noise):")
         for n, v in final.values.items():
             print(f"  {n:4s} = {v:.6g} ± {final.std[n]:.2g} {final.units[n]}")
     else:

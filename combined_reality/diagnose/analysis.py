@@ -452,7 +452,7 @@ def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np
     rhs = np.vstack([np.convolve(rhs_full[i], k0, mode="same")[idx] for i in range(2)])
     out = {"index": idx, "v": v, "force": eF}
     for i, name in enumerate(("p1", "p2")):
-        out[name] = np.convolve(getattr(run, name), k1, mode="same")[half:-half] / dt - rhs[i]
+        out[name] = np.convolve(getattr(run, name), k1, mode="same")[idx] / dt - rhs[i]  # (idx: whole windows)
     return out
 
 
@@ -535,7 +535,7 @@ def regressor_correlations(nominal: Cylinder, run: Run) -> list[dict]:
     # chamber errors as volume-weighted rates (mass flow equivalents), net into chamber 1
     e12 = ee["p1"] * V1 - ee["p2"] * V2
     u = run.u[idx]
-    du = np.convolve(run.u, k1, mode="same")[half:-half] / dt
+    du = np.convolve(run.u, k1, mode="same")[idx] / dt
     moving = np.abs(v) > 0.005
     xi = run.x[idx] / g.stroke
     eF = ee["force"]

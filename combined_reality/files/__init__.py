@@ -6,10 +6,10 @@ Cylinder files themselves are parsed where their parameters live (sim.cylinder).
 from .atomic import atomic_write, clean_json, write_json_atomic, write_text_atomic
 from .checks import check_run_against_cylinder, check_train_and_valid
 from .plausibility import first_implausible, time_unit_problem
-from .runs import (REQUIRED_COLUMNS, Run, RunFormatError, RunRecorder, cylinder_identity, cylinder_tag, read_run,
-                   recorded_cylinder, recorded_elsewhere, split_at_gaps, write_run)
+from .runs import (MEASURED_CHANNELS, REQUIRED_COLUMNS, Run, RunFormatError, RunRecorder, cylinder_identity,
+                   cylinder_tag, read_run, recorded_cylinder, recorded_elsewhere, split_at_gaps, write_run)
 
 __all__ = ["atomic_write", "clean_json", "write_json_atomic", "write_text_atomic", "check_run_against_cylinder",
-           "check_train_and_valid", "first_implausible", "time_unit_problem", "REQUIRED_COLUMNS", "Run",
-           "RunFormatError", "RunRecorder", "cylinder_identity", "cylinder_tag", "read_run", "recorded_cylinder",
-           "recorded_elsewhere", "split_at_gaps", "write_run"]
+           "check_train_and_valid", "first_implausible", "time_unit_problem", "MEASURED_CHANNELS", "REQUIRED_COLUMNS",
+           "Run", "RunFormatError", "RunRecorder", "cylinder_identity", "cylinder_tag", "read_run",
+           "recorded_cylinder", "recorded_elsewhere", "split_at_gaps", "write_run"]

@@ -16,12 +16,16 @@ def check_run_against_cylinder(run: Run, cyl: Cylinder) -> None:
     """Refuse a run whose positions cannot lie on this cylinder's stroke or whose pressures far
     exceed its supply (a wrong unit, origin or cylinder)."""
     L = cyl.geometry.stroke
-    lo, hi = float(run.x.min()), float(run.x.max())
+    if not (np.isfinite(run.x).any() and np.isfinite(run.p1).any() and np.isfinite(run.p2).any()):
+        missing = next(n for n in ("x", "p1", "p2") if not np.isfinite(getattr(run, n)).any())
+        raise RunFormatError(f"{run.source}: the channel '{missing}' was not measured at any sample; "
+                             "nothing to fit it with.")
+    lo, hi = float(np.nanmin(run.x)), float(np.nanmax(run.x))
     if lo < -0.1 * L or hi > 1.1 * L:
         raise RunFormatError(f"{run.source}: position spans {lo:.4g} to {hi:.4g} m but the stroke in "
                              f"{cyl.source or 'the cylinder file'} is {L:g} m (wrong unit, wrong origin or wrong "
                              "cylinder?).")
-    pmax = float(max(run.p1.max(), run.p2.max()))
+    pmax = float(max(np.nanmax(run.p1), np.nanmax(run.p2)))
     if pmax > 1.5 * cyl.supply.pressure:
         raise RunFormatError(f"{run.source}: chamber pressure reaches {pmax:.4g} Pa, far above the supply pressure "
                              f"{cyl.supply.pressure:.4g} Pa of {cyl.source or 'the cylinder file'}.")

@@ -5,10 +5,16 @@ measured supply pressure ``ps`` and any further columns, which are kept so that 
 does not lose them. Reading is strict: a file that breaks the rules is refused with a
 one-sentence :class:`RunFormatError` naming the file, the physical line and the column;
 nothing is dropped or guessed.
+
+An empty cell in ``x``, ``p1``, ``p2`` or ``ps`` means the channel was not measured at that
+sample (a lost reading, a sensor that dropped out): it is read as NaN, and every consumer
+skips what it cannot use. The time and the command must be there: a sample whose held
+command is unknown cannot be simulated, so it is a gap (the line left out), not a row.
 """
 from __future__ import annotations
 
 import csv
+import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -20,10 +26,12 @@ import numpy as np
 from .atomic import atomic_write
 from .plausibility import first_implausible, time_unit_problem
 
-__all__ = ["REQUIRED_COLUMNS", "RunFormatError", "Run", "read_run", "write_run", "RunRecorder", "split_at_gaps",
-           "cylinder_identity", "cylinder_tag", "recorded_cylinder", "recorded_elsewhere"]
+__all__ = ["REQUIRED_COLUMNS", "MEASURED_CHANNELS", "RunFormatError", "Run", "read_run", "write_run", "RunRecorder",
+           "split_at_gaps", "cylinder_identity", "cylinder_tag", "recorded_cylinder", "recorded_elsewhere"]
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("t", "u", "x", "p1", "p2")
+# measured channels: an empty cell (not measured at that sample) is read as NaN
+MEASURED_CHANNELS: tuple[str, ...] = ("x", "p1", "p2", "ps")
 
 # fail(message, line=None, column=None) -> the error to raise, prefixed with file, line and column
 _Fail = Callable[..., "RunFormatError"]
@@ -39,6 +47,7 @@ class Run:
 
     t: np.ndarray  # s, strictly increasing when read from a file
     u: np.ndarray  # 1, valve command as sent (not clipped: the model saturates)
+    # measured channels; NaN where the channel was not measured at that sample (an empty cell)
     x: np.ndarray  # m, 0 = fully retracted
     p1: np.ndarray  # Pa absolute, cap side
     p2: np.ndarray  # Pa absolute, rod side
@@ -105,15 +114,23 @@ class Run:
         )
 
 
-def split_at_gaps(run: Run, factor: float = 1.5) -> list[Run]:
+def split_at_gaps(run: Run, factor: float = 1.5, channels: Sequence[str] = ()) -> list[Run]:
     """The gap-free pieces of a run: a step longer than `factor` median periods means lost
-    samples, whose commands are unknown, so no simulation may bridge it."""
+    samples, whose commands are unknown, so no simulation may bridge it. Samples where one of
+    `channels` was not measured (NaN) are left out and cut the run too (e.g. the measured
+    pressures that drive the pressure-driven plant)."""
     if run.n < 3:
         return [run]
     dt = np.diff(run.t)
-    cuts = np.flatnonzero(dt > factor * np.median(dt)) + 1
-    bounds = [0, *cuts.tolist(), run.n]
-    return [run.slice(a, b) for a, b in zip(bounds, bounds[1:]) if b > a]
+    cut = np.zeros(run.n, bool)
+    cut[1:] = dt > factor * np.median(dt)
+    usable = np.ones(run.n, bool)
+    for name in channels:
+        usable &= np.isfinite(getattr(run, name))
+    cut[1:] |= ~usable[:-1]
+    piece = np.cumsum(cut)  # piece number of every sample; unusable samples belong to none
+    bounds = np.flatnonzero(np.diff(np.r_[-1, np.where(usable, piece, -1), -1]) != 0)
+    return [run.slice(a, b) for a, b in zip(bounds, bounds[1:]) if usable[a]]
 
 
 def _as_column(value: object, name: str) -> np.ndarray:
@@ -163,12 +180,13 @@ def read_run(path: str | os.PathLike[str]) -> Run:
     if len(rows) == 1:
         raise fail("only one sample; at least 2 are required.", linenos[0])
 
-    columns = _parse_cells(rows, linenos, names, header_line, fail)
+    columns, empty = _parse_cells(rows, linenos, names, header_line, fail)
 
     # Extra columns are not checked: docs/formats.md says they are ignored (but kept).
     standard = [c for c in REQUIRED_COLUMNS + ("ps",) if c in columns]
     for name in standard:
-        bad = np.flatnonzero(~np.isfinite(columns[name]))
+        finite = np.isfinite(columns[name])
+        bad = np.flatnonzero(~finite if name not in empty else ~finite & ~empty[name])
         if bad.size:
             i = int(bad[0])
             raise fail(f"{_cell_text(rows[i], names.index(name))!r} is not a finite number.", linenos[i], name)
@@ -256,8 +274,9 @@ def _header(line: str, lineno: int, fail: _Fail) -> list[str]:
 
 
 def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_line: int,
-                 fail: _Fail) -> dict[str, np.ndarray]:
-    """Column name -> array; float64 for numeric columns, str for non-numeric extra columns."""
+                 fail: _Fail) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Column name -> array (float64 for numeric columns, str for non-numeric extra columns),
+    and for the measured channels with empty cells, where they are (read as NaN)."""
     ncol = len(names)
     # Fast path: numpy's C parser, valid only when every cell is a plain number.
     try:
@@ -265,9 +284,9 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
     except ValueError:
         table = None
     if table is not None and table.shape == (len(rows), ncol):
-        return {name: np.ascontiguousarray(table[:, j]) for j, name in enumerate(names)}
+        return {name: np.ascontiguousarray(table[:, j]) for j, name in enumerate(names)}, {}
 
-    # Slow path: also locates the exact line and column of a problem.
+    # Slow path: empty cells of measured channels, and the exact line and column of a problem.
     if any('"' in r for r in rows):
         try:
             cells = list(csv.reader(rows))
@@ -281,20 +300,40 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
         if len(c) != ncol:
             raise fail(f"{len(c)} cells, but the header on line {header_line} has {ncol} columns.", linenos[i])
     columns: dict[str, np.ndarray] = {}
+    empty: dict[str, np.ndarray] = {}
     for j, name in enumerate(names):
         col = [c[j] for c in cells]
+        blank = None
+        if name in MEASURED_CHANNELS:
+            blank = np.fromiter((not s.strip() for s in col), bool, len(col))
+            if blank.any():
+                empty[name] = blank
+            else:
+                blank = None
+        filled = col if blank is None else [s for s, b in zip(col, blank) if not b]
         try:  # C parser first; the Python loop below only runs to find what is wrong
-            arr = np.loadtxt(col, delimiter=",", comments=None, quotechar=None, ndmin=1, dtype=np.float64)
+            arr = np.loadtxt(filled, delimiter=",", comments=None, quotechar=None, ndmin=1, dtype=np.float64)
         except ValueError:
             arr = None
-        if arr is not None and arr.shape == (len(col),):
+        if arr is not None and arr.shape == (len(filled),):
+            if blank is not None:
+                full = np.full(len(col), np.nan)
+                full[~blank] = arr
+                arr = full
             columns[name] = arr
             continue
-        arr = np.empty(len(col))
+        arr = np.full(len(col), np.nan)
         for i, s in enumerate(col):
+            if blank is not None and blank[i]:
+                continue
             try:
                 arr[i] = _to_float(s)
             except ValueError:
+                if name in ("t", "u") and not s.strip():
+                    what = ("every sample needs its time" if name == "t" else
+                            "a sample whose command is unknown cannot be simulated, so leave the line out "
+                            "(the time step then shows the gap)")
+                    raise fail(f"empty cell: {what}.", linenos[i], name) from None
                 if name in REQUIRED_COLUMNS or name == "ps":
                     raise fail(f"{s.strip()!r} is not a number.", linenos[i], name) from None
                 # docs/formats.md: further columns are ignored, so text there is kept, not refused.
@@ -302,7 +341,7 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
                 break
         else:
             columns[name] = arr
-    return columns
+    return columns, empty
 
 
 def _is_number(s: str) -> bool:
@@ -383,7 +422,10 @@ def _columns_of(run: Run) -> tuple[list[str], list[np.ndarray]]:
 
 def _format_column(name: str, col: np.ndarray) -> list[str]:
     if col.dtype.kind in "biuf":
-        # repr of a Python float is the shortest string that parses back to the same double.
+        # repr of a Python float is the shortest string that parses back to the same double;
+        # a channel not measured at a sample (NaN) is an empty cell
+        if name in MEASURED_CHANNELS:
+            return ["" if v != v else repr(v) for v in col.astype(np.float64).tolist()]
         return [repr(v) for v in col.astype(np.float64).tolist()]
     return [_quote(str(v), name) for v in col.tolist()]
 
@@ -408,12 +450,22 @@ def _comment_lines(comments: Iterable[str]) -> str:
     return "".join(out)
 
 
+def _cell(value: float | None) -> str:
+    """A measured value as a cell: empty when it was not measured (None) or is not finite."""
+    if value is None:
+        return ""
+    v = float(value)
+    return repr(v) if math.isfinite(v) else ""
+
+
 class RunRecorder:
     """Streams samples to a run CSV as they arrive, one complete line per ``append``.
 
     Each line goes to the OS in a single unbuffered write, so a crash or kill of the process
     leaves a file of whole lines that :func:`read_run` accepts (power loss is only covered up
-    to the last :meth:`sync`). Values are written as given; :func:`read_run` checks them.
+    to the last :meth:`sync`). Values are written as given; :func:`read_run` checks them. A
+    measured channel that is missing (None) or not finite is written as an empty cell (not
+    measured at that sample); the time and the command must be finite.
     An existing file at ``path`` is replaced.
     """
 
@@ -430,14 +482,20 @@ class RunRecorder:
             self._f.close()
             raise
 
-    def append(self, t: float, u: float, x: float, p1: float, p2: float, ps: float | None = None) -> None:
+    def append(self, t: float, u: float, x: float | None, p1: float | None, p2: float | None,
+               ps: float | None = None) -> None:
         if self._f.closed:
             raise ValueError(f"RunRecorder for {self.path} is closed.")
-        if (ps is not None) != self.with_ps:
-            raise ValueError(f"RunRecorder for {self.path} was opened with with_ps={self.with_ps}, "
-                             f"but append got ps={ps!r}.")
-        values = (t, u, x, p1, p2) if ps is None else (t, u, x, p1, p2, ps)
-        self._write((",".join(repr(float(v)) for v in values) + "\n").encode("ascii"))
+        if ps is not None and not self.with_ps:
+            raise ValueError(f"RunRecorder for {self.path} was opened with with_ps=False, but append got ps={ps!r}.")
+        t, u = float(t), float(u)
+        if not (math.isfinite(t) and math.isfinite(u)):
+            raise ValueError(f"RunRecorder for {self.path}: the time and the command of a sample must be finite "
+                             f"(got t={t!r}, u={u!r}).")
+        cells = [repr(t), repr(u), _cell(x), _cell(p1), _cell(p2)]
+        if self.with_ps:
+            cells.append(_cell(ps))
+        self._write((",".join(cells) + "\n").encode("ascii"))
         self.n += 1
 
     def sync(self) -> None:

@@ -159,6 +159,8 @@ def _segments(v: np.ndarray, dt: float, opts: SegmentOptions, stuck: float) -> l
     """[start, end) of the constant-velocity segments (indices into v)."""
     n_min = max(3, int(math.ceil(opts.min_duration / dt)))
     w = max(1, n_min // 2)  # trend: average over min_duration
+    if len(v) < max(n_min, 4 * w + 1):  # (a stretch between channels not measured) too short to hold one
+        return []
     trend = np.convolve(v, np.full(2 * w + 1, 1.0 / (2 * w + 1)), mode="same")
     # Savitzky-Golay: its first-derivative kernel is the least-squares slope
     slope = np.convolve(trend, derivative_kernels(w)[0], mode="same") / dt
@@ -193,26 +195,29 @@ def points_from_run(cyl: Cylinder, run: Run, options: SegmentOptions = SegmentOp
     breaks: list[Breakaway] = []
     stuck_time = moving_time = 0.0
     for piece in split_at_gaps(run):  # no derivative across lost samples
-        idx, v, F = friction_from_newton(cyl, piece, options.newton_half)
-        if len(idx) < 5:
-            continue
-        dt = piece.sample_period
-        t = piece.t[idx]
-        stuck = options.stuck_threshold(cyl.sensors.position_noise, dt)
-        p1, p2 = piece.p1[idx], piece.p2[idx]
-        moving_time += float(np.sum(np.abs(v) >= options.min_speed)) * dt
-        for i0, i1 in _segments(v, dt, options, stuck):
-            sl = slice(i0, i1)
-            forward = v[i0] > 0
-            points.append(MapPoint(
-                v=float(np.mean(v[sl])), F=float(np.mean(F[sl])), F_std=float(np.std(F[sl])),
-                v_std=float(np.std(v[sl])), count=i1 - i0, dp=float(np.mean(np.abs(p1[sl] - p2[sl]))),
-                pc=float(np.mean((p2[sl] if forward else p1[sl]) - pa)),
-                load=math.nan if load is None else float(load), source=name,
-                t_start=float(t[i0]), t_end=float(t[i1 - 1])))
-        b, st = _breakaways(t, v, F, dt, options, stuck, name)
-        breaks.extend(b)
-        stuck_time += st
+        idx_all, v_all, F_all = friction_from_newton(cyl, piece, options.newton_half)
+        # where a channel was not measured Newton's law gives nothing: contiguous stretches only
+        cuts = np.flatnonzero(np.diff(idx_all) > 1) + 1
+        for idx, v, F in zip(*(np.split(a, cuts) for a in (idx_all, v_all, F_all))):
+            if len(idx) < 5:
+                continue
+            dt = piece.sample_period
+            t = piece.t[idx]
+            stuck = options.stuck_threshold(cyl.sensors.position_noise, dt)
+            p1, p2 = piece.p1[idx], piece.p2[idx]
+            moving_time += float(np.sum(np.abs(v) >= options.min_speed)) * dt
+            for i0, i1 in _segments(v, dt, options, stuck):
+                sl = slice(i0, i1)
+                forward = v[i0] > 0
+                points.append(MapPoint(
+                    v=float(np.mean(v[sl])), F=float(np.mean(F[sl])), F_std=float(np.std(F[sl])),
+                    v_std=float(np.std(v[sl])), count=i1 - i0, dp=float(np.mean(np.abs(p1[sl] - p2[sl]))),
+                    pc=float(np.mean((p2[sl] if forward else p1[sl]) - pa)),
+                    load=math.nan if load is None else float(load), source=name,
+                    t_start=float(t[i0]), t_end=float(t[i1 - 1])))
+            b, st = _breakaways(t, v, F, dt, options, stuck, name)
+            breaks.extend(b)
+            stuck_time += st
     stuck = options.stuck_threshold(cyl.sensors.position_noise, run.sample_period) if run.n >= 2 else math.nan
     return RunPoints(points=tuple(points), breakaways=tuple(breaks), stuck_time=stuck_time,
                      duration=run.duration, stuck_speed=stuck, moving_time=moving_time)

@@ -24,16 +24,24 @@ def friction_from_newton(cyl: Cylinder, run: Run, half: int = 15,
     Friction = M (a_without_friction - a): the pressure drive of the plant, evaluated with
     zero friction at the measured pressures, gives the acceleration without friction; a and v
     are Savitzky-Golay derivatives of the position. Returns (index, v, F) for the samples
-    away from the ends (index into the run)."""
+    away from the ends (index into the run) whose window holds every sample, measured: no
+    window with a position or pressure not measured, none across lost samples."""
     if run.n < 4 * half:
         return np.empty(0, int), np.empty(0), np.empty(0)
     plant = plant or build_plant("pressure")
     frictionless = np.array(plant.parameter_vector(cyl.with_values({"Fc": 0.0, "Fv": 0.0, "kp": 0.0})))
     k1, k2 = derivative_kernels(half)
     dt = run.sample_period
+    # a position not measured makes every window that holds it NaN (0 * NaN is NaN too)
     v = np.convolve(run.x, k1, mode="same")[half:-half] / dt
     a = np.convolve(run.x, k2, mode="same")[half:-half] / dt**2
     idx = np.arange(half, run.n - half)
+    lost = np.r_[0, np.cumsum(np.diff(run.t) > 1.5 * dt)]  # lost-sample gaps before each sample
+    whole = (lost[idx + half] == lost[idx - half]) & np.isfinite(v) & np.isfinite(run.p1[idx]) \
+        & np.isfinite(run.p2[idx])
+    idx, v, a = idx[whole], v[whole], a[whole]
+    if not len(idx):
+        return idx, v, a
     xdot = np.asarray(plant.rhs.map(len(v))(np.vstack([run.x[idx], v]), np.vstack([run.p1[idx], run.p2[idx]]),
                                             frictionless))
     return idx, v, cyl.mechanics.moving_mass * (xdot[1] - a)

@@ -130,7 +130,10 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         raise IdentificationError("no runs to identify from.")
     check_determinable(cyl, runs, options.estimate)  # no "converged" on runs that cannot say
     n_runs = len(runs)
-    pieces = [piece for r in runs for piece in split_at_gaps(r)]
+    # the measured pressures drive the pressure-driven plant: where one was not measured, that
+    # plant has no input, so the run is cut there like at lost samples
+    inputs = ("p1", "p2") if options.drive == "pressure" else ()
+    pieces = [piece for r in runs for piece in split_at_gaps(r, channels=inputs)]
     if len(pieces) > n_runs:
         runs = [q for q in pieces if q.n >= 3]
         if not runs:
@@ -175,7 +178,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     W = np.hstack([l.W for l in layouts])
     H = np.hstack([l.H for l in layouts])
     Y = np.concatenate([l.Y for l in layouts])  # (Ktot, M, ny)
-    mask = np.concatenate([l.mask for l in layouts])  # (Ktot, M)
+    mask = np.concatenate([l.mask for l in layouts])  # (Ktot, M, ny)
     S = np.hstack([l.S0 for l in layouts])  # (nx, Ktot)
     if nodes is not None:
         S = warm_nodes(plant, cyl, S, np.asarray(nodes, float))
@@ -292,7 +295,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         lam = lam / 10 if lam > 1e-6 else 0.0
         creeping = creeping + 1 if alpha <= 0.125 else 0
         S, theta, p = S_try, th_try, p_try
-        std = standard_deviations(Nmat, R * nx, cost, mask.sum() * ny)
+        std = standard_deviations(Nmat, R * nx, cost, mask.sum())
         # a step small against what the data determine; an undetermined parameter (std not
         # finite) must itself stop moving
         yardstick = np.where(np.isfinite(std), std, 1e-6 * (upper - lower))
@@ -319,7 +322,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     # final statistics at the solution (evaluated with sensitivities in ev)
     E, D, X, Sens = ev
     cost = 0.5 * float(np.sum(E * E))
-    nres = float(mask.sum() * ny)
+    nres = float(mask.sum())
     if linearized_at is not None and linearized_at[0] is ev:  # converged where the loop linearised
         Nfinal, scores = linearized_at[1], linearized_at[2]
     else:

@@ -17,7 +17,7 @@ from sim.extension import Effect
 from sim.plant import Plant
 
 from ..files import Run
-from .smoothing import velocity_estimate
+from .smoothing import fill_missing, velocity_estimate
 
 UNITS = {name: spec.unit for name, spec in PARAMETERS.items()}
 
@@ -60,8 +60,8 @@ class RunLayout:
     node0: int  # index of its first node among all nodes
     W: np.ndarray  # (nw, K*(M+1)) inputs at both ends of every sample step
     H: np.ndarray  # (1, K*M) step lengths (0 = padding)
-    Y: np.ndarray  # (K, M, ny) measured outputs
-    mask: np.ndarray  # (K, M) 1 where a sample exists
+    Y: np.ndarray  # (K, M, ny) measured outputs (0 where not measured)
+    mask: np.ndarray  # (K, M, ny) 1 where a sample exists and that output was measured
     S0: np.ndarray  # (nx, K) initial node states
 
 
@@ -92,15 +92,18 @@ def residual_scales(plant: Plant, cyl: Cylinder, dt: float) -> tuple[np.ndarray,
 
 def run_layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> RunLayout:
     """The run's intervals, inputs, measurements and initial node states (from the measured
-    state and a smoothed velocity); `node0` is the index of its first node among all runs'."""
+    state and a smoothed velocity); `node0` is the index of its first node among all runs'.
+    An output not measured at a sample (NaN) has no residual there; the node states, only a
+    starting guess, take the nearest measured values."""
     N = run.n
     K = math.ceil(N / M)
     pad = K * M + 1 - N
-    v = velocity_estimate(run.t, run.x)
+    x, p1, p2 = (fill_missing(run.t, c) for c in (run.x, run.p1, run.p2))
+    v = velocity_estimate(run.t, x)
     # a driving velocity: central differences of the measured position, interpolated linearly
     # over each sample like the position (a sum of them telescopes, so its noise does not
     # accumulate, and unlike a smoothed velocity it keeps the fast changes of an impact)
-    signals = {"u": run.u, "x": run.x, "v": np.gradient(run.x, run.t), "p1": run.p1, "p2": run.p2}
+    signals = {"u": run.u, "x": x, "v": np.gradient(x, run.t), "p1": p1, "p2": p2}
     w = np.vstack([signals[n] for n in plant.input_names])
     w_pad = np.hstack([w, np.repeat(w[:, -1:], pad, axis=1)])  # (nw, K*M+1)
     idx = (np.arange(K)[:, None] * M + np.arange(M + 1)[None, :]).ravel()
@@ -109,11 +112,13 @@ def run_layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> Run
     H = np.concatenate([dt, np.zeros(K * M - len(dt))])[None, :]
     meas = {"x": run.x, "p1": run.p1, "p2": run.p2}
     ys = np.stack([meas[n] for n in plant.output_names], axis=-1)  # (N, ny)
-    ys = np.vstack([ys, np.zeros((K * M - N, ys.shape[1]))])
-    mask = (np.arange(K * M) < N).astype(float).reshape(K, M)
+    ys = np.vstack([ys, np.full((K * M - N, ys.shape[1]), np.nan)])
+    mask = np.isfinite(ys)
+    ys = np.where(mask, ys, 0.0)
     nodes = np.arange(K) * M
-    S0 = np.array([plant.initial_state(cyl, run.x[i], run.p1[i], run.p2[i], v[i]) for i in nodes]).T
-    return RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask, S0)
+    S0 = np.array([plant.initial_state(cyl, x[i], p1[i], p2[i], v[i]) for i in nodes]).T
+    return RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask.astype(float).reshape(K, M, -1), S0)
+
 
 
 class ShootingProblem:
@@ -150,7 +155,7 @@ class ShootingProblem:
         # predicted outputs at the interval's own samples: node state, then the first M-1 steps
         oi = self.out_idx
         Ypred = np.concatenate([S[oi, :, None], X[oi][:, :, : M - 1]], axis=2).transpose(1, 2, 0)
-        E = (Ypred - self.Y) * self.wts * self.mask[:, :, None]  # (K, M, ny)
+        E = (Ypred - self.Y) * self.wts * self.mask  # (K, M, ny)
         nxt = self.nxt
         D = (X[:, nxt, M - 1] - S[:, nxt + 1]) / self.sscale[:, None]  # scaled defects (nx, n_links)
         return E, D
@@ -276,7 +281,7 @@ def linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
     SensO = Sens[out_idx][:, :, : M - 1]  # (ny, K, M-1, nz)
     G[:, 1:] = SensO[..., :nx].transpose(1, 2, 0, 3)
     Hth[:, 1:] = SensO[..., nx:].transpose(1, 2, 0, 3)
-    wm = (wts[None, None, :] * mask[:, :, None])[..., None]
+    wm = (wts[None, None, :] * mask)[..., None]
     G *= wm
     Hth *= wm
     A = Sens[:, :, M - 1, :nx].transpose(1, 0, 2)  # (K, nx, nx)
@@ -305,9 +310,11 @@ def reduce_nodes(lin, E, Draw, has_next, nx, nth):
             Q[k] = A[j] @ Q[j] + B[j]
             q[k] = A[j] @ q[j] + Draw[:, link]
             link += 1
-    Js = np.einsum("kmoi,kij->kmoj", G, P)
-    Jt = np.einsum("kmoi,kij->kmoj", G, Q) + Hth
-    r0 = E + np.einsum("kmoi,ki->kmo", G, q)
+    # batched matrix products (BLAS) rather than einsum: the same sums, several times faster
+    Gf = G.reshape(Ktot, -1, nx)
+    Js = (Gf @ P).reshape(G.shape[:3] + (nx,))
+    Jt = (Gf @ Q).reshape(G.shape[:3] + (Q.shape[-1],)) + Hth
+    r0 = E + (Gf @ q[:, :, None]).reshape(E.shape)
     return P, Q, q, Js, Jt, r0
 
 
@@ -315,6 +322,14 @@ def condense(lin, E, Draw, layouts, has_next, nx, nth):
     """The reduced normal equations (N, g) in (ds0 per run, dtheta), with P, Q, q of `reduce_nodes`
     and the per-interval gradient contributions."""
     P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, Draw, has_next, nx, nth)
+    N, g, scores = normal_equations(Js, Jt, r0, layouts, nx, nth)
+    return N, g, P, Q, q, scores
+
+
+def normal_equations(Js, Jt, r0, layouts, nx, nth):
+    """(N, g, scores) of the reduced problem in (ds0 of every run or gap-free piece, dtheta):
+    `layouts` give each piece's first interval (node0) and its number of intervals (K);
+    scores are the per-interval gradient contributions (for the cluster-robust covariance)."""
     Ktot, R = Js.shape[0], len(layouts)
     nred = R * nx + nth
     N = np.zeros((nred, nred))
@@ -337,7 +352,7 @@ def condense(lin, E, Draw, layouts, has_next, nx, nth):
         N[R * nx:, R * nx:] += jt.T @ jt
         g[a] = js.T @ rr
         g[R * nx:] += jt.T @ rr
-    return N, g, P, Q, q, scores
+    return N, g, scores
 
 
 def covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndarray | None:
@@ -386,9 +401,12 @@ def simulate_layout(sf: ShootingFunctions, s0: np.ndarray, p: np.ndarray, l: Run
 
 
 def rmse_r2(meas: np.ndarray, sim: np.ndarray) -> tuple[float, float]:
+    """Over the samples where the output was measured."""
+    ok = np.isfinite(meas)
+    meas, sim = meas[ok], sim[ok]
     err = sim - meas
-    rmse = float(np.sqrt(np.mean(err * err)))
-    sst = float(np.sum((meas - meas.mean()) ** 2))
+    rmse = float(np.sqrt(np.mean(err * err))) if err.size else float("nan")
+    sst = float(np.sum((meas - meas.mean()) ** 2)) if err.size else 0.0
     r2 = 1.0 - float(np.sum(err * err)) / sst if sst > 0 else float("nan")
     return rmse, r2
 
@@ -460,7 +478,7 @@ def interval_residual_sigma(problem: "ShootingProblem", layouts: Sequence[RunLay
             dev2 += float(np.sum(_beyond_node_states(G, ev[0] - base[0]) ** 2)) / reps
     finally:
         problem.W = saved
-    floor = math.sqrt(1.0 + dev2 / max(float(problem.mask.sum() * len(plant.output_names)), 1.0))
+    floor = math.sqrt(1.0 + dev2 / max(float(problem.mask.sum()), 1.0))
     return raw / floor, floor
 
 

@@ -65,7 +65,7 @@ class Validation:
 
     def normalized_rms(self) -> float:
         """RMS of the noise-weighted residuals of all outputs (1 = sensor noise)."""
-        n = sum(b - a for a, b in self.segments) * len(self.outputs)
+        n = int(np.isfinite(self.residual).sum())  # measured samples inside the segments
         return float(math.sqrt(self.segment_cost.sum() / max(n, 1)))
 
 
@@ -94,12 +94,13 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
             except IdentificationError:
                 continue
             meas = np.vstack([getattr(piece, o) for o in res.output_names])
-            cost = float(np.sum(((meas - res.simulated[0]) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
+            # outputs not measured at a sample (NaN) have no residual there
+            cost = float(np.nansum(((meas - res.simulated[0]) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
             if not math.isfinite(cost):
                 continue
             if best is None or cost < best[0]:
                 best = (cost, res)
-            if cost < 1.5 * meas.size:  # near the noise: nothing to gain from another start
+            if cost < 1.5 * np.isfinite(meas).sum():  # near the noise: nothing to gain from another start
                 break
         if best is None:
             raise IdentificationError(f"the model cannot be simulated on the validation segment "

@@ -1,6 +1,11 @@
 """Rerun logging of a session: measured vs simulated traces, the command, residuals,
 parameter estimates with confidence bands over time, and friction against velocity.
 
+`RerunProcessSink` does the logging in a process of its own: encoding and sending cost the
+acquisition loop nothing, and a viewer that does not start, hangs or goes away (Rerun then
+waits in native code, deaf to signals) can hold up only that process, which the session
+ends when it ends.
+
 Entity paths (SI units; the timeline `time` is the rig clock):
   position/measured, position/simulated                     m
   pressure/p1/measured, pressure/p1/simulated, p2 likewise  Pa
@@ -13,6 +18,13 @@ Entity paths (SI units; the timeline `time` is the rig clock):
 """
 from __future__ import annotations
 
+import multiprocessing as mp
+import os
+import queue
+import signal
+import time
+from typing import Callable
+
 import numpy as np
 import rerun as rr
 
@@ -21,6 +33,7 @@ from sim.plant import build_plant
 
 from ..files import Run
 from ..identify import OnlineEstimate, friction_from_newton
+from ..report.rerun import close_recording, display_available, open_recording
 
 
 class RerunSink:
@@ -84,6 +97,107 @@ class RerunSink:
                                                         np.tile(e.params[:, None], (1, len(grid))))).ravel()
         self.rec.log("friction/model", rr.LineStrips2D([np.column_stack([grid, curve])]))
 
+    def close(self, timeout_s: float = 2.0) -> bool:
+        """False if the data could not be delivered (a viewer that went away)."""
+        return close_recording(self.rec, timeout_s)
+
+
+def _rerun_main(mode: str, target: str | None, fallback: str | None, cyl: Cylinder, window_s: float, inbox, outbox,
+                parent: int, hurry) -> None:
+    """The sink process: open the recording (a viewer that cannot start: the fallback file),
+    log what arrives, flush at "close". It ends with its parent, even one killed outright."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the session's: it ends this process
+    try:
+        sink = RerunSink(open_recording(mode, target, fallback=fallback, say=lambda m: outbox.put(("say", m))),
+                         cyl, window_s)
+        while True:
+            try:
+                msg = inbox.get(timeout=0.5)
+            except queue.Empty:
+                if os.getppid() != parent:
+                    return
+                continue
+            kind, value = msg
+            if hurry.is_set():  # a stopped session: what is still queued is dropped, the view closed
+                kind = "close"
+            if kind == "rows":
+                sink.rows(*value)
+            elif kind == "estimate":
+                sink.estimate(value)
+            else:  # "close"
+                ok = sink.close()
+                outbox.put(("closed", ok))
+                return
+    except Exception as exc:  # said by the session, which goes on without the view
+        outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+class RerunProcessSink:
+    """A RerunSink in its own process (see the module's docstring). `close` waits for the
+    view to be complete (a file, a viewer that takes the data) or at most `close_timeout_s`."""
+
+    def __init__(self, mode: str, target: str | None, cyl: Cylinder, window_s: float = 2.0, *,
+                 fallback: str | os.PathLike | None = None, say: Callable[[str], None] | None = None):
+        ctx = mp.get_context("spawn")
+        self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
+        self._hurry = ctx.Event()
+        self.say = say or (lambda m: None)
+        self.proc = ctx.Process(target=_rerun_main, name="combined-reality-rerun", daemon=True,
+                                args=(mode, target, None if fallback is None else str(fallback), cyl, window_s,
+                                      self.inbox, self.outbox, os.getpid(), self._hurry))
+        self.proc.start()
+        self.failed = False
+        self.close_timeout_s = 60.0  # how long close() lets the view finish (see hurry)
+        # a file cannot hang; a viewer can
+        self._to_file = mode == "save" or (mode == "spawn" and not display_available())
+
+    def hurry(self) -> None:
+        """The session was stopped (it ends within a second): what the view has not logged yet
+        is dropped, and a file gets 0.4 s to be closed complete, a viewer 0.2 s to take the
+        data."""
+        self.close_timeout_s = 0.4 if self._to_file else 0.2
+        self._hurry.set()
+
+    def rows(self, rows: np.ndarray, sim: np.ndarray | None) -> None:
+        self._poll()
+        if not self.failed:
+            self.inbox.put(("rows", (rows, sim)))
+
+    def estimate(self, e: OnlineEstimate) -> None:
+        if not self.failed:
+            self.inbox.put(("estimate", e))
+
+    def _poll(self) -> bool | None:
+        """Pass on what the sink process said; its "closed" answer, if any."""
+        while True:
+            try:
+                kind, value = self.outbox.get_nowait()
+            except queue.Empty:
+                return None
+            if kind == "say":
+                self.say(value)
+            elif kind == "error":
+                self.failed = True
+                self.say(f"Rerun view failed ({value}); the session goes on without it")
+            elif kind == "closed":
+                if not value:
+                    self.say("the Rerun viewer did not take the last data (it went away)")
+                return value
+
     def close(self) -> None:
-        self.rec.flush()
-        self.rec.disconnect()
+        """Let the view finish (for at most close_timeout_s), then end the process whatever it does."""
+        closed = None
+        if self.proc.is_alive() and not self.failed:
+            self.inbox.put(("close", None))
+            deadline = time.monotonic() + self.close_timeout_s
+            while closed is None and self.proc.is_alive() and time.monotonic() < deadline:
+                closed = self._poll()
+                self.proc.join(0.05)
+            if closed is None:
+                closed = self._poll()
+            if closed is None and not self.failed:
+                self.say(f"the Rerun view was not finished within {self.close_timeout_s:g} s; ended")
+        self.inbox.cancel_join_thread()  # what the process did not take is dropped, not waited for
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(1.0)

@@ -14,13 +14,17 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import signal
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Protocol, Sequence
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
-from hw.rig import Rig, Sample
+from hw.protocol import EventLimiter
+from hw.realtime import make_normal, make_realtime
+from hw.rig import Rig, Sample, Status
 from hw.virtual_rig import VirtualRig
 from sim.compiled import shooting_functions
 from sim.cylinder import Cylinder
@@ -29,6 +33,7 @@ from sim.plant import build_plant
 
 from ..files import Run, RunRecorder
 from ..identify import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
+from .console import Console
 
 
 class EndOfRun(Exception):
@@ -50,18 +55,22 @@ class ReplayRig:
     def start(self) -> None:
         self._wall0 = time.perf_counter()
 
-    def read(self, timeout: float | None = None) -> Sample:
+    def read(self, timeout: float | None = None) -> Sample | None:
         r, k = self.run, self.k
         if k >= r.n:
             raise EndOfRun()
         if math.isfinite(self.speed):
             due = self._wall0 + (r.t[k] - r.t[0]) / self.speed
             delay = due - time.perf_counter()
+            if timeout is not None and delay > timeout:  # a long pause in the file: like a quiet rig
+                time.sleep(timeout)
+                return None
             if delay > 0:
                 time.sleep(delay)
         self.k += 1
-        return Sample(t=float(r.t[k]), x=float(r.x[k]), p1=float(r.p1[k]), p2=float(r.p2[k]),
-                      ps=None if r.ps is None else float(r.ps[k]), u_applied=float(r.u[k]))
+        ps = None if r.ps is None or not math.isfinite(r.ps[k]) else float(r.ps[k])  # an empty cell: not measured
+        return Sample(t=float(r.t[k]), x=float(r.x[k]), p1=float(r.p1[k]), p2=float(r.p2[k]), ps=ps,
+                      u_applied=float(r.u[k]))
 
     def send(self, u: float) -> None:
         pass
@@ -118,21 +127,26 @@ class InlineEstimator:
             out.append(self.mhe.update())
         return out
 
-    def finish(self, timeout: float = 30.0) -> list[OnlineEstimate]:
+    def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = lambda: False) -> list[OnlineEstimate]:
+        self.mhe.flush()
         return self.poll(final=True)
 
     def close(self) -> None:
         pass
 
 
-def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent: int) -> None:
+def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent: int, nice: int) -> None:
     """The estimator process: take rows, update whenever a window is due, send estimates.
     It ends with its parent, even one killed outright (no orphan keeps computing)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the session's: it ends this process
     try:
         try:
-            os.nice(10)  # best effort: acquisition and the rig's link come first on a busy machine
+            os.nice(nice)  # acquisition and the rig's link come first on a busy machine
         except OSError:
             pass
+        # one BLAS thread: OpenBLAS's own threads spin for work and, on a busy machine, take
+        # twice the time of the one they would help (3 % of samples lost: update p50 73 -> 32 ms)
+        threadpool_limits(1)
         mhe = MovingHorizonEstimator(cyl, sample_period, options, effects)
         outbox.put(("ready", None))
         finishing = False
@@ -147,6 +161,7 @@ def _estimator_main(cyl, sample_period, options, effects, inbox, outbox, parent:
             while msg is not None:
                 if isinstance(msg, str):  # "finish"
                     finishing = True
+                    mhe.flush()
                 else:
                     mhe.add(*msg[:5], lost_before=msg[5])
                 try:
@@ -168,11 +183,15 @@ class ProcessEstimator:
     """The moving-horizon estimator in its own process: acquisition never waits for it."""
 
     def __init__(self, cyl: Cylinder, sample_period: float, options: OnlineOptions, effects: Sequence[Effect] = (),
-                 start_timeout: float = 120.0):
+                 start_timeout: float = 120.0, nice: int = 10):
+        """`nice`: how far below acquisition the estimator runs (0 when acquisition has
+        real-time priority: then it needs no more room, and the estimate keeps up on a busy
+        machine)."""
         ctx = mp.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
         self.proc = ctx.Process(target=_estimator_main, name="combined-reality-estimator", daemon=True,
-                                args=(cyl, sample_period, options, tuple(effects), self.inbox, self.outbox, os.getpid()))
+                                args=(cyl, sample_period, options, tuple(effects), self.inbox, self.outbox,
+                                      os.getpid(), nice))
         self.proc.start()
         self.error: str | None = None
         kind, _ = self._get(start_timeout)
@@ -204,18 +223,19 @@ class ProcessEstimator:
             elif kind == "error":
                 self.error = value
 
-    def finish(self, timeout: float = 30.0) -> list[OnlineEstimate]:
-        """Let the estimator take in everything sent so far; its last estimates."""
+    def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = lambda: False) -> list[OnlineEstimate]:
+        """Let the estimator take in everything sent so far (for at most `timeout`, or until
+        `cancelled()`); its last estimates."""
         out = self.poll()
         if self.error or not self.proc.is_alive():
             return out
         self.inbox.put("finish")
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            kind, value = self._get(max(0.01, deadline - time.monotonic()))
+        while time.monotonic() < deadline and not cancelled():
+            kind, value = self._get(min(0.1, max(0.01, deadline - time.monotonic())))
             if kind == "estimate":
                 out.append(value)
-            elif kind in ("done", "error", None):
+            elif kind in ("done", "error") or (kind is None and not self.proc.is_alive()):
                 break
         return out
 
@@ -251,6 +271,7 @@ class LockstepSimulator:
         self._hist = np.empty((3, 0))  # recent rows (t, u, x)
         ix = plant.state_names.index
         self._out = [ix("x"), ix("p1"), ix("p2"), ix("v")]
+        self._measured = (math.nan, math.nan, math.nan)  # the last measured x, p1, p2
 
     def set_estimate(self, e: OnlineEstimate) -> None:
         self.p = np.asarray(e.params, float)
@@ -268,6 +289,12 @@ class LockstepSimulator:
             out[:, a:a + m] = X[:, :m]
             s0 = X[:, m - 1]
         return out
+
+    def _nearest_measured(self, *values: float) -> tuple[float, float, float]:
+        """(x, p1, p2) with the last measured value standing in for one not measured now."""
+        out = tuple(v if math.isfinite(v) else last for v, last in zip(values, self._measured))
+        self._measured = tuple(v if math.isfinite(v) else last for v, last in zip(out, self._measured))
+        return tuple(v if math.isfinite(v) else 0.0 for v in out)
 
     def advance(self, rows: np.ndarray) -> np.ndarray:
         """Simulated (x, p1, p2, v, friction) at each row's time: (5, n), n <= block."""
@@ -287,13 +314,18 @@ class LockstepSimulator:
         states = np.empty((nx, n))
         k = 0
         while k < n:
-            if self.state is None or t[k] - self._t_sync >= self.resync_s or not np.all(np.isfinite(self.state)):
+            measured = math.isfinite(x[k]) and math.isfinite(p1[k]) and math.isfinite(p2[k])
+            stale = self.state is None or t[k] - self._t_sync >= self.resync_s or not np.all(np.isfinite(self.state))
+            if stale and (measured or self.state is None or not np.all(np.isfinite(self.state))):
                 # no estimate lately: start again from the measured state (velocity from a
-                # quadratic through the last samples)
+                # quadratic through the last measured positions; the nearest measured values
+                # stand in for a channel not measured until one is)
                 j = hist.shape[1] - n + k
                 ja = max(0, j - 19)
-                v = float(np.polyfit(hist[0, ja:j + 1] - hist[0, j], hist[2, ja:j + 1], 2)[1]) if j - ja >= 3 else 0.0
-                states[:, k] = self.plant.initial_state(self.cyl, x[k], p1[k], p2[k], v)
+                tt, xx = hist[0, ja:j + 1] - hist[0, j], hist[2, ja:j + 1]
+                ok = np.isfinite(xx)
+                v = float(np.polyfit(tt[ok], xx[ok], 2)[1]) if ok.sum() >= 4 else 0.0
+                states[:, k] = self.plant.initial_state(self.cyl, *self._nearest_measured(x[k], p1[k], p2[k]), v)
                 self._t_sync = t[k]
             else:
                 h = t[k] - self._last[0]
@@ -328,32 +360,43 @@ class Sink(Protocol):
 
 
 class ConsoleSink:
-    """One progress line per `every_s` of rig time on stderr."""
+    """The session's status line: session time, sample rate, link counters, the latest
+    estimate with its standard deviation (times from the session's first sample, not the
+    rig's clock)."""
 
-    def __init__(self, print_fn: Callable[[str], None], every_s: float = 1.0, counters: Callable[[], dict] | None = None):
-        self.print, self.every_s, self.counters = print_fn, every_s, counters
-        self._t_last = -math.inf
+    def __init__(self, console: Console, counters: Callable[[], dict] | None = None):
+        self.console, self.counters = console, counters
+        self._t0: float | None = None
         self._e: OnlineEstimate | None = None
+        self._rate = (time.monotonic(), 0, 0.0)  # (wall, samples, rate) of the last rate update
+        self._n = 0
 
     def rows(self, rows: np.ndarray, sim: np.ndarray) -> None:
-        t = rows[0, -1]
-        if t - self._t_last < self.every_s:
-            return
-        self._t_last = t
-        line = f"  t = {t:7.2f} s"
-        if self._e is not None:
-            line += "  " + "  ".join(f"{n} = {v:.4g} ± {self._e.std[n]:.2g}" for n, v in self._e.values.items())
-            line += f"  σ = {self._e.sigma:.2f}"
+        if self._t0 is None:
+            self._t0 = float(rows[0, 0])
+        self._n += rows.shape[1]
+        now = time.monotonic()
+        wall, n, rate = self._rate
+        if now - wall >= 1.0:
+            self._rate = (now, self._n, (self._n - n) / (now - wall))
+        self.console.status(self._line(float(rows[0, -1])))
+
+    def _line(self, t: float) -> str:
+        parts = [f"t {t - self._t0:6.1f} s", f"{self._rate[2]:5.0f} samples/s"]
         if self.counters:
-            c = self.counters()
-            line += "  " + "  ".join(f"{k} {v}" for k, v in c.items())
-        self.print(line)
+            parts += [f"{k} {v}" for k, v in self.counters().items()]
+        if self._e is not None:
+            parts.append("  ".join(f"{n} {v:.5g} ± {self._e.std[n]:.2g}" for n, v in self._e.values.items())
+                         + f"  σ {self._e.sigma:.2f}")
+        else:
+            parts.append("estimate: waiting for the first window")
+        return " | ".join(parts)
 
     def estimate(self, e: OnlineEstimate) -> None:
         self._e = e
 
     def close(self) -> None:
-        pass
+        self.console.close()
 
 
 # ------------------------------------------------------------------ the session
@@ -365,20 +408,67 @@ class SessionResult:
     stop_reason: str
     counters: dict
     events: list[str] = field(default_factory=list)
+    t0: float = 0.0  # rig time of the first sample: session times are rig times minus this
 
     @property
     def final(self) -> OnlineEstimate | None:
         return self.estimates[-1] if self.estimates else None
 
 
+class _Recording:
+    """Every sample the session takes, in order: the file (opened with the first sample, with
+    a ps column if the rig measures supply pressure then) and the columns of the Run."""
+
+    def __init__(self, path, comments: Sequence[str], event: Callable[[str], None]):
+        self.path, self.comments, self.event = path, comments, event
+        self.recorder: RunRecorder | None = None
+        self.cols: list[list[float]] = [[] for _ in range(6)]  # t, u, x, p1, p2, ps
+        self._ps_unrecorded = False
+
+    def append(self, t: float, u: float, x: float, p1: float, p2: float, ps: float | None) -> None:
+        if self.path is not None and self.recorder is None:
+            self.recorder = RunRecorder(self.path, with_ps=ps is not None, comments=self.comments)
+        if self.recorder is not None:
+            if ps is not None and not self.recorder.with_ps and not self._ps_unrecorded:
+                self._ps_unrecorded = True
+                self.event(f"the rig reports supply pressure from t = {t:.3f} s (rig clock) on; the recording "
+                           "began without it and leaves it out")
+            self.recorder.append(t, u, x, p1, p2, ps if self.recorder.with_ps else None)
+        for c, v in zip(self.cols, (t, u, x, p1, p2, math.nan if ps is None else ps)):
+            c.append(v)
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+
+    def run(self) -> Run:
+        c = self.cols
+        ps = np.array(c[5]) if c[5] and not np.all(np.isnan(c[5])) else None
+        return Run(t=np.array(c[0]), u=np.array(c[1]), x=np.array(c[2]), p1=np.array(c[3]), p2=np.array(c[4]),
+                   ps=ps)
+
+
+def _measured(v) -> float:
+    """A channel's value, NaN when the rig did not measure it (None, NaN or infinite)."""
+    return float(v) if v is not None and math.isfinite(v) else math.nan
+
+
 def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: float | None = None,
                 record_to: str | os.PathLike | None = None, record_comments: Sequence[str] = (),
                 sinks: Sequence[Sink] = (), simulator: LockstepSimulator | None = None,
                 on_event: Callable[[str], None] | None = None, block: int = 20,
-                give_up_s: float = 3.0, expected_period: float | None = None) -> SessionResult:
+                give_up_s: float = 3.0, expected_period: float | None = None,
+                stop: Callable[[], str | None] | None = None, finish_timeout_s: float = 30.0,
+                realtime: int | None = None) -> SessionResult:
     """Acquire until `duration` of rig time, the end of a replayed run, a rig that stays
-    silent for `give_up_s`, or Ctrl-C; every sample is recorded the moment it arrives (the
-    file is opened with the first sample, with a `ps` column if the rig measures it)."""
+    silent for `give_up_s`, Ctrl-C, or `stop()` returning a reason (checked at least every
+    0.1 s: a signal handler sets it). Every sample received is recorded the moment it
+    arrives, in order, also the ones still queued when acquisition stops; a channel the rig
+    did not measure (missing or not finite) is an empty cell. After a stop the estimator gets
+    at most 0.1 s to finish (the session ends within a second), else `finish_timeout_s`.
+    With `realtime`, acquisition (this thread and the rig's reader) runs under SCHED_FIFO
+    at that priority where the OS grants it: other processes then cannot delay the answer
+    to a sample."""
     events: list[str] = []
 
     def event(msg: str) -> None:
@@ -386,16 +476,26 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         if on_event:
             on_event(msg)
 
-    cols: list[list[float]] = [[] for _ in range(6)]  # t, u, x, p1, p2, ps
+    # what may come with every sample (a sensor that dropped out) is said once a second at most
+    per_sample = EventLimiter(1.0)
+
+    def sample_event(key: str, msg: str) -> None:
+        per_sample.say(key, msg)
+        for line in per_sample.pop_lines():
+            event(line)
+
     pending: list[tuple] = []
     estimates: list[OnlineEstimate] = []
-    counters = {"samples": 0, "gaps": 0, "estimates": 0}
+    counters = {"samples": 0, "gaps": 0, "estimates": 0, "incomplete": 0, "invalid": 0, "rig_overruns": 0}
     t0 = None
     t_prev = seq_prev = None
     dt_nominal = None
     first_dts: list[float] = []
     reason = "duration reached"
+    stopped = False
+    stats = None
     last_sample_wall = time.monotonic()
+    rec = _Recording(record_to, record_comments, event)
 
     def flush_block() -> None:
         if not pending:
@@ -420,14 +520,63 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         for s in sinks:
             s.estimate(e)
 
+    def take_sample(s: Sample) -> bool:
+        """Record one sample and queue it for the model; False if it cannot be a row."""
+        nonlocal t0, t_prev, seq_prev, dt_nominal
+        if not (math.isfinite(s.t) and math.isfinite(s.u_applied)) or (t_prev is not None and s.t <= t_prev):
+            # a row needs its time (after the one before) and the command the valve held
+            counters["invalid"] += 1
+            sample_event("invalid", f"a sample without a valid time or command (t = {s.t!r}, u = {s.u_applied!r}) "
+                                    "cannot be a row of the run; left out")
+            return False
+        if t0 is None:
+            t0 = s.t
+        lost_before = False
+        if t_prev is not None:
+            dt = s.t - t_prev
+            if len(first_dts) < 50:
+                first_dts.append(dt)
+                dt_nominal = float(np.median(first_dts))
+                if len(first_dts) == 50 and expected_period and abs(dt_nominal / expected_period - 1) > 0.02:
+                    event(f"the rig samples every {dt_nominal * 1e3:.4g} ms, not every {expected_period * 1e3:.4g} ms "
+                          "as expected (--rate): the estimator's windows are that much longer or shorter")
+            if s.seq is not None and seq_prev is not None:
+                lost_before = s.seq != seq_prev + 1  # the rig numbers its samples: exact
+            elif len(first_dts) == 50:
+                lost_before = dt > 1.9 * dt_nominal  # at least one period without a sample
+            counters["gaps"] += lost_before
+        t_prev, seq_prev = s.t, s.seq
+        x, p1, p2, ps = (_measured(v) for v in (s.x, s.p1, s.p2, s.ps))
+        if not (math.isfinite(x) and math.isfinite(p1) and math.isfinite(p2)):
+            counters["incomplete"] += 1
+            missing = ", ".join(n for n, v in (("x", x), ("p1", p1), ("p2", p2)) if not math.isfinite(v))
+            sample_event("incomplete", f"sample at t = {s.t - t0:.3f} s: {missing} not measured (recorded as an "
+                                       "empty cell)")
+        if s.status & Status.OVERRUN:
+            counters["rig_overruns"] += 1
+        rec.append(s.t, s.u_applied, x, p1, p2, None if math.isnan(ps) else ps)
+        counters["samples"] += 1
+        pending.append((s.t, s.u_applied, x, p1, p2, float(lost_before)))
+        if len(pending) >= block:
+            flush_block()
+        return True
+
     # a full garbage collection can pause the loop for tens of milliseconds, long enough for
     # the rig's watchdog: collect now and keep what exists out of later collections
     gc.collect()
     gc.freeze()
-    recorder: RunRecorder | None = None
     rig.start()
+    if realtime is not None:
+        why = make_realtime(realtime) or getattr(rig, "realtime", lambda _p: None)(realtime)
+        if why is not None:
+            event(f"acquisition runs without real-time priority ({why}): on a busy machine the answers to samples "
+                  "come late more often (give this user an rtprio limit to change that)")
     try:
         while True:
+            why = stop() if stop is not None else None
+            if why:
+                reason, stopped = why, True
+                break
             try:
                 s = rig.read(timeout=0.1)
             except EndOfRun:
@@ -441,63 +590,39 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
                     break
                 continue
             last_sample_wall = time.monotonic()
-            if t0 is None:
-                t0 = s.t
-                if record_to is not None:
-                    recorder = RunRecorder(record_to, with_ps=s.ps is not None, comments=record_comments)
-            if program is not None:
+            if t0 is not None and program is not None:
                 rig.send(program.command(s.t - t0, s.x))
-            lost_before = False
-            if t_prev is not None:
-                dt = s.t - t_prev
-                if dt <= 0:
-                    event(f"sample at t = {s.t:.6f} s does not advance the rig clock; dropped")
-                    continue
-                if len(first_dts) < 50:
-                    first_dts.append(dt)
-                    dt_nominal = float(np.median(first_dts))
-                    if len(first_dts) == 50 and expected_period and abs(dt_nominal / expected_period - 1) > 0.02:
-                        event(f"the rig samples every {dt_nominal * 1e3:.4g} ms, not every {expected_period * 1e3:.4g} ms "
-                              "as expected (--rate): the estimator's windows are that much longer or shorter")
-                if s.seq is not None and seq_prev is not None:
-                    lost_before = s.seq != seq_prev + 1  # the rig numbers its samples: exact
-                elif len(first_dts) == 50:
-                    lost_before = dt > 1.9 * dt_nominal  # at least one period without a sample
-                counters["gaps"] += lost_before
-            t_prev, seq_prev = s.t, s.seq
-            ps = s.ps if s.ps is not None and math.isfinite(s.ps) else None
-            if recorder is not None:
-                recorder.append(s.t, s.u_applied, s.x, s.p1, s.p2, s.ps if recorder.with_ps else None)
-            for c, v in zip(cols, (s.t, s.u_applied, s.x, s.p1, s.p2, ps if ps is not None else math.nan)):
-                c.append(v)
-            counters["samples"] += 1
-            pending.append((s.t, s.u_applied, s.x, s.p1, s.p2, float(lost_before)))
-            if len(pending) >= block:
-                flush_block()
-            if duration is not None and s.t - t0 >= duration:
+            elif program is not None:
+                rig.send(program.command(0.0, s.x))
+            if take_sample(s) and duration is not None and s.t - t0 >= duration:
                 break
     except KeyboardInterrupt:
-        reason = "interrupted (Ctrl-C)"
-        event("interrupted: valve centred, recording closed")
+        reason, stopped = "interrupted (Ctrl-C)", True
     finally:
         try:
             rig.stop()
+            # what arrived but was not read yet is recorded too: nothing received is lost
+            for s in getattr(rig, "drain", lambda: [])():
+                take_sample(s)
+            # the link's counters as the recording closes: they and the recording tell the same
+            stats = getattr(rig, "stats", None)
         finally:
             gc.unfreeze()
-            if recorder is not None:
-                recorder.close()
+            rec.close()
+            if realtime is not None:
+                make_normal()
+    if stopped:
+        event(f"{reason}: valve centred, recording closed")
     flush_block()
-    for e in estimator.finish():
+    # a signal while the estimator finishes ends that too (the session ends within a second)
+    for e in estimator.finish(0.1 if stopped else finish_timeout_s,
+                              cancelled=lambda: stop is not None and stop() is not None):
         take(e)
     if getattr(estimator, "error", None):
         event(f"online estimator failed: {estimator.error}")
     for s in sinks:
         s.close()
-    n = len(cols[0])
-    ps_col = np.array(cols[5]) if n and not np.all(np.isnan(cols[5])) else None
-    run = Run(t=np.array(cols[0]), u=np.array(cols[1]), x=np.array(cols[2]), p1=np.array(cols[3]),
-              p2=np.array(cols[4]), ps=ps_col)
-    stats = getattr(rig, "stats", None)
     if stats is not None:
         counters.update({k: v for k, v in vars(stats).items() if isinstance(v, (int, float))})
-    return SessionResult(run=run, estimates=estimates, stop_reason=reason, counters=counters, events=events)
+    return SessionResult(run=rec.run(), estimates=estimates, stop_reason=reason, counters=counters, events=events,
+                         t0=0.0 if t0 is None else t0)
