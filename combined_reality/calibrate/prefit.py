@@ -23,6 +23,7 @@ __all__ = ["force_balance_prefit", "settled_offsets", "chamber_prefit", "unit_fl
 
 _P_FROM, _P_TO, _B, _T = (ca.SX.sym(n) for n in ("p_from", "p_to", "b", "T"))
 SMOOTH = 0.02  # weight of the slope-continuity rows of the flow characteristic, relative to the data
+OVERLAP_TIE = 0.002  # overlaps whose cost is within this share of the searched costs' span count as a tie
 
 
 def force_balance_prefit(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> dict[str, float]:
@@ -196,12 +197,17 @@ def chamber_prefit(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float]
         residual = float(np.sum(bw**2) - np.sum(target**2)) + 2 * fit.cost
         return residual, fit.x / scale
 
+    # the two directions' overlaps share only the dead volumes: search each in turn. Closed up to
+    # an overlap and flat segments from zero fit the data alike, but a curve flat at zero leaves
+    # the overlap without a gradient for the fits that follow: of the overlaps that fit about as
+    # well as the best, the largest is taken
     overlaps = [0.0, 0.0]
-    candidates = np.linspace(0.0, 0.2, 21)
-    for _ in range(2):  # the two directions' overlaps share only the dead volumes: search each in turn
+    candidates = np.linspace(0.0, 0.2, 41)
+    for _ in range(2):
         for d in (0, 1):
-            costs = [solve(tuple(c if i == d else overlaps[i] for i in (0, 1)))[0] for c in candidates]
-            overlaps[d] = float(candidates[int(np.argmin(costs))])
+            costs = np.array([solve(tuple(c if i == d else overlaps[i] for i in (0, 1)))[0] for c in candidates])
+            near_best = costs <= costs.min() + OVERLAP_TIE * (costs.max() - costs.min())
+            overlaps[d] = float(candidates[np.flatnonzero(near_best)[-1]])
     _, sol = solve((overlaps[0], overlaps[1]))
     out = {"overlap_extend": overlaps[0], "overlap_retract": overlaps[1],
            "dead_volume_cap": float(sol[2 * K]), "dead_volume_rod": float(sol[2 * K + 1])}
