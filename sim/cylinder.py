@@ -60,7 +60,7 @@ class Supply:
 # them (PCHIP). Denser at small openings, where closed-loop position control spends most of its
 # time: a real valve's curve there (a power of the opening, an S-shape) decides how the piston
 # creeps, and a coarser grid or straight segments left 4 to 9 times the sensor noise.
-OPENING_GRID: tuple[float, ...] = (0.02, 0.05, 0.1, 0.175, 0.275, 0.4, 0.6, 0.8, 1.0)
+OPENING_GRID: tuple[float, ...] = (0.02, 0.05, 0.1, 0.175, 0.25, 0.325, 0.4, 0.5, 0.6, 0.8, 1.0)
 VALVE_DIRECTIONS: tuple[str, ...] = ("extend", "retract")  # u > 0, u < 0
 
 

@@ -4,8 +4,8 @@ force) together with the friction, staged the way the physics separates them."""
 from .identifiability import Identifiability, assess, flow_coverage
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets
 from .stages import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, calibrate, smooth_valve_prior,
-                     validation_figures)
+                     validation_figures, with_model_error)
 
 __all__ = ["Identifiability", "assess", "flow_coverage", "chamber_prefit", "force_balance_prefit", "settled_offsets",
            "CALIBRATED", "MECHANICAL", "PNEUMATIC", "CalibrateOptions", "Calibration", "calibrate",
-           "smooth_valve_prior", "validation_figures"]
+           "smooth_valve_prior", "validation_figures", "with_model_error"]

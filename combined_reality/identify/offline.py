@@ -336,8 +336,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     # white: report the larger of the Gauss-Newton and the cluster-robust variances
     cov = cov_gn
     if cov_gn is not None and cov_robust is not None:
-        scale = np.sqrt(np.maximum(np.diag(cov_robust), 0) / np.maximum(np.diag(cov_gn), 1e-300))
-        scale = np.maximum(scale, 1.0)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            scale = np.sqrt(np.maximum(np.diag(cov_robust), 0) / np.maximum(np.diag(cov_gn), 1e-300))
+        scale = np.where(np.isfinite(scale), np.maximum(scale, 1.0), 1.0)
         cov = cov_gn * np.outer(scale, scale)
     at_bound = at_bounds(theta, lower, upper)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(nth, np.nan)

@@ -375,12 +375,14 @@ def cluster_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int,
     nb = len(S)
     if nb < 5:
         return None
-    meat = S.T @ S * nb / (nb - 1)
     try:
         inv = scaled_inverse(N)
     except np.linalg.LinAlgError:
         return None
-    return (inv @ meat @ inv)[n_state:, n_state:]
+    with np.errstate(over="ignore", invalid="ignore"):  # a score beyond float range: no robust estimate
+        meat = S.T @ S * nb / (nb - 1)
+        cov = (inv @ meat @ inv)[n_state:, n_state:]
+    return cov if np.all(np.isfinite(cov)) else None
 
 
 def standard_deviations(N, n_state, cost, nres) -> np.ndarray:
