@@ -34,11 +34,8 @@ _KEY = re.compile(r"^(\s*)([A-Za-z0-9_\-]+)(\s*=\s*)")
 
 
 def _number(v: float) -> str:
-    """A float with at most 7 significant digits (what a calibration can tell) that TOML reads."""
-    if v == 0 or not math.isfinite(v):
-        return repr(float(v))
-    text = f"{v:.7g}"
-    return text if any(c in text for c in ".en") else text + ".0"
+    """A float that TOML reads back exactly (the shortest repr): a written file loses nothing."""
+    return repr(float(v))
 
 
 def _render(value) -> str:
