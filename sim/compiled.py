@@ -29,7 +29,7 @@ import numpy as np
 from .integrator import IntegratorOptions, StepBuilder
 from .plant import Plant
 
-CODE_REVISION = 6  # bump when generated functions change shape or meaning
+CODE_REVISION = 7  # bump when generated functions change shape or meaning
 
 
 def cache_dir() -> Path:

@@ -169,6 +169,7 @@ class StepBuilder:
         """The adaptive one-sample step (x, w0, w1, p, h) -> x_next."""
         x, w0, w1, p, h = self._symbols()
         xn, err = self.rosenbrock(x, w0, w1, p, h)
+        xn, err = ca.cse([xn, err])
         coarse = ca.Function("rb_step", [x, w0, w1, p, h], [xn, err], ["x", "w0", "w1", "p", "h"], ["xn", "err"])
         return self._refine(coarse, self.opts.max_depth, "step")
 
@@ -209,6 +210,7 @@ class StepBuilder:
         Fx = ca.jacobian(xn, x)
         Fp = ca.jacobian(xn, ca.vertcat(*[p[i] for i in free]))
         Sn = ca.mtimes(Fx, S) + ca.horzcat(ca.SX.zeros(self.nx, self.nx), Fp)
+        xn, Sn, err = ca.cse([xn, Sn, err])
         coarse = ca.Function("rb_sens", [x, w0, w1, p, h, S], [xn, Sn, err],
                              ["x", "w0", "w1", "p", "h", "S"], ["xn", "Sn", "err"])
         return self._refine(coarse, self.opts.max_depth, "sens")
