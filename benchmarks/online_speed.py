@@ -7,7 +7,8 @@
     process): p50 and p95 wall time per update, against the 50 ms budget that lets updates
     run at >= 10 Hz beside a 1 kHz stream, on the machine as it is and with two busy
     processes beside (python -c "while True: pass", twice), each without and with 1 % of the
-    samples lost on the link; and as a ratio to the baseline measured in the same run: the
+    samples lost on the link, at nice 0 and at the raised priority a live session gives its
+    estimator where acquisition runs in real time (where the OS grants it); and as a ratio to the baseline measured in the same run: the
     offline identifier solving the same 2 s window from the same start (what a user would
     do without the estimator);
 (b) `combined-reality replay --speed max` of a 20 s run as a separate process: real
@@ -29,10 +30,10 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from combined_reality.live import simulate_run
+from combined_reality.live import ESTIMATOR_NICE_AHEAD, set_estimator_priority, simulate_run
 from combined_reality.identify import IdentifyOptions, identify
 from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
-from combined_reality.files import write_run
+from combined_reality.files import RunFormatError, write_run
 from sim.cylinder import load_cylinder
 
 REPO = Path(__file__).resolve().parents[1]
@@ -59,11 +60,16 @@ def bench_updates(cyl, duration: float, update_s: float, drop: float = 0.0, base
     cpus = np.array(cpus[1:]) * 1e3
     # baseline: the offline identifier on one 2 s window from the same start, repeated
     base = []
-    for i0 in (3000, run.n // 2, run.n - 2500) if baseline else ():
+    for i0 in range(3000, run.n - 2000, 1000) if baseline else ():
         w = run.slice(i0, i0 + 2000)
         t0 = time.perf_counter()
-        identify(start, [w], IdentifyOptions())
+        try:
+            identify(start, [w], IdentifyOptions())
+        except RunFormatError:
+            continue  # a window that moves one way only cannot determine Fc offline
         base.append(time.perf_counter() - t0)
+        if len(base) == 3:
+            break
     return {"updates": len(walls), "p50_ms": float(np.percentile(walls, 50)),
             "cpu_p50_ms": float(np.percentile(cpus, 50)), "cpu_p95_ms": float(np.percentile(cpus, 95)),
             "p95_ms": float(np.percentile(walls, 95)), "max_ms": float(walls.max()),
@@ -123,8 +129,16 @@ def main() -> int:
     print_updates("the machine as it is:", a)
     print_updates("the machine as it is, 1 % samples lost:", bench_updates(cyl, duration, 0.1, 0.01, False))
     with BusyProcesses():
-        print_updates("two busy processes beside:", bench_updates(cyl, duration, 0.1, 0.0, False))
-        print_updates("two busy processes, 1 % samples lost:", bench_updates(cyl, duration, 0.1, 0.01, False))
+        print_updates("two busy processes beside, nice 0:", bench_updates(cyl, duration, 0.1, 0.0, False))
+        print_updates("two busy, 1 % samples lost, nice 0:", bench_updates(cyl, duration, 0.1, 0.01, False))
+        # a live session's estimator runs ahead of ordinary work where acquisition is real-time
+        nice = set_estimator_priority(ESTIMATOR_NICE_AHEAD)
+        if nice < 0:
+            print_updates(f"two busy, live estimator's nice {nice}:", bench_updates(cyl, duration, 0.1, 0.0, False))
+            print_updates(f"two busy, 1 % lost, nice {nice}:", bench_updates(cyl, duration, 0.1, 0.01, False))
+            set_estimator_priority(-ESTIMATOR_NICE_AHEAD)
+        else:
+            print("    (the live estimator's raised priority is not granted here: no root or CAP_SYS_NICE)")
     print(f"    baseline, the offline identifier on one 2 s window from the same start: "
           f"{a['offline_window_ms']:.0f} ms; ratio {a['offline_window_ms'] / a['p50_ms']:.1f}x (p50)")
     print("    final " + ", ".join(f"{n} {v:.5g} (truth {a['truth'][n]:.5g})" for n, v in a["final"].items()))

@@ -183,7 +183,8 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
     from hw.realtime import realtime_available
 
     from ..files import clean_json, cylinder_tag, write_json_atomic
-    from ..live import ConsoleSink, InlineEstimator, LockstepSimulator, ProcessEstimator, run_session
+    from ..live import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, InlineEstimator, LockstepSimulator,
+                        ProcessEstimator, run_session)
 
     options = _online_options(args, cyl)
     rr_sink = None
@@ -211,13 +212,14 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
             console.say("preparing the model (compiled once, then cached) ...")
         simulator = LockstepSimulator(cyl)
         # a live rig is acquired at real-time priority where the OS grants it; the estimator
-        # then needs to stand back no further
+        # then runs ahead of ordinary work (below acquisition), else behind acquisition
         realtime = None if args.command == "replay" else _ACQUISITION_PRIORITY
         if inline:
             estimator = InlineEstimator(cyl, sample_period, options)
         else:
+            ahead = realtime is not None and realtime_available()
             estimator = ProcessEstimator(cyl, sample_period, options,
-                                         nice=0 if realtime is not None and realtime_available() else 10)
+                                         nice=ESTIMATOR_NICE_AHEAD if ahead else ESTIMATOR_NICE_BEHIND)
         comments = [cylinder_tag(cyl), f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
                     f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
         t_wall = time.perf_counter()

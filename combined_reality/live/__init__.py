@@ -4,9 +4,10 @@ Rerun view."""
 from .console import Console
 from .experiment import run_program, simulate_run
 from .programs import PROGRAMS, PositionProgram, ProgramOptions, guarded, make_program
-from .session import (ConsoleSink, InlineEstimator, LockstepSimulator, PacedRig, ProcessEstimator, ReplayRig,
-                      SessionResult, run_session)
+from .session import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, InlineEstimator, LockstepSimulator,
+                      PacedRig, ProcessEstimator, ReplayRig, SessionResult, run_session, set_estimator_priority)
 
 __all__ = ["Console", "run_program", "simulate_run", "PROGRAMS", "PositionProgram", "ProgramOptions", "guarded",
            "make_program", "ConsoleSink", "InlineEstimator", "LockstepSimulator", "PacedRig", "ProcessEstimator",
-           "ReplayRig", "SessionResult", "run_session"]
+           "ReplayRig", "SessionResult", "run_session", "ESTIMATOR_NICE_AHEAD", "ESTIMATOR_NICE_BEHIND",
+           "set_estimator_priority"]
