@@ -504,8 +504,8 @@ class MovingHorizonEstimator:
                 r_lin = r0 + _apply(Js, Jt, ds0[piece_of], dth)
                 d_lin = dev + dth
                 pred = cost - 0.5 * float(np.sum(r_lin * r_lin)) - 0.5 * float(d_lin @ info @ d_lin)
-                if pred < max(0.5 * nth, 1e-3 * cost) and viol < 1e-2 * Kw:
-                    converged = True  # less to gain than a fraction of a standard deviation
+                if pred < max(0.5 * nu, 1e-3 * cost) and viol < 1e-2 * Kw:
+                    converged = True  # less to gain than fitting nu unknowns to noise would (chi2: nu/2)
                     break
                 # the penalty on the defects needs only outweigh a cost the step would add to close
                 # them; a penalty sized by the decrease over a vanishing violation would refuse any
