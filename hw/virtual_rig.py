@@ -14,7 +14,7 @@ from sim.compiled import shooting_functions
 from sim.cylinder import Cylinder
 from sim.effects import Effect
 from sim.integrator import TRUTH_OPTIONS, IntegratorOptions
-from sim.plant import build_plant
+from sim.plant import plant_for
 
 from .rig import Sample, bounded
 
@@ -27,7 +27,7 @@ class VirtualRig:
                  progress=None):
         self.cyl = cyl
         self.effects = tuple(effects)
-        self.plant = build_plant("command", self.effects)
+        self.plant = plant_for(cyl, "command", self.effects)
         self.params = np.array(self.plant.parameter_vector(cyl))
         self.funcs = shooting_functions(self.plant, 1, (), integrator, progress=progress)
         self.dt = 1.0 / rate

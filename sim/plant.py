@@ -15,7 +15,7 @@ from typing import Sequence
 
 import casadi as ca
 
-from .cylinder import OPENING_GRID, PARAMETERS, VALVE_DIRECTIONS, Cylinder
+from .cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, PARAMETERS, VALVE_DIRECTIONS, Cylinder
 from .extension import Effect, Signals, check_combination
 from .flow import G, KAPPA, R_AIR, mass_flow
 
@@ -49,6 +49,9 @@ class Plant:
     param_names: tuple[str, ...]
     rhs: ca.Function = field(repr=False)  # (state, input, params) -> dstate/dt
     friction: ca.Function = field(repr=False)  # (state, input, params) -> friction force
+    # the valve's flow characteristic in the equations; False: the linear law of the model
+    # contract (C * command), its special case, at under half the cost of a step
+    valve_curve: bool = True
 
     @property
     def nx(self) -> int:
@@ -58,10 +61,13 @@ class Plant:
     def structure_key(self) -> str:
         """Identifies the symbolic structure (not the values): the key of compiled-code caches."""
         desc = repr((self.drive, tuple(e.structure() for e in self.effects), self.param_names, MODEL_REVISION,
-                     OPENING_GRID))
+                     OPENING_GRID if self.valve_curve else "linear valve"))
         return hashlib.sha256(desc.encode()).hexdigest()[:16]
 
     def parameter_vector(self, cyl: Cylinder) -> list[float]:
+        if not self.valve_curve and not cyl.valve.is_linear:
+            raise ValueError(f"{cyl.name}: its valve has a flow characteristic (overlap or curve), but this plant "
+                             "was built for the linear valve law; build it with plant_for(cyl, ...)")
         vals = [cyl.value(n) for n in NOMINAL_PARAMS]
         for e in self.effects:
             vals.extend(e.values())
@@ -132,7 +138,17 @@ def end_stop_force(x, v, stroke, stiffness, damping):
     return ca.if_else(x < 0, below, ca.if_else(x > stroke, above, 0.0))
 
 
-def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant:
+def plant_for(cyl: Cylinder, drive: str = "command", effects: Sequence[Effect] = (),
+              estimate: Sequence[str] = ()) -> Plant:
+    """The plant for `cyl`: the valve's flow characteristic in the equations only where the
+    cylinder has one or it is to be estimated (the linear law is its cheaper special case)."""
+    curve = not cyl.valve.is_linear or any(n in FLOW_CHARACTERISTIC for n in estimate)
+    return build_plant(drive, effects, valve_curve=curve)
+
+
+def build_plant(drive: str = "command", effects: Sequence[Effect] = (), valve_curve: bool = True) -> Plant:
+    """The plant for one drive with `effects`; `valve_curve` False builds the linear valve law
+    (conductance C * command) instead of the flow characteristic, for cylinders without one."""
     if drive not in DRIVES:
         raise ValueError(f"unknown drive {drive!r} (expected one of {DRIVES})")
     effects = tuple(effects)
@@ -187,9 +203,13 @@ def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant
         sig.u = ca.fmin(ca.fmax(known["u"], -1.0), 1.0)
         stage("on_command")
         stage("on_supply")
-        c_pos, c_neg = (valve_conductance(sig.C, a, par[f"overlap_{d}"],
-                                          [par[f"flow_{d}_{k + 1}"] for k in range(len(OPENING_GRID))])
-                        for d, a in zip(VALVE_DIRECTIONS, (ca.fmax(sig.u, 0.0), ca.fmax(-sig.u, 0.0))))
+        openings = (ca.fmax(sig.u, 0.0), ca.fmax(-sig.u, 0.0))
+        if valve_curve:
+            c_pos, c_neg = (valve_conductance(sig.C, a, par[f"overlap_{d}"],
+                                              [par[f"flow_{d}_{k + 1}"] for k in range(len(OPENING_GRID))])
+                            for d, a in zip(VALVE_DIRECTIONS, openings))
+        else:
+            c_pos, c_neg = (sig.C * a for a in openings)
         # supply -> chamber paths (drawn from the supply) and chamber <- exhaust paths
         sig.mdot_s1 = mass_flow(c_pos, sig.ps, p1, sig.b, sig.T)
         sig.mdot_s2 = mass_flow(c_neg, sig.ps, p2, sig.b, sig.T)
@@ -234,4 +254,5 @@ def build_plant(drive: str = "command", effects: Sequence[Effect] = ()) -> Plant
         param_names=tuple(param_names),
         rhs=ca.Function("rhs", [X, U, P], [ca.vertcat(*deriv)], ["x", "u", "p"], ["xdot"]),
         friction=ca.Function("friction", [X, U, P], [ca.SX(sig.Ff)], ["x", "u", "p"], ["Ff"]),
+        valve_curve=valve_curve,
     )

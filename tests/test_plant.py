@@ -8,7 +8,7 @@ from model_reference import ReferenceModel
 from sim.compiled import shooting_functions
 from sim.effects import Leakage, Stiction, ValveDelay, make_effect, parse_effect_spec
 from sim.flow import flow_function, mass_flow
-from sim.plant import build_plant
+from sim.plant import build_plant, plant_for
 
 
 def test_rhs_matches_independent_transcription(cyl_a):
@@ -24,6 +24,27 @@ def test_rhs_matches_independent_transcription(cyl_a):
         ours = np.asarray(plant.rhs(state, u, p)).ravel()
         expected = ref.rhs(0.0, state, u, f.Fc, f.Fv, f.kp)
         np.testing.assert_allclose(ours, expected, rtol=1e-10, atol=1e-9)
+
+
+def test_linear_valve_plant_is_the_special_case_of_the_curve(cyl_a):
+    """A cylinder without a flow characteristic gets the cheaper linear valve law, with the
+    same right-hand side; a characteristic (in the file or to be estimated) brings the curve,
+    and a linear plant refuses a cylinder that has one rather than simulate it wrongly."""
+    linear, curve = plant_for(cyl_a), build_plant("command")
+    assert not linear.valve_curve and curve.valve_curve
+    assert linear.structure_key != curve.structure_key
+    assert plant_for(cyl_a, "command", (), ("Fc", "overlap_extend")).valve_curve
+    p = linear.parameter_vector(cyl_a)
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        state = [rng.uniform(1.0e5, 7.0e5), rng.uniform(1.0e5, 7.0e5), rng.uniform(0, 0.1), rng.normal(0, 0.3)]
+        u = rng.uniform(-1.2, 1.2)
+        np.testing.assert_allclose(np.asarray(linear.rhs(state, u, p)).ravel(),
+                                   np.asarray(curve.rhs(state, u, p)).ravel(), rtol=1e-12, atol=1e-9)
+    overlapped = cyl_a.with_values({"overlap_extend": 0.05})
+    assert plant_for(overlapped).valve_curve
+    with pytest.raises(ValueError, match="flow characteristic"):
+        linear.parameter_vector(overlapped)
 
 
 def test_flow_function_shape():

@@ -429,7 +429,7 @@ def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np
            chambers) evaluated at the smoothed measured state and the command (Pa/s).
     Derivatives and smoothing are Savitzky-Golay over +-`half` samples; the model's chamber
     rates, which follow the command sample by sample, are smoothed by the same filter."""
-    from sim.plant import build_plant
+    from sim.plant import plant_for
 
 
     idx, v, F = friction_from_newton(nominal, run, half)
@@ -443,7 +443,7 @@ def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np
     full = {n: np.convolve(getattr(run, n), k0, mode="same") for n in ("x", "p1", "p2")}
     v_full = np.convolve(run.x, k1, mode="same") / run.sample_period
     dt = run.sample_period
-    plant = build_plant("command")
+    plant = plant_for(nominal, "command")
     p = np.array(plant.parameter_vector(nominal))
     # the command changes every sample: smooth the model's rates with the same filter as the
     # measured derivative, so both see the same bandwidth

@@ -28,7 +28,7 @@ from sim.compiled import shooting_functions
 from sim.cylinder import PARAMETERS, Cylinder
 from sim.extension import Effect
 from sim.integrator import IntegratorOptions
-from sim.plant import build_plant
+from sim.plant import plant_for
 
 from ..files import Run, split_at_gaps
 from .newton import equation_error_friction
@@ -141,7 +141,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         if progress:
             progress(f"  {len(pieces) - n_runs} gap(s) of lost samples: {len(runs)} gap-free pieces "
                      "identified jointly (no simulation bridges a gap)")
-    plant = build_plant(options.drive, effects)
+    plant = plant_for(cyl, options.drive, effects, options.estimate)
     estimate = tuple(options.estimate)
     free = free_parameters(plant, estimate)
     p = np.array(plant.parameter_vector(cyl), dtype=float)

@@ -43,7 +43,7 @@ from sim.compiled import NumpyCall, shooting_functions
 from sim.cylinder import Cylinder
 from sim.extension import Effect
 from sim.integrator import IntegratorOptions
-from sim.plant import build_plant
+from sim.plant import plant_for
 
 from ..files import Run
 from .newton import equation_error_friction
@@ -156,7 +156,7 @@ class MovingHorizonEstimator:
     def __init__(self, cyl: Cylinder, sample_period: float, options: OnlineOptions = OnlineOptions(),
                  effects: Sequence[Effect] = (), progress: Callable[[str], None] | None = None):
         self.cyl, self.options, self.dt = cyl, options, float(sample_period)
-        self.plant = plant = build_plant("command", effects)
+        self.plant = plant = plant_for(cyl, "command", effects, options.estimate)
         self.names = tuple(options.estimate)
         self.free = free_parameters(plant, self.names)
         self.M = M = max(5, int(round(options.interval_s / self.dt)))

@@ -29,7 +29,7 @@ import numpy as np
 import rerun as rr
 
 from sim.cylinder import Cylinder
-from sim.plant import build_plant
+from sim.plant import build_plant, plant_for
 
 from ..files import Run
 from ..identify import OnlineEstimate, friction_from_newton
@@ -41,7 +41,7 @@ class RerunSink:
 
     def __init__(self, rec: rr.RecordingStream, cyl: Cylinder, window_s: float = 2.0):
         self.rec, self.cyl, self.window_s = rec, cyl, window_s
-        self._plant = build_plant("command")
+        self._plant = plant_for(cyl, "command")
         self._pressure_plant = build_plant("pressure")
         self._buf = np.empty((5, 0))
 

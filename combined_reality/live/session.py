@@ -29,7 +29,7 @@ from hw.virtual_rig import VirtualRig
 from sim.compiled import shooting_functions
 from sim.cylinder import Cylinder
 from sim.extension import Effect
-from sim.plant import build_plant
+from sim.plant import plant_for
 
 from ..files import Run, RunRecorder
 from ..identify import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
@@ -274,7 +274,7 @@ class LockstepSimulator:
     def __init__(self, cyl: Cylinder, effects: Sequence[Effect] = (), resync_s: float = 2.0, block: int = 20,
                  history_s: float = 10.0):
         self.cyl = cyl
-        self.plant = plant = build_plant("command", effects)
+        self.plant = plant = plant_for(cyl, "command", effects)
         sf = shooting_functions(plant, 1, ())
         self.B = block
         self._acc = sf.step.mapaccum("lockstep", block, [0], [0])  # states after each of B steps
