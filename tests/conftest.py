@@ -19,11 +19,29 @@ def assert_refused(code, err, *fragments):
         assert f in lines[0], (f, lines[0])
 
 
+# Tests that keep real time (live sessions, the virtual rig at 1 kHz on a pseudo-terminal, the
+# firmware in the loop) run one after another on one worker: side by side they would load the
+# machine beyond the two busy processes they are written to withstand. The rest spreads over
+# the other workers (pytest-xdist, `-n` in pyproject.toml's addopts).
+REALTIME_MODULES = {"test_live_e2e", "test_rig_server", "test_stream", "test_firmware", "test_procedures",
+                    "test_transports"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.module is not None and item.module.__name__ in REALTIME_MODULES:
+            item.add_marker(pytest.mark.xdist_group("realtime"))
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _model_cache(tmp_path_factory):
-    """Compiled model functions go to the user cache unless CI asks for a fresh one."""
+    """Compiled model functions go to the user cache unless CI asks for a fresh one, which the
+    workers of one session share (the cache's writes are atomic: a race only compiles twice)."""
     if os.environ.get("COMBINED_REALITY_FRESH_CACHE"):
-        os.environ["COMBINED_REALITY_CACHE"] = str(tmp_path_factory.mktemp("model_cache"))
+        base = tmp_path_factory.getbasetemp()
+        shared = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "model_cache"
+        shared.mkdir(exist_ok=True)
+        os.environ["COMBINED_REALITY_CACHE"] = str(shared)
     yield
 
 
