@@ -140,7 +140,7 @@ class InlineEstimator:
 # acquisition runs under SCHED_FIFO (it then cannot be delayed by the estimator, and the
 # estimate keeps its update rate beside other work: with two busy processes on 2 cores an
 # update at nice 0 got about 2/3 of a core, p95 ~75 ms against a 50 ms budget). Raising the
-# priority needs the same permission as SCHED_FIFO; without it the process stays at nice 0.
+# priority needs root, CAP_SYS_NICE or a nice limit (limits.conf); without, it stays at nice 0.
 ESTIMATOR_NICE_BEHIND = 10
 ESTIMATOR_NICE_AHEAD = -10
 
