@@ -77,17 +77,23 @@ def format_summary(result: dict, horizon_s: float) -> str:
     base = result["baseline"]
     lines = [f"validation position RMSE of the nominal model: {base['rmse_x_validation'] * 1e6:.1f} um "
              f"(segments of {horizon_s:g} s, all outputs {base['normalized_rms']:.2f} x the sensor noise)",
-             f"verdict: {result['verdict']}",
+             f"verdict: {result['verdict']}" + (f" ({result['verdict_note']})" if result.get("verdict_note") else ""),
              f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'z':>6s} {'rmse_x [um]':>12s}  parameters"]
     for c in result["ranking"]:
+        if not math.isfinite(c["shrink"]):  # not validated: say why instead of nan%
+            lines.append(f"{c['effect']:20s} not scored: {c.get('error') or c['status']}")
+            continue
         pars = ", ".join(f"{k}={v:.4g}±{c['std'][k]:.2g}" for k, v in c["params"].items())
         mark = "*" if c["significant"] else " "
         lines.append(f"{c['effect']:20s} {c['shrink']:8.1%} {c['shrink_all']:8.1%} {c['z']:6.1f}{mark}"
                      f"{c['rmse_x_validation'] * 1e6:12.1f}  {pars or c.get('error', '')}")
     if result["pair"] is not None:
         c = result["pair"]
-        lines.append(f"best pair {c['effect']}: shrink {c['shrink']:.1%}"
-                     + ("" if c["significant"] else " (no significant gain over the verdict alone)"))
+        if math.isfinite(c["shrink"]):
+            lines.append(f"best pair {c['effect']}: shrink {c['shrink']:.1%}"
+                         + ("" if c["significant"] else " (no significant gain over the best single effect)"))
+        else:
+            lines.append(f"best pair {c['effect']}: not scored: {c.get('error') or c['status']}")
     lines.append("where the gap lies (share of the squared error / share of the samples):")
     for r in result["regions"][:5]:
         lines.append(f"  {r['where']:34s} {r['share_of_error']:6.1%} / {r['fraction_of_samples']:6.1%}")

@@ -95,7 +95,7 @@ def run(args) -> int:
     check_train_and_valid(cyl, train, valid, args.train, args.validate, "compare models on")
 
     say = (lambda msg: None) if args.quiet else eprint
-    options = IdentifyOptions(max_iter=40, time_limit_s=60.0)
+    options = IdentifyOptions(max_iter=40)  # no wall-clock limit: the ranking must not depend on load
     workers = min(args.workers, len(models))
     say(f"friction-compare: {len(models)} model(s) identified on {args.train} ({train.duration:.1f} s) and scored on "
         f"{args.validate} ({valid.duration:.1f} s, segments of {args.horizon:g} s), {workers} worker(s)")
@@ -110,7 +110,7 @@ def run(args) -> int:
         out = {"ranking": [r.to_json() for r in ranking], "best": best.model if best else None,
                "options": {"models": models, "horizon_s": args.horizon, "workers": workers, "load_N": args.load,
                            "penalty_per_param": _PENALTY_PER_PARAM, "max_iter": options.max_iter,
-                           "time_limit_s": options.time_limit_s, "interval_s": options.interval_s},
+                           "time_limit_s": None, "interval_s": options.interval_s},
                "config": str(cyl.source) if cyl.source else None, "train": str(args.train),
                "validate": str(args.validate)}
         write_json_atomic(args.json, clean_json(out))

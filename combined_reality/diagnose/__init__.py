@@ -6,9 +6,12 @@ effect causes it, how far it shrinks once that effect is added.
 - report: the self-contained HTML report (`diagnose.report.write_report`; imports matplotlib)
 - rerun: the diagnosis on Rerun's time line (`diagnose.rerun.log_diagnosis`; imports rerun)
 """
-from .analysis import (MIN_REGION_FRACTION, Candidate, DiagnoseOptions, Diagnosis, candidate_starts, diagnose,
-                       equation_errors, operating_regions, regions, regressor_correlations, subsystem_split, whiteness)
+from .analysis import (MIN_REGION_FRACTION, NESTED_START, Candidate, DiagnoseOptions, Diagnosis, NominalFit,
+                       best_of_starts, candidate_starts, decide, diagnose, equation_errors, explained_share,
+                       fit_candidate, has_nested_start, neutral_start, operating_regions, regions,
+                       regressor_correlations, subsystem_split, whiteness)
 
-__all__ = ["MIN_REGION_FRACTION", "Candidate", "DiagnoseOptions", "Diagnosis", "candidate_starts", "diagnose",
-           "equation_errors", "operating_regions", "regions", "regressor_correlations", "subsystem_split",
-           "whiteness"]
+__all__ = ["MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",
+           "best_of_starts", "candidate_starts", "decide", "diagnose", "equation_errors", "explained_share",
+           "fit_candidate", "has_nested_start", "neutral_start", "operating_regions", "regions",
+           "regressor_correlations", "subsystem_split", "whiteness"]

@@ -46,9 +46,11 @@ class DiagnoseOptions:
     min_shrink: float = 0.02  # ... and this shrink of the all-output validation error
     penalty_per_param: float = 0.01  # shrink charged per added parameter when ranking
     pair: bool = True  # try the best pair when one effect leaves a significant gap
-    max_iter: int = 20  # Gauss-Newton iterations of a candidate fit
-    fit_time_limit_s: float = 15.0  # ... and its wall time at most (a fit that slow is lost anyway)
+    max_iter: int = 20  # Gauss-Newton iterations of a candidate fit; no wall-clock limit: a fit
+    # cut by time would make the verdict depend on the machine's load
     closed_gap: float = 1.2  # a candidate leaving at most this x the noise has closed the gap
+    explained: float = 0.5  # a verdict must explain this share of the gap (excess error variance)
+    leaders: int = 3  # further starts for this many of the best significant candidates
     min_train_gain: float = 1e-3  # a candidate must cut the TRAIN cost by this share to be validated
     workers: int = max(1, os.cpu_count() or 1)
 
@@ -159,6 +161,7 @@ class Candidate:
     error: str | None = None
     validation: Validation | None = field(default=None, repr=False)
     effects: tuple[Effect, ...] = field(default=(), repr=False)
+    nodes: np.ndarray | None = field(default=None, repr=False)  # TRAIN node states of the fit
 
     @property
     def n_params(self) -> int:
@@ -178,28 +181,51 @@ class Candidate:
         return out
 
 
-def candidate_starts(name: str) -> list[Effect]:
-    """The identification starts of a candidate: its defaults, then its alternatives."""
+NESTED_START = 0  # the start index of "the nominal optimum with the effect at its neutral value"
+
+
+def neutral_start(name: str) -> Effect:
+    """The candidate at its neutral value (the nominal model to rounding; a value below the
+    identification range, heat_transfer's h = 0, at that range's bound), shapes at defaults."""
     cls = EFFECTS[name]
-    return [make_effect(name)] + [make_effect(name, s) for s in cls.STARTS]
+    return make_effect(name, {k: min(max(v, cls.PARAMS[k].lower), cls.PARAMS[k].upper)
+                              for k, v in cls.NEUTRAL.items()})
+
+
+def has_nested_start(name: str) -> bool:
+    """Whether the candidate's neutral value lies inside its identification range: heat
+    exchange's (h = 0) does not, and from the range's bound its fit only creeps."""
+    cls = EFFECTS[name]
+    return all(cls.PARAMS[k].lower <= v <= cls.PARAMS[k].upper for k, v in cls.NEUTRAL.items())
+
+
+def candidate_starts(name: str) -> list[Effect]:
+    """The identification starts of a candidate: neutral from the nominal optimum (start 0:
+    a fit from there can only improve on the nominal model), its defaults from the cylinder
+    file (start 1), then its alternatives."""
+    cls = EFFECTS[name]
+    return [neutral_start(name), make_effect(name)] + [make_effect(name, s) for s in cls.STARTS]
 
 
 @dataclass
-class _Nominal:
+class NominalFit:
     """What every candidate fit starts from and is compared with: the cylinder file (the
-    friction start comes from the equation-error prefit, as for the nominal fit: a nominal
-    fit distorted by a strong effect is a poor start), the nominal fit's TRAIN cost and
-    its validation."""
+    friction start of the default and alternative starts comes from the equation-error
+    prefit, as for the nominal fit: a nominal fit distorted by a strong effect is a poor
+    start), the nominal optimum (friction and node states: the nested start), the nominal
+    fit's TRAIN cost and its validation."""
 
     config: Cylinder
+    optimum: Cylinder
+    nodes: np.ndarray | None
     train_cost: float
     validation: Validation
 
 
-def _fit_candidate(args) -> Candidate:
-    """Re-identify on TRAIN with the effects added (friction from the equation-error prefit,
-    effects from one start; node states from the measurements, which served better than
-    the nominal trajectory for mechanical effects), then score on VALID."""
+def fit_candidate(args) -> Candidate:
+    """Re-identify on TRAIN with the effects added from one start, then score on VALID.
+    args: (NominalFit, TRAIN, VALID, effects, start index of candidate_starts, DiagnoseOptions,
+    validation segments)."""
     nominal, train, valid, effects, start, opts, segments = args
     t0 = time.perf_counter()
     label = "+".join(e.name for e in effects)
@@ -209,28 +235,39 @@ def _fit_candidate(args) -> Candidate:
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         # one candidate failing must not end the diagnosis
         return Candidate(effect=label, status="failed", start=start, wall_s=time.perf_counter() - t0,
-                         error=f"{type(e).__name__}: {e}")
+                         error=f"the fit could not be computed ({type(e).__name__}: {e})")
 
 
 def _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0, label) -> Candidate:
     names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
-    res = identify(nominal.config, [train],
-                   IdentifyOptions(estimate=names, threads=1, max_iter=opts.max_iter,
-                                   time_limit_s=opts.fit_time_limit_s),
-                   effects=effects)
+    options = IdentifyOptions(estimate=names, threads=1, max_iter=opts.max_iter,
+                              give_up_above=nominal.train_cost * (1 + opts.min_train_gain))
+    if start == NESTED_START:
+        # from the nominal optimum, node states included: the fit starts at the nominal
+        # model's TRAIN cost and a descent can only lower it. A single effect gets half the
+        # iterations: it converges fast when the effect is absent or its basin is there; one
+        # that creeps gets its defaults next (diagnose)
+        iters = max(1, opts.max_iter // 2) if len(effects) == 1 else opts.max_iter
+        res = identify(nominal.optimum, [train], replace(options, prefit=False, max_iter=iters),
+                       effects=effects, nodes=nominal.nodes)
+    else:
+        # friction from the equation-error prefit, node states from the measurements (they
+        # served better than the nominal trajectory for mechanical effects)
+        res = identify(nominal.config, [train], options, effects=effects)
     keyed = {e.key(k): (e.name, k) for e in effects for k in e.PARAMS}
     pname = (lambda n: keyed[n][1]) if len(effects) == 1 else (lambda n: n)
     c = Candidate(effect=label, params={pname(n): res.params[n].value for n in keyed},
                   std={pname(n): res.params[n].std for n in keyed},
                   status=res.solver["status"], friction={n: res.params[n].value for n in ("Fc", "Fv", "kp")},
                   train_cost=res.solver["cost"], iterations=res.solver["iterations"], start=start,
-                  effects=res.effects)
+                  effects=res.effects, nodes=res.nodes)
     gain = 1.0 - c.train_cost / nominal.train_cost
     if gain < -1e-3:
-        # the candidate contains the nominal model: ending worse on TRAIN is a failed fit
+        # kept only if no start does better (_best_starts); then _nested_floor replaces it
         c.status = "worse_than_nominal"
-        c.error = (f"the fit ended worse on TRAIN than the nominal model it contains (cost {c.train_cost:.4g} "
-                   f"vs {nominal.train_cost:.4g}): a local minimum")
+        c.error = (f"this start ended worse on TRAIN than the nominal model it contains (cost "
+                   f"{c.train_cost:.4g} vs {nominal.train_cost:.4g}, {res.solver['status']} after "
+                   f"{res.solver['iterations']} iterations)")
     elif gain < opts.min_train_gain:
         # the fast screen: what does not fit TRAIN better cannot explain the gap
         c.status = "no_gain_on_train"
@@ -243,15 +280,35 @@ def _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0,
     return c
 
 
+def _nested_floor(c: Candidate, nominal: NominalFit) -> Candidate:
+    """A candidate contains the nominal model (at its neutral value): when no start fitted TRAIN
+    better, it is that model, never worse. Said in words; its parameters are the neutral ones
+    and no friction was re-identified."""
+    if c.status not in ("worse_than_nominal", "failed") or "+" in c.effect:
+        return c
+    why = c.error or c.status
+    neutral = neutral_start(c.effect)
+    return Candidate(effect=c.effect, status="no_gain_on_train", params=neutral.as_dict(),
+                     std={k: math.nan for k in neutral.PARAMS}, train_cost=nominal.train_cost,
+                     iterations=c.iterations, start=NESTED_START, wall_s=c.wall_s, effects=(neutral,),
+                     error=f"no start fitted TRAIN better than the nominal model ({why}); the candidate "
+                           "is reported at its neutral value, i.e. the nominal model: not validated")
+
+
 def _run_jobs(jobs: list, workers: int) -> list[Candidate]:
     if workers > 1 and len(jobs) > 1:
         with ProcessPoolExecutor(min(workers, len(jobs))) as pool:
-            return list(pool.map(_fit_candidate, jobs))
-    return [_fit_candidate(j) for j in jobs]
+            return list(pool.map(fit_candidate, jobs))
+    return [fit_candidate(j) for j in jobs]
+
+
+def best_of_starts(results: list[Candidate], nominal: NominalFit) -> list[Candidate]:
+    """Per candidate, the start that fitted TRAIN best (VALID never chooses); never worse than
+    the nominal model it contains (_nested_floor)."""
+    return [_nested_floor(c, nominal) for c in _best_starts(results)]
 
 
 def _best_starts(results: list[Candidate]) -> list[Candidate]:
-    """Per candidate, the start that fitted TRAIN best (VALID never chooses)."""
     best: dict[str, Candidate] = {}
     for c in results:
         old = best.get(c.effect)
@@ -299,10 +356,20 @@ class Diagnosis:
     correlations: list[dict]
     base_validation: Validation
     wall_s: float = 0.0
+    verdict_note: str = ""  # why the verdict is a pair or `unexplained`
 
     @property
     def best(self) -> Candidate | None:
+        """The candidate the verdict names (a single effect or the pair); None for `none` and
+        `unexplained`."""
+        if self.pair is not None and self.verdict == self.pair.effect:
+            return self.pair
         return next((c for c in self.ranking if c.effect == self.verdict), None)
+
+    @property
+    def runner(self) -> Candidate | None:
+        """The best significant candidate, also when the verdict is `unexplained`."""
+        return next((c for c in self.ranking if c.significant), None)
 
     @property
     def velocity(self) -> np.ndarray:
@@ -312,6 +379,7 @@ class Diagnosis:
         return {
             "baseline": self.baseline,
             "verdict": self.verdict,
+            "verdict_note": self.verdict_note,
             "ranking": [c.to_json() for c in self.ranking],
             "pair": self.pair.to_json() if self.pair is not None else None,
             "regions": self.regions,
@@ -332,11 +400,11 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     say = progress or (lambda _m: None)
     opts = options
     say("identifying the nominal model on TRAIN ...")
-    base = identify(cyl, [train], IdentifyOptions(time_limit_s=2 * opts.fit_time_limit_s))
+    base = identify(cyl, [train], IdentifyOptions())
     nominal = base.cylinder
     segments = validation_segments(valid, opts.horizon_s)
     base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments)
-    start = _Nominal(cyl, base.solver["cost"], base_val)
+    start = NominalFit(cyl, nominal, base.nodes, base.solver["cost"], base_val)
     base_rmse = base_val.rmse("x")
     say(f"  validation RMSE of x: {base_rmse * 1e6:.2f} um, all outputs {base_val.normalized_rms():.2f} x the "
         f"sensor noise ({len(segments)} segments of about {opts.horizon_s:g} s)")
@@ -344,33 +412,48 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     correlations = regressor_correlations(nominal, valid)
     # the slowest fits first (added states, then parameters) so that the processes finish together
     order = sorted(opts.candidates, key=lambda n: (-len(EFFECTS[n].STATES), -len(EFFECTS[n].PARAMS)))
-    say(f"re-identifying {len(order)} candidate effects on TRAIN ({min(opts.workers, len(order))} processes) ...")
-    results = _run_jobs([(start, train, valid, (make_effect(n),), 0, opts, segments) for n in order], opts.workers)
-    cands = _best_starts(results)
+    # first from the nominal optimum (the defaults where the neutral value is out of range)
+    first_start = {n: NESTED_START if has_nested_start(n) else 1 for n in order}
+    first = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments) for n, k in first_start.items()]
+    say(f"re-identifying {len(order)} candidate effects on TRAIN from the nominal optimum "
+        f"({min(opts.workers, len(first))} processes) ...")
+    results = _run_jobs(first, opts.workers)
+    cands = best_of_starts(results, start)
     for c in cands:
         _score(c, base_val, base_rmse, opts)
-    # alternative starts: none once a candidate has closed the gap (to near the noise); only
-    # of the significant candidates when some are; of all when none explains anything yet
-    significant = {c.effect for c in cands if c.significant}
-    closed = any(c.significant and c.validation.normalized_rms() < opts.closed_gap for c in cands)
-    alternatives = [(start, train, valid, (eff,), k, opts, segments)
-                    for n in order if not significant or n in significant
-                    for k, eff in enumerate(candidate_starts(n)) if k > 0]
-    if alternatives and not closed:
-        say(f"  trying {len(alternatives)} alternative starts of effects whose shape the defaults may miss ...")
-        cands = _best_starts(results + _run_jobs(alternatives, opts.workers))
+    # more starts only where a gap is left to explain: none when the nominal model already
+    # fits VALID or a candidate closed the gap (to near the noise). Then the defaults of the
+    # candidates whose first fit found nothing on TRAIN (from the neutral value some effects
+    # never move) and of the leading ones (a better basin may exist), and the alternative
+    # starts of the leading ones (of all when none explains anything yet). Leading: the
+    # `leaders` significant candidates of the best score; the rest only imitate part of the gap.
+    ranked = sorted((c for c in cands if c.significant), key=lambda c: -c.score)
+    leaders = {c.effect for c in ranked[:opts.leaders]}
+    closed = (base_val.normalized_rms() <= opts.closed_gap
+              or any(c.significant and c.validation.normalized_rms() < opts.closed_gap for c in cands))
+    retry = leaders | {c.effect for c in cands if not math.isfinite(c.shrink)}
+    more = [(start, train, valid, (eff,), k, opts, segments)
+            for n in order for k, eff in enumerate(candidate_starts(n))
+            if (k == 1 and n in retry and first_start[n] != 1) or (k > 1 and (not leaders or n in leaders))]
+    if more and not closed:
+        say(f"  trying {len(more)} further starts (the effects' defaults and alternatives) ...")
+        results += _run_jobs(more, opts.workers)
+        cands = best_of_starts(results, start)
         for c in cands:
             _score(c, base_val, base_rmse, opts)
     for c in cands:
-        say(f"  {c.effect:20s} shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  z {c.z:6.1f}"
-            + (f"  ({c.error})" if c.error else ""))
+        say(f"  {c.effect:20s} " + (f"shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  z {c.z:6.1f}"
+                                     if math.isfinite(c.shrink) else f"not scored: {c.error or c.status}"))
     ranking = sorted(cands, key=lambda c: (not c.significant, -c.score))
     best = ranking[0] if ranking and ranking[0].significant else None
-    verdict = best.effect if best is not None else "none"
 
     pair = None
     if opts.pair and best is not None:
         pair = _best_pair(start, train, valid, ranking, base_val, base_rmse, segments, opts, say)
+    verdict, verdict_note = decide(base_val, best, pair, opts)
+    if verdict_note:
+        say(f"  verdict {verdict}: {verdict_note}")
+    shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None
 
     subsystems = subsystem_split(cyl, nominal, train, valid, base_val, opts, segments)
     x_idx = base_val.outputs.index("x")
@@ -383,15 +466,57 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
                   "rmse_x_train": base.fit["rmse_x"], "train_cost": base.solver["cost"],
                   "horizon_s": opts.horizon_s,
                   "noise": {"x": float(base_val.noise[0]), "p": float(cyl.sensors.pressure_noise)}},
-        verdict=verdict, ranking=ranking, pair=pair,
-        regions=regions(nominal, valid, base_val, best.validation if best is not None else None),
+        verdict=verdict, verdict_note=verdict_note, ranking=ranking, pair=pair,
+        regions=regions(nominal, valid, base_val, shown.validation if shown is not None else None),
         subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
         correlations=correlations, base_validation=base_val, wall_s=time.perf_counter() - t_start)
 
 
-def _best_pair(nominal, train, valid, ranking, base_val, base_rmse, segments, opts, say) -> Candidate | None:
+def explained_share(base: Validation, cand: Validation | None) -> float:
+    """The share of the nominal model's excess error variance (above the sensor noise, over all
+    outputs) that a candidate removes on VALID: 1 = down to the noise, 0 = nothing."""
+    if cand is None:
+        return math.nan
+    b2, c2 = base.normalized_rms() ** 2, cand.normalized_rms() ** 2
+    return (b2 - c2) / (b2 - 1.0) if b2 > 1.0 else math.nan
+
+
+def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
+           opts: DiagnoseOptions) -> tuple[str, str]:
+    """The verdict and, where it is not simply the best single effect, why.
+
+    - `none`: no candidate improves VALID significantly (the gap, if any, is reported);
+    - the pair `a+b`: it is significantly better than the best single effect, which alone
+      leaves a gap above `closed_gap`, and together they explain `explained` of the gap;
+    - `unexplained`: the best candidate (or pair) improves VALID significantly but leaves most
+      of a gap that is well above the noise (a weak winner is no diagnosis);
+    - otherwise the best single effect."""
+    if best is None:
+        return "none", ""
+    nb = base.normalized_rms()
+    share = explained_share(base, best.validation)
+    left = best.validation.normalized_rms()
+    if pair is not None and pair.significant and left > opts.closed_gap:
+        pshare = explained_share(base, pair.validation)
+        # the second effect must itself explain most of what the first leaves, not a sliver
+        # of it (a wrong partner imitates part of any remaining error)
+        rest = explained_share(best.validation, pair.validation)
+        if (pshare >= opts.explained and rest >= opts.explained) or pair.validation.normalized_rms() <= opts.closed_gap:
+            return pair.effect, (f"{best.effect} alone explains {share:.0%} of the gap, together with "
+                                 f"{pair.effect.split('+')[1]} {pshare:.0%}: both effects are likely present")
+        share = max(share, pshare)
+    if share < opts.explained and left > opts.closed_gap:
+        return "unexplained", (f"the best candidate, {best.effect}, explains only {share:.0%} of the gap (the "
+                               f"nominal model misses VALID by {nb:.2f} x the sensor noise over all outputs, "
+                               f"{best.effect} by {left:.2f} x): the gap's cause is not in the vocabulary, or "
+                               "several effects combine")
+    return best.effect, ""
+
+
+def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, segments, opts, say) -> Candidate | None:
     """The verdict's effect with the runner-up, when the verdict alone leaves a significant
-    gap that the runner-up also addresses."""
+    gap that the runner-up also addresses. Nested: from the best single fit with the
+    runner-up at its neutral value, so never worse than the single effect."""
     best = ranking[0]
     second = next((c for c in ranking[1:] if c.significant), None)
     if second is None or best.validation is None:
@@ -399,13 +524,18 @@ def _best_pair(nominal, train, valid, ranking, base_val, base_rmse, segments, op
     # the remaining gap: is the best candidate itself still clearly worse than noise?
     if best.validation.normalized_rms() < 1.05:
         return None
-    effects = (best.effects[0], second.effects[0] if second.effects else make_effect(second.effect))
     say(f"trying the pair {best.effect} + {second.effect} ...")
-    c = _fit_candidate((nominal, train, valid, effects, 0, opts, segments))
+    inner = NominalFit(nominal.config, nominal.config.with_values(best.friction), best.nodes, best.train_cost,
+                       best.validation)
+    c = fit_candidate((inner, train, valid, (best.effects[0], neutral_start(second.effect)), NESTED_START, opts,
+                       segments))
     _score(c, base_val, base_rmse, opts)
     c.significant = c.significant and _gain_over(best.validation, c.validation, opts)
-    say(f"  {c.effect}: shrink {c.shrink:.1%}, all outputs {c.shrink_all:.1%}"
-        + ("" if c.significant else " (not significantly better than the verdict alone)"))
+    if math.isfinite(c.shrink):
+        say(f"  {c.effect}: shrink {c.shrink:.1%}, all outputs {c.shrink_all:.1%}"
+            + ("" if c.significant else " (not significantly better than the verdict alone)"))
+    else:
+        say(f"  {c.effect}: not scored ({c.error or c.status})")
     return c
 
 

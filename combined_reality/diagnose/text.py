@@ -85,12 +85,14 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
         else:
             out.append(esc(f"Part of the gap remains: {sig(rest)} × the sensor noise over all outputs "
                            f"(it was {sig(nrms)} ×; 1 would be a perfect model)."))
+        if d.verdict_note:
+            out.append(esc(d.verdict_note[0].upper() + d.verdict_note[1:] + "."))
         others = [c.effect for c in d.ranking if c.significant and c.effect != best.effect]
         if others:
             out.append(esc("Other candidates that also help significantly (usually by imitating part of the same "
                            "error): " + ", ".join(others) + "."))
         p = d.pair
-        if p is not None:
+        if p is not None and p is not best:
             if p.significant:
                 out.append(esc("Together with the runner-up, ") + strong(p.effect)
                            + esc(f" shrinks the position error by {pct(p.shrink)} (to {um(p.rmse_x_validation)}), "
@@ -106,6 +108,18 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
                     f"(position error {um(p.rmse_x_validation)})."))
         return out
     tried = [c.effect for c in d.ranking]
+    runner = d.runner
+    if d.verdict == "unexplained" and runner is not None:
+        out.append(esc(f"The gap is ") + strong("unexplained") + esc(
+            f": the nominal model misses VALID by {um(before)} in position ({sig(nrms)} × the sensor noise over all "
+            f"outputs), and the best candidate, {runner.effect}, removes only part of it (position error "
+            f"{pct(runner.shrink)} smaller, {um(runner.rmse_x_validation)}; all outputs {sig(runner.validation.normalized_rms())}"
+            " × the noise). A weak winner is no diagnosis: the cause is likely outside the vocabulary (a sensor "
+            "error, another physical effect) or several effects combine. See where the error lies below."))
+        if d.verdict_note:
+            out.append(esc("Why: " + d.verdict_note + "."))
+        out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
+        return out
     if finite(nrms) and nrms < WITHIN_NOISE:
         out.append(esc(f"The nominal model already fits VALID to within the sensor noise (position error {um(before)}"
                        f" with {um(noise_x)} sensor noise; all outputs {sig(nrms)} × the noise): ") + strong("none")

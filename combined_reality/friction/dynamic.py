@@ -321,7 +321,7 @@ def _expected_cost(model: str) -> int:
 
 def compare_friction_models(cyl: Cylinder, train: Run, valid: Run, models: Sequence[str],
                             horizon_s: float = 1.0, workers: int = 1, penalty_per_param: float = 0.01,
-                            options: IdentifyOptions = IdentifyOptions(max_iter=40, time_limit_s=60.0),
+                            options: IdentifyOptions = IdentifyOptions(max_iter=40),
                             progress: Callable[[str], None] | None = None,
                             load: float | None = None) -> list[ModelComparison]:
     """Each model identified on TRAIN by multiple shooting, simulated on VALID segment by

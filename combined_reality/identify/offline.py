@@ -60,6 +60,11 @@ class IdentifyOptions:
     interval_s: float = 0.1  # shooting interval length
     max_iter: int = 40
     time_limit_s: float = math.inf  # stop iterating after this long (status "time_limit")
+    # stop (status "above_reference") once `give_up_after` iterations in a row stayed above
+    # this cost: a candidate model that does not even beat the model it extends (a diagnosis'
+    # nominal fit); deterministic, unlike a wall-clock limit
+    give_up_above: float = math.inf
+    give_up_after: int = 6
     # start Fc, Fv, kp from a linear equation-error fit (friction from Newton's law with the
     # measured pressures, seed 000's method) unless a start is given explicitly
     prefit: bool = True
@@ -240,12 +245,14 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
 
         accepted = converged_here = False
         predicted = math.inf
-        failed_step = None
+        failed_step = first_step = None
         scale = np.sqrt(np.maximum(np.diag(Nmat), 1e-300))
         for _attempt in range(8):
             if _attempt and out_of_time():
                 break  # a struggling line search is where the time goes
             step = solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam)
+            if first_step is None:
+                first_step = step  # the least damped: what the model still expects to gain
             if step is None:
                 lam = max(1e-6, lam * 10)
                 continue
@@ -288,8 +295,15 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
             status = "converged"
             break
         if not accepted:
-            # at the numerical noise floor of the cost nothing can be gained any more
+            # at the numerical noise floor of the cost nothing can be gained any more; nor when
+            # the step the line search could not take moves no parameter by a tenth of what the
+            # data determine (a noisy rig's cost surface is rough at that scale)
             noise_floor = step is not None and predicted < 1.0 and viol < 1e-2 * max(1, Ktot)
+            if first_step is not None and nth and viol < 1e-2 * max(1, Ktot):
+                std_here = standard_deviations(Nmat, R * nx, cost, mask.sum())
+                ok = np.isfinite(std_here) & (std_here > 0)
+                tiny = np.abs(first_step[R * nx:])[ok] <= 0.1 * std_here[ok]
+                noise_floor = noise_floor or bool(ok.all() and tiny.all())
             status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
             break
         lam = lam / 10 if lam > 1e-6 else 0.0
@@ -317,6 +331,11 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         if (abs(cost - 0.5 * float(np.sum(ev[0] ** 2)) - prior_cost(theta)) < 1e-12 * cost
                 and new_viol < 1e-2 * max(1, Ktot)):
             status = "converged"
+            break
+        n_last = options.give_up_after
+        if (math.isfinite(options.give_up_above) and len(history) >= n_last
+                and all(h["cost"] > options.give_up_above for h in history[-n_last:])):
+            status = "above_reference"
             break
 
     # final statistics at the solution (evaluated with sensitivities in ev)

@@ -10,7 +10,7 @@ all score models this way.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -84,15 +84,21 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
     sims, statuses, nodes, costs = [], [], [], []
     for j, (a, b) in enumerate(segments):
         piece = run.slice(a, b)
-        tries = [None]
+        tries = [(None, opts)]
         if fallback is not None and fallback.nodes[j] is not None:
-            tries.append(fallback.nodes[j])
+            tries.append((fallback.nodes[j], opts))
+            # and the fallback's start simulated as it is (added states at their initial
+            # values): states an effect barely couples to are undetermined in the fit, which
+            # may then drive them anywhere (heat exchange with h near 0)
+            tries.append((fallback.nodes[j], replace(opts, max_iter=0)))
         best = None
-        for warm in tries:
+        for warm, o in tries:
             try:
-                res = identify(cyl, [piece], opts, effects=effects, nodes=warm)
+                res = identify(cyl, [piece], o, effects=effects, nodes=warm)
             except IdentificationError:
                 continue
+            if o.max_iter == 0:
+                res.solver["status"] = "converged"  # a simulation, not a fit that ran out
             meas = np.vstack([getattr(piece, o) for o in res.output_names])
             # outputs not measured at a sample (NaN) have no residual there
             cost = float(np.nansum(((meas - res.simulated[0]) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
