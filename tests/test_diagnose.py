@@ -113,3 +113,27 @@ def test_validation_gain_of_noise_is_not_significant():
     zs = np.array(zs)
     assert abs(np.std(zs) - 1) < 0.15 and np.mean(zs) < 0
     assert np.mean(zs > 3) < 0.01
+
+
+@pytest.mark.slow
+def test_a_mis_set_mass_is_reported_as_such_with_calibrate_not_as_an_effect(cyl_a, tmp_path, capsys):
+    """The file's mass is 40 % too high: with --calibrate the baseline is the calibrated model,
+    the mass is named as mis-set in the file, and no effect is blamed for it."""
+    for seed, name in ((1, "train.csv"), (2, "valid.csv")):
+        write_run(tmp_path / name, simulate_run(cyl_a, 12.0, seed=seed), comments=[cylinder_tag(cyl_a)])
+    wrong = tmp_path / "wrong_mass.toml"
+    from sim.cylinder import cylinder_to_toml
+
+    wrong.write_text(cylinder_to_toml(cyl_a.with_values({"mass": 1.4 * cyl_a.mechanics.moving_mass})))
+    out = tmp_path / "d.json"
+    assert main(["diagnose", str(tmp_path / "train.csv"), "--validate", str(tmp_path / "valid.csv"),
+                 "--config", str(wrong), "--candidates", "mass,leakage", "--calibrate", "--json", str(out),
+                 "-q"]) == 0
+    d = json.loads(out.read_text())
+    mis = {m["quantity"]: m for m in d["calibration"]["mis_set"]}
+    assert "mass" in mis
+    assert mis["mass"]["calibrated"] == pytest.approx(cyl_a.mechanics.moving_mass, rel=0.05)
+    assert mis["mass"]["change"] == pytest.approx(1 / 1.4 - 1, abs=0.05)
+    assert d["verdict"] == "none"
+    printed = capsys.readouterr().out
+    assert "mis-set in the cylinder file (calibrated on TRAIN): mass" in printed

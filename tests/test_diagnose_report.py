@@ -268,3 +268,26 @@ def test_when_every_candidate_is_screened_out_the_list_is_not_repeated(cyl_a):
     lines = headline(d)
     assert lines[-1] == "None of them fits TRAIN better than the nominal model, so none was validated (the fast screen)."
     assert sum("valve_delay, leakage, mass, stiction" in line for line in lines) == 1
+
+
+def test_an_unexplained_gap_and_a_pair_verdict_say_so_in_plain_words(cyl_a):
+    d = _diagnosis(cyl_a)
+    d.verdict = "unexplained"
+    d.verdict_note = "the best candidate, valve_delay, explains only 30% of the gap"
+    assert d.best is None and d.runner.effect == "valve_delay"
+    lines = headline(d)
+    assert lines[0].startswith("The gap is unexplained: the nominal model misses VALID by")
+    assert "the best candidate, valve_delay, removes only part of it" in lines[0]
+    assert "Why: the best candidate, valve_delay, explains only 30% of the gap." in lines
+    text = render_report(d, plots={})
+    assert "unexplained" in text and "Why: the best candidate" in text
+    # both effects: the pair is the verdict, named and described as such
+    d = _diagnosis(cyl_a)
+    d.verdict = d.pair.effect
+    d.verdict_note = "valve_delay alone explains 40% of the gap, together with leakage 95%"
+    assert d.best is d.pair
+    lines = headline(d)
+    assert lines[0].startswith("The gap is best explained by valve_delay+leakage")
+    assert "Why the pair: valve_delay alone explains 40% of the gap, together with leakage 95%." in lines
+    assert not any("Together with the runner-up" in line for line in lines)
+    assert "valve_delay+leakage" in render_report(d, plots={})

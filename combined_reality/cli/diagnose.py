@@ -26,6 +26,10 @@ def add_parser(sub) -> None:
     dg.add_argument("--horizon", type=float, default=1.0, help="validation simulation horizon, s (default 1)")
     dg.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                     help="parallel processes for the candidates (default: the number of CPUs)")
+    dg.add_argument("--calibrate", action="store_true",
+                    help="calibrate the cylinder file's valve characteristic, dead volumes, mass and sensor offsets on "
+                         "TRAIN first and diagnose the calibrated model: mis-set quantities are reported as such, "
+                         "not taken for an effect")
     dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     dg.set_defaults(func=run)
 
@@ -48,7 +52,8 @@ def run(args) -> int:
     mode, target = rerun_mode(args.rerun)
     if args.report and not args.report.lower().endswith((".html", ".htm")):
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
-    opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers))
+    opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers),
+                           calibrate=args.calibrate)
     diagnosis = diagnose(cyl, train, valid, opts, progress=progress_printer(args.quiet))
     result = diagnosis.to_json()
     print(format_summary(result, args.horizon))
@@ -77,6 +82,9 @@ def format_summary(result: dict, horizon_s: float) -> str:
     base = result["baseline"]
     lines = [f"validation position RMSE of the nominal model: {base['rmse_x_validation'] * 1e6:.1f} um "
              f"(segments of {horizon_s:g} s, all outputs {base['normalized_rms']:.2f} x the sensor noise)",
+             *(f"mis-set in the cylinder file (calibrated on TRAIN): {m['quantity']} {m['file']:.4g} -> "
+               f"{m['calibrated']:.4g} {m['unit']} ({m['change']:+.1%})"
+               for m in (result.get("calibration") or {}).get("mis_set", [])),
              f"verdict: {result['verdict']}" + (f" ({result['verdict_note']})" if result.get("verdict_note") else ""),
              f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'z':>6s} {'rmse_x [um]':>12s}  parameters"]
     for c in result["ranking"]:

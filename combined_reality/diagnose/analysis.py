@@ -50,7 +50,12 @@ class DiagnoseOptions:
     # cut by time would make the verdict depend on the machine's load
     closed_gap: float = 1.2  # a candidate leaving at most this x the noise has closed the gap
     explained: float = 0.5  # a verdict must explain this share of the gap (excess error variance)
+    calibrate: bool = False  # calibrate the cylinder file's guesses on TRAIN first (the nominal baseline)
     leaders: int = 3  # further starts for this many of the best significant candidates
+    # a pair is the verdict when it closes the gap, or when the second effect explains this
+    # share of what the first leaves (a partner that imitates part of a single effect's misfit
+    # takes less; with 0.5, a stiction fit in a local minimum was named stiction+mass)
+    pair_rest: float = 0.8
     min_train_gain: float = 1e-3  # a candidate must cut the TRAIN cost by this share to be validated
     workers: int = max(1, os.cpu_count() or 1)
 
@@ -357,6 +362,7 @@ class Diagnosis:
     base_validation: Validation
     wall_s: float = 0.0
     verdict_note: str = ""  # why the verdict is a pair or `unexplained`
+    calibration: dict | None = None  # with DiagnoseOptions.calibrate: the file's mis-set quantities
 
     @property
     def best(self) -> Candidate | None:
@@ -380,6 +386,7 @@ class Diagnosis:
             "baseline": self.baseline,
             "verdict": self.verdict,
             "verdict_note": self.verdict_note,
+            "calibration": self.calibration,
             "ranking": [c.to_json() for c in self.ranking],
             "pair": self.pair.to_json() if self.pair is not None else None,
             "regions": self.regions,
@@ -394,11 +401,58 @@ class Diagnosis:
         }
 
 
+# how far a calibrated quantity must be from the file's value to count as mis-set (beyond 3 std)
+_MIS_SET_ABSOLUTE = {"offset_p1": 1000.0, "offset_p2": 1000.0, "external_force": 1.0}  # Pa, Pa, N
+_MIS_SET_RELATIVE = 0.02
+
+
+def mis_set_quantities(file_cyl: Cylinder, cal) -> list[dict]:
+    """The cylinder file's quantities that the calibration on TRAIN found off (beyond 3 std and
+    2 %, offsets 1 kPa, a constant force 1 N): name, file and calibrated value, std, unit. The
+    valve characteristic is one row: its largest departure over the knots of both directions."""
+    from sim.cylinder import FLOW_CHARACTERISTIC
+
+    out, flow = [], []
+    for n, e in cal.result.params.items():
+        if n in ("Fc", "Fv", "kp"):
+            continue
+        f = file_cyl.value(n)
+        d = e.value - f
+        limit = _MIS_SET_ABSOLUTE.get(n, _MIS_SET_RELATIVE * abs(f))
+        off = abs(d) > max(limit, 3 * e.std if math.isfinite(e.std) else 0.0)
+        if n in FLOW_CHARACTERISTIC:
+            if n.startswith("flow_") and off:
+                flow.append((abs(d) / max(abs(f), 1e-12), n, f, e))
+            continue
+        if off:
+            out.append({"quantity": n, "file": f, "calibrated": e.value, "std": e.std, "unit": e.unit,
+                        "change": d / f if f else math.nan})
+    if flow:
+        rel, n, f, e = max(flow)
+        out.append({"quantity": "valve characteristic", "file": f, "calibrated": e.value, "std": e.std,
+                    "unit": e.unit, "change": (e.value - f) / f if f else math.nan, "at": n})
+    return out
+
+
 def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = DiagnoseOptions(),
              progress: Callable[[str], None] | None = None) -> Diagnosis:
     t_start = time.perf_counter()
     say = progress or (lambda _m: None)
     opts = options
+    calibration = None
+    if opts.calibrate:
+        # the nominal baseline from what the file only guesses, calibrated on TRAIN: a mis-set
+        # valve, volume, mass or offset is then reported as such, not taken for an effect
+        from ..calibrate import calibrate
+
+        say("calibrating the cylinder file's valve, volumes, mass and offsets on TRAIN ...")
+        cal = calibrate(cyl, [train], progress=say)
+        calibration = {"mis_set": mis_set_quantities(cyl, cal), "status": cal.result.solver["status"],
+                       "wall_s": round(cal.wall_s, 3)}
+        for m in calibration["mis_set"]:
+            say(f"  mis-set in the cylinder file: {m['quantity']} {m['file']:.4g} -> {m['calibrated']:.4g} "
+                f"{m['unit']} ({m['change']:+.1%})")
+        cyl = cal.cylinder
     say("identifying the nominal model on TRAIN ...")
     base = identify(cyl, [train], IdentifyOptions())
     nominal = base.cylinder
@@ -466,7 +520,7 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
                   "rmse_x_train": base.fit["rmse_x"], "train_cost": base.solver["cost"],
                   "horizon_s": opts.horizon_s,
                   "noise": {"x": float(base_val.noise[0]), "p": float(cyl.sensors.pressure_noise)}},
-        verdict=verdict, verdict_note=verdict_note, ranking=ranking, pair=pair,
+        verdict=verdict, verdict_note=verdict_note, calibration=calibration, ranking=ranking, pair=pair,
         regions=regions(nominal, valid, base_val, shown.validation if shown is not None else None),
         subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
         correlations=correlations, base_validation=base_val, wall_s=time.perf_counter() - t_start)
@@ -487,7 +541,8 @@ def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
 
     - `none`: no candidate improves VALID significantly (the gap, if any, is reported);
     - the pair `a+b`: it is significantly better than the best single effect, which alone
-      leaves a gap above `closed_gap`, and together they explain `explained` of the gap;
+      leaves a gap above `closed_gap`, and it closes the gap (to `closed_gap`) or together they
+      explain `explained` of the gap and the second effect `pair_rest` of what the first leaves;
     - `unexplained`: the best candidate (or pair) improves VALID significantly but leaves most
       of a gap that is well above the noise (a weak winner is no diagnosis);
     - otherwise the best single effect."""
@@ -501,7 +556,7 @@ def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
         # the second effect must itself explain most of what the first leaves, not a sliver
         # of it (a wrong partner imitates part of any remaining error)
         rest = explained_share(best.validation, pair.validation)
-        if (pshare >= opts.explained and rest >= opts.explained) or pair.validation.normalized_rms() <= opts.closed_gap:
+        if (pshare >= opts.explained and rest >= opts.pair_rest) or pair.validation.normalized_rms() <= opts.closed_gap:
             return pair.effect, (f"{best.effect} alone explains {share:.0%} of the gap, together with "
                                  f"{pair.effect.split('+')[1]} {pshare:.0%}: both effects are likely present")
         share = max(share, pshare)

@@ -69,6 +69,18 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
     nrms = b.get("normalized_rms", math.nan)
     best = d.best
     out = []
+    cal = getattr(d, "calibration", None)
+    if cal is not None:
+        mis = cal.get("mis_set") or []
+        out_cal = ("The cylinder file's valve, dead volumes, mass and sensor offsets were calibrated on TRAIN first "
+                   "(the nominal model below is the calibrated one); ")
+        if mis:
+            out_cal += "mis-set in the file: " + "; ".join(
+                f"{m['quantity']} {format_value(m['file'], None, m['unit'])} → "
+                f"{format_value(m['calibrated'], m['std'], m['unit'])} ({pct(m['change'])} off)" for m in mis) + "."
+        else:
+            out_cal += "none of them is off."
+        out.append(esc(out_cal))
     if best is not None:
         after = best.rmse_x_validation
         params = params_text(best)
@@ -86,7 +98,7 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
             out.append(esc(f"Part of the gap remains: {sig(rest)} × the sensor noise over all outputs "
                            f"(it was {sig(nrms)} ×; 1 would be a perfect model)."))
         if d.verdict_note:
-            out.append(esc(d.verdict_note[0].upper() + d.verdict_note[1:] + "."))
+            out.append(esc("Why the pair: " + d.verdict_note + "."))
         others = [c.effect for c in d.ranking if c.significant and c.effect != best.effect]
         if others:
             out.append(esc("Other candidates that also help significantly (usually by imitating part of the same "
