@@ -92,12 +92,12 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
             # may then drive them anywhere (heat exchange with h near 0)
             tries.append((fallback.nodes[j], replace(opts, max_iter=0)))
         best = None
-        for warm, o in tries:
+        for warm, try_opts in tries:
             try:
-                res = identify(cyl, [piece], o, effects=effects, nodes=warm)
+                res = identify(cyl, [piece], try_opts, effects=effects, nodes=warm)
             except IdentificationError:
                 continue
-            if o.max_iter == 0:
+            if try_opts.max_iter == 0:
                 res.solver["status"] = "converged"  # a simulation, not a fit that ran out
             meas = np.vstack([getattr(piece, o) for o in res.output_names])
             # outputs not measured at a sample (NaN) have no residual there
