@@ -291,3 +291,12 @@ def test_an_unexplained_gap_and_a_pair_verdict_say_so_in_plain_words(cyl_a):
     assert "Why the pair: valve_delay alone explains 40% of the gap, together with leakage 95%." in lines
     assert not any("Together with the runner-up" in line for line in lines)
     assert "valve_delay+leakage" in render_report(d, plots={})
+
+
+def test_a_gap_no_candidate_touches_is_unexplained_in_words(cyl_a):
+    d = _diagnosis(cyl_a, verdict="none", gap=True)
+    d.verdict = "unexplained"
+    assert d.runner is None
+    first = headline(d)[0]
+    assert first.startswith("The gap is unexplained: the nominal model misses VALID by")
+    assert "none of the 4 candidates tried removes a significant part of it" in first

@@ -66,8 +66,10 @@ def test_two_effects_that_together_close_the_gap_are_the_verdict():
     assert decide(_val(3.0), best, pair, DiagnoseOptions())[0] == "unexplained"
 
 
-def test_no_significant_candidate_is_none():
-    assert decide(_val(3.0), None, None, DiagnoseOptions()) == ("none", "")
+def test_no_significant_candidate_is_none_when_the_nominal_model_fits_and_unexplained_when_it_does_not():
+    assert decide(_val(1.1), None, None, DiagnoseOptions()) == ("none", "")
+    verdict, note = decide(_val(3.0), None, None, DiagnoseOptions())
+    assert verdict == "unexplained" and "3.00 x the sensor noise" in note and "no candidate" in note
 
 
 def test_neutral_start_is_inside_the_identification_range():

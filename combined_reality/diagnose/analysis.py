@@ -539,16 +539,23 @@ def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
            opts: DiagnoseOptions) -> tuple[str, str]:
     """The verdict and, where it is not simply the best single effect, why.
 
-    - `none`: no candidate improves VALID significantly (the gap, if any, is reported);
+    - `none`: no candidate improves VALID significantly and the nominal model fits it to near
+      the noise (`closed_gap`);
+    - `unexplained` also when no candidate improves VALID significantly but a gap above
+      `closed_gap` remains;
     - the pair `a+b`: it is significantly better than the best single effect, which alone
       leaves a gap above `closed_gap`, and it closes the gap (to `closed_gap`) or together they
       explain `explained` of the gap and the second effect `pair_rest` of what the first leaves;
     - `unexplained`: the best candidate (or pair) improves VALID significantly but leaves most
       of a gap that is well above the noise (a weak winner is no diagnosis);
     - otherwise the best single effect."""
-    if best is None:
-        return "none", ""
     nb = base.normalized_rms()
+    if best is None:
+        if nb > opts.closed_gap:  # a gap well above the noise that nothing in the vocabulary touches
+            return "unexplained", (f"the nominal model misses VALID by {nb:.2f} x the sensor noise over all "
+                                   "outputs and no candidate improves it significantly: the gap's cause is not "
+                                   "in the vocabulary")
+        return "none", ""
     share = explained_share(base, best.validation)
     left = best.validation.normalized_rms()
     if pair is not None and pair.significant and left > opts.closed_gap:

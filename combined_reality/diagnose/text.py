@@ -121,6 +121,14 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
         return out
     tried = [c.effect for c in d.ranking]
     runner = d.runner
+    if d.verdict == "unexplained" and runner is None:
+        out.append(esc(f"The gap is ") + strong("unexplained") + esc(
+            f": the nominal model misses VALID by {um(before)} in position ({sig(nrms)} × the sensor noise over all "
+            f"outputs), and none of the {len(tried)} candidates tried removes a significant part of it. The cause "
+            "is likely outside the vocabulary (a sensor error, another physical effect). See where the error lies "
+            "below."))
+        out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
+        return out
     if d.verdict == "unexplained" and runner is not None:
         out.append(esc(f"The gap is ") + strong("unexplained") + esc(
             f": the nominal model misses VALID by {um(before)} in position ({sig(nrms)} × the sensor noise over all "
