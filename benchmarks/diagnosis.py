@@ -103,8 +103,8 @@ def case_runs(c: dict, cyl, duration: float, seed: int):
     rng = np.random.default_rng(seed)
     if c.get("plant", "project") == "project":
         effects = [] if c["effect"] == "none" else [EFFECTS[c["effect"]].random(rng, cyl)]
-        return (simulate_run(cyl, duration, seed, effects=effects), simulate_run(cyl, duration, seed + 1, effects=effects),
-                effects[0].as_dict() if effects else {})
+        return (simulate_run(cyl, duration, seed, effects=effects),
+                simulate_run(cyl, duration, seed + 1, effects=effects), effects[0].as_dict() if effects else {})
     sensors = ref.SensorDepartures()
     effects: list = []
     if c["effect"].startswith("out_of_vocabulary:"):
@@ -195,8 +195,8 @@ def report(results: list[dict], effects, title: str = "") -> None:
         print(f"median shrink of the true effect on VALID: {np.median(shrinks):.1%}   (target >= 60 %; "
               f"quartiles {np.percentile(shrinks, 25):.1%} .. {np.percentile(shrinks, 75):.1%})")
     print(f"time per diagnosis (20 s + 20 s unless --duration): median {np.median(t):.1f} s, max {t.max():.1f} s "
-          f"(target median <= 30 s, max <= 45 s); {np.median(ratio):.1f}x a nominal identification of TRAIN in the same "
-          "process")
+          f"(target median <= 30 s, max <= 45 s); {np.median(ratio):.1f}x a nominal identification of TRAIN in the "
+          "same process")
     misses = [r for r in eff_rows if r["verdict"] != r["effect"]]
     if misses:
         print("\nmisses:")
@@ -273,8 +273,8 @@ def main() -> int:
               f"{r['t_diagnose']:5.1f} s", flush=True)
     print(f"\n{len(cases)} cases in {time.perf_counter() - t_all:.0f} s")
     for pl in plants:
-        report([r for r in results if r.get("plant", "project") == pl], effects,
-               f"{pl} plant" + (" (benchmarks/reference_plant.py: other forms of the effects)" if pl == "reference" else ""))
+        note = " (benchmarks/reference_plant.py: other forms of the effects)" if pl == "reference" else ""
+        report([r for r in results if r.get("plant", "project") == pl], effects, f"{pl} plant{note}")
     return 0
 
 

@@ -300,3 +300,13 @@ def test_a_gap_no_candidate_touches_is_unexplained_in_words(cyl_a):
     first = headline(d)[0]
     assert first.startswith("The gap is unexplained: the nominal model misses VALID by")
     assert "none of the 4 candidates tried removes a significant part of it" in first
+
+
+def test_mis_set_quantities_follow_the_headline(cyl_a):
+    d = _diagnosis(cyl_a)
+    d.calibration = {"mis_set": [{"quantity": "mass", "file": 1.036, "calibrated": 0.74, "std": 0.004, "unit": "kg",
+                                  "change": 0.74 / 1.036 - 1}], "status": "converged", "wall_s": 9.0}
+    lines = headline(d)
+    assert lines[0].startswith("The gap is best explained by valve_delay")
+    assert lines[1].startswith("The cylinder file's valve, dead volumes, mass and sensor offsets were calibrated")
+    assert "mis-set in the file: mass 1.036 kg → 0.7400 kg ± 0.0040 kg (-29 %)." in lines[1]

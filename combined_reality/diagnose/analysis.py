@@ -575,7 +575,8 @@ def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
     return best.effect, ""
 
 
-def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, segments, opts, say) -> Candidate | None:
+def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, segments, opts,
+               say) -> Candidate | None:
     """The verdict's effect with the runner-up, when the verdict alone leaves a significant
     gap that the runner-up also addresses. Nested: from the best single fit with the
     runner-up at its neutral value, so never worse than the single effect."""

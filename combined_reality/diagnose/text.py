@@ -63,24 +63,29 @@ def effect_description(name: str) -> str:
 def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str], str] = lambda s: s) -> list[str]:
     """The verdict in plain sentences (the first one is the headline). `strong` marks the
     effect word (HTML <b>, markdown **), `esc` escapes the rest."""
+    out = _verdict_sentences(d, strong, esc)
+    cal = getattr(d, "calibration", None)
+    if cal is not None:  # right after the headline: the baseline it speaks of is the calibrated model
+        mis = cal.get("mis_set") or []
+        text = ("The cylinder file's valve, dead volumes, mass and sensor offsets were calibrated on TRAIN first "
+                "(the nominal model is the calibrated one); ")
+        if mis:
+            text += "mis-set in the file: " + "; ".join(
+                f"{m['quantity']} {format_value(m['file'], None, m['unit'])} → "
+                f"{format_value(m['calibrated'], m['std'], m['unit'])} ({pct(m['change'])})" for m in mis) + "."
+        else:
+            text += "none of them is off."
+        out.insert(1, esc(text))
+    return out
+
+
+def _verdict_sentences(d, strong, esc) -> list[str]:
     b = d.baseline
     noise_x = b["noise"]["x"]
     before = b.get("rmse_x_validation", math.nan)
     nrms = b.get("normalized_rms", math.nan)
     best = d.best
     out = []
-    cal = getattr(d, "calibration", None)
-    if cal is not None:
-        mis = cal.get("mis_set") or []
-        out_cal = ("The cylinder file's valve, dead volumes, mass and sensor offsets were calibrated on TRAIN first "
-                   "(the nominal model below is the calibrated one); ")
-        if mis:
-            out_cal += "mis-set in the file: " + "; ".join(
-                f"{m['quantity']} {format_value(m['file'], None, m['unit'])} → "
-                f"{format_value(m['calibrated'], m['std'], m['unit'])} ({pct(m['change'])} off)" for m in mis) + "."
-        else:
-            out_cal += "none of them is off."
-        out.append(esc(out_cal))
     if best is not None:
         after = best.rmse_x_validation
         params = params_text(best)
@@ -122,7 +127,7 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
     tried = [c.effect for c in d.ranking]
     runner = d.runner
     if d.verdict == "unexplained" and runner is None:
-        out.append(esc(f"The gap is ") + strong("unexplained") + esc(
+        out.append(esc("The gap is ") + strong("unexplained") + esc(
             f": the nominal model misses VALID by {um(before)} in position ({sig(nrms)} × the sensor noise over all "
             f"outputs), and none of the {len(tried)} candidates tried removes a significant part of it. The cause "
             "is likely outside the vocabulary (a sensor error, another physical effect). See where the error lies "
@@ -130,11 +135,12 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
         out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
         return out
     if d.verdict == "unexplained" and runner is not None:
-        out.append(esc(f"The gap is ") + strong("unexplained") + esc(
+        left = sig(runner.validation.normalized_rms())
+        out.append(esc("The gap is ") + strong("unexplained") + esc(
             f": the nominal model misses VALID by {um(before)} in position ({sig(nrms)} × the sensor noise over all "
             f"outputs), and the best candidate, {runner.effect}, removes only part of it (position error "
-            f"{pct(runner.shrink)} smaller, {um(runner.rmse_x_validation)}; all outputs {sig(runner.validation.normalized_rms())}"
-            " × the noise). A weak winner is no diagnosis: the cause is likely outside the vocabulary (a sensor "
+            f"{pct(runner.shrink)} smaller, {um(runner.rmse_x_validation)}; all outputs {left} × the noise). "
+            "A weak winner is no diagnosis: the cause is likely outside the vocabulary (a sensor "
             "error, another physical effect) or several effects combine. See where the error lies below."))
         if d.verdict_note:
             out.append(esc("Why: " + d.verdict_note + "."))
