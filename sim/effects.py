@@ -78,8 +78,11 @@ class FrictionAsymmetry(Effect):
     """Friction differs between extension and retraction.
 
     The seal level (Fc + kp|p1-p2|) and the viscous coefficient Fv become per direction,
-    with Fc, kp, Fv the mean of the two directions:
+    with Fc, kp, Fv the mean of the two directions; a lip seal pressed harder from one side
+    also makes the pressure term depend on which chamber is pressurised (in most motion the
+    cap side while extending, the rod side while retracting):
 
+        Fseal += a_side * kp * (p1 - p2)                (cap side pressurised: kp (1 + a_side))
         Fseal *= 1 + a_coulomb * tanh(v / v_smooth)     (extension: 1 + a, retraction: 1 - a)
         Fvisc *= 1 + a_viscous * tanh(v / v_smooth)
 
@@ -94,19 +97,27 @@ class FrictionAsymmetry(Effect):
         "a_coulomb": ParamInfo("1", -1.0, 1.0, "relative excess of the seal (Coulomb + pressure) friction "
                                                "when extending (negative: when retracting)"),
         "a_viscous": ParamInfo("1", -1.0, 1.0, "relative excess of the viscous coefficient when extending"),
+        "a_side": ParamInfo("1", -1.0, 1.0, "relative excess of the pressure friction kp|p1-p2| with the "
+                                            "cap side pressurised (negative: the rod side)"),
     }
-    NEUTRAL: ClassVar[dict[str, float]] = {"a_coulomb": 0.0, "a_viscous": 0.0}
+    NEUTRAL: ClassVar[dict[str, float]] = {"a_coulomb": 0.0, "a_viscous": 0.0, "a_side": 0.0}
     # weak: a difference of 0.26 N in the seal friction, of 0.032 N in the viscous force at
-    # 0.1 m/s between the directions; strong: published industrial cylinders (0.6, 0.5)
-    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"a_coulomb": (0.13, 0.6), "a_viscous": (0.016, 0.5)}
-    SIGNED: ClassVar[frozenset[str]] = frozenset({"a_coulomb", "a_viscous"})
+    # 0.1 m/s, of 0.26 N in the pressure friction at 2 bar between the directions (sides);
+    # strong: published industrial cylinders (0.6, 0.5), a lip seal's one-sided pressure
+    # loading (0.5)
+    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {
+        "a_coulomb": (0.13, 0.6), "a_viscous": (0.016, 0.5), "a_side": (0.13, 0.5)}
+    SIGNED: ClassVar[frozenset[str]] = frozenset({"a_coulomb", "a_viscous", "a_side"})
     SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {
-        "a_coulomb": ("per_seal_friction", None), "a_viscous": ("per_viscous_force", None)}
+        "a_coulomb": ("per_seal_friction", None), "a_viscous": ("per_viscous_force", None),
+        "a_side": ("per_pressure_friction", None)}
     a_coulomb: float = 0.2
     a_viscous: float = 0.1
+    a_side: float = 0.0
 
     def on_friction_terms(self, sig, q, s) -> None:
         d = ca.tanh(sig.v / sig.par["v_smooth"])
+        sig.Fseal = sig.Fseal + q["a_side"] * sig.par["kp"] * (sig.p1 - sig.p2)
         sig.Fseal = sig.Fseal * (1 + q["a_coulomb"] * d)
         sig.Fvisc = sig.Fvisc * (1 + q["a_viscous"] * d)
 

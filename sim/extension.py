@@ -110,6 +110,7 @@ class Effect:
         seal_friction      Fc + kp * 2 bar (N): the seal friction level while moving
         per_seal_friction  1 / seal_friction (1/N): a force threshold as a relative change
         per_viscous_force  1 / (Fv * 0.1 m/s) (1/N): the same for the viscous term
+        per_pressure_friction  1 / (kp * 2 bar) (1/N): the same for the pressure term
         valve_conductance  Cmax (m^3/(s Pa))
         """
         if what is None:
@@ -117,6 +118,7 @@ class Effect:
         seal = seal_friction_reference(cyl)
         refs = {"seal_friction": seal, "per_seal_friction": 1.0 / max(seal, 1e-9),
                 "per_viscous_force": 1.0 / max(cyl.friction.Fv * 0.1, 1e-9),
+                "per_pressure_friction": 1.0 / max(cyl.friction.kp * 2.0e5, 1e-9),
                 "valve_conductance": cyl.valve.sonic_conductance}
         try:
             return refs[what]

@@ -354,6 +354,24 @@ def test_supply_droop_sags_while_drawing(heavy_a):
     assert steady["supply_droop.sag"][50] == pytest.approx(0.2 / 1.2, rel=0.01)
 
 
+def test_friction_asymmetry_of_a_seal_pressed_from_one_side(cyl_a):
+    """a_side: the pressure term depends on which chamber is pressurised, not on the direction:
+    kp (1 + a) with the cap side above the rod side, kp (1 - a) the other way; friction
+    still opposes motion at the bounds."""
+    f = cyl_a.friction
+    plant = build_plant("command", [FrictionAsymmetry(a_coulomb=0.0, a_viscous=0.0, a_side=0.5)])
+    pe = plant.parameter_vector(cyl_a)
+    for v in (0.3, -0.3):  # sliding: tanh(v / v_s) = sign(v)
+        cap = float(plant.friction([4e5, 2e5, 0.05, v], 0, pe))  # cap side pressurised
+        rod = float(plant.friction([2e5, 4e5, 0.05, v], 0, pe))
+        assert cap == pytest.approx(np.sign(v) * (f.Fc + 1.5 * f.kp * 2e5) + f.Fv * v)
+        assert rod == pytest.approx(np.sign(v) * (f.Fc + 0.5 * f.kp * 2e5) + f.Fv * v)
+    bound = build_plant("command", [FrictionAsymmetry(a_coulomb=-1.0, a_viscous=-1.0, a_side=1.0)])
+    pb = bound.parameter_vector(cyl_a)
+    for p1, p2, v in ((6e5, 1e5, 0.2), (1e5, 6e5, 0.2), (6e5, 1e5, -0.2), (1e5, 6e5, -0.2)):
+        assert float(bound.friction([p1, p2, 0.05, v], 0, pb)) * v >= 0
+
+
 def test_friction_asymmetry_slows_one_direction(cyl_a):
     eff = FrictionAsymmetry(a_coulomb=0.4, a_viscous=0.3)
     plant, base = build_plant("command", [eff]), build_plant("command")

@@ -52,6 +52,9 @@ class DiagnoseOptions:
     explained: float = 0.5  # a verdict must explain this share of the gap (excess error variance)
     calibrate: bool = False  # calibrate the cylinder file's guesses on TRAIN first (the nominal baseline)
     leaders: int = 3  # further starts for this many of the best significant candidates
+    # a candidate that explains this share of the gap after the first pass leaves nothing for
+    # the other effects' further starts: only its own run (they can only improve its figure)
+    dominant: float = 0.98
     # a pair is the verdict when it closes the gap, or when the second effect explains this
     # share of what the first leaves (a partner that imitates part of a single effect's misfit
     # takes less; with 0.5, a stiction fit in a local minimum was named stiction+mass)
@@ -486,6 +489,8 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     closed = (base_val.normalized_rms() <= opts.closed_gap
               or any(c.significant and c.validation.normalized_rms() < opts.closed_gap for c in cands))
     retry = leaders | {c.effect for c in cands if not math.isfinite(c.shrink)}
+    if ranked and explained_share(base_val, ranked[0].validation) >= opts.dominant:
+        leaders = retry = {ranked[0].effect}
     more = [(start, train, valid, (eff,), k, opts, segments)
             for n in order for k, eff in enumerate(candidate_starts(n))
             if (k == 1 and n in retry and first_start[n] != 1) or (k > 1 and (not leaders or n in leaders))]
