@@ -8,8 +8,8 @@ import pytest
 
 from combined_reality.cli.diagnose import format_summary
 from combined_reality.diagnose import (Candidate, DiagnoseOptions, NominalFit, analysis, best_of_starts,
-                                       candidate_starts, decide, explained_share, fit_candidate, has_nested_start,
-                                       neutral_start)
+                                       candidate_starts, decide, explained_share, fit_candidate, further_starts,
+                                       has_nested_start, neutral_start)
 from combined_reality.identify import Validation
 from sim.effects import EFFECTS
 
@@ -37,6 +37,54 @@ def test_explained_share_is_the_excess_variance_removed():
     assert explained_share(_val(3.0), _val(3.0)) == pytest.approx(0.0, abs=1e-12)
     assert explained_share(_val(3.0), _val(math.sqrt(5.0))) == pytest.approx(0.5)
     assert math.isnan(explained_share(_val(1.0), _val(0.9)))  # no gap: nothing to explain
+
+
+def _first_pass(shares: dict[str, float], base: float = 10.0) -> list[Candidate]:
+    """Candidates after the first pass explaining these shares of a gap of `base` x noise
+    (nan: the fit found nothing on TRAIN, not scored)."""
+    out = []
+    for n in EFFECTS:
+        s = shares.get(n, math.nan)
+        if math.isnan(s):
+            out.append(Candidate(n))
+            continue
+        c = _cand(n, math.sqrt(base ** 2 - s * (base ** 2 - 1)), significant=s > 0.05)
+        c.score = s
+        out.append(c)
+    return out
+
+
+def _starts_of(cands, base=10.0, **opts):
+    order = list(EFFECTS)
+    first = {n: 0 if has_nested_start(n) else 1 for n in order}
+    return further_starts(cands, _val(base), order, first, DiagnoseOptions(**opts))
+
+
+def test_further_starts_only_where_a_gap_is_left():
+    cands = _first_pass({"leakage": 0.6, "stiction": 0.3, "mass": 0.2, "heat_transfer": 0.1, "valve_delay": 0.01})
+    starts = _starts_of(cands)
+    # the defaults of the three leaders and of the ones that found nothing (not heat exchange,
+    # which started from its defaults), the alternatives of the leaders only
+    assert {n for n, k in starts if k == 1} == {"leakage", "stiction", "mass", "friction_asymmetry",
+                                                "friction_position", "friction_dynamics", "valve_deadzone",
+                                                "supply_droop"}
+    assert {n for n, k in starts if k > 1} <= {"leakage", "stiction", "mass"}
+    assert ("stiction", 2) in starts
+    # nothing when a candidate closed the gap or the nominal model fits
+    assert _starts_of(_first_pass({"leakage": 0.999, "stiction": 0.3})) == []
+    assert _starts_of(_first_pass({"leakage": 0.5}, base=1.1), base=1.1) == []
+
+
+def test_a_dominant_candidate_keeps_the_further_starts_to_itself():
+    """A strong deadzone explained 99.9 % after the first pass but left 60 x the noise: the
+    other effects' further starts (seven candidates grinding through their iterations, 165 s)
+    cannot change the verdict; only the deadzone's own starts run."""
+    cands = _first_pass({"valve_deadzone": 0.999, "leakage": 0.8, "friction_dynamics": 0.5}, base=2000.0)
+    starts = _starts_of(cands, base=2000.0)
+    assert starts and {n for n, _ in starts} == {"valve_deadzone"}
+    assert len(starts) == len(candidate_starts("valve_deadzone")) - 1
+    # below the dominant share the others keep theirs
+    assert {n for n, _ in _starts_of(cands, base=2000.0, dominant=0.9999)} > {"valve_deadzone", "leakage"}
 
 
 def test_a_candidate_that_closes_most_of_the_gap_is_the_verdict():

@@ -8,10 +8,10 @@ effect causes it, how far it shrinks once that effect is added.
 """
 from .analysis import (MIN_REGION_FRACTION, NESTED_START, Candidate, DiagnoseOptions, Diagnosis, NominalFit,
                        best_of_starts, candidate_starts, decide, diagnose, equation_errors, explained_share,
-                       fit_candidate, has_nested_start, neutral_start, operating_regions, regions,
+                       fit_candidate, further_starts, has_nested_start, neutral_start, operating_regions, regions,
                        regressor_correlations, subsystem_split, whiteness)
 
 __all__ = ["MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",
            "best_of_starts", "candidate_starts", "decide", "diagnose", "equation_errors", "explained_share",
-           "fit_candidate", "has_nested_start", "neutral_start", "operating_regions", "regions",
+           "fit_candidate", "further_starts", "has_nested_start", "neutral_start", "operating_regions", "regions",
            "regressor_correlations", "subsystem_split", "whiteness"]

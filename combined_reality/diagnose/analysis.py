@@ -478,23 +478,9 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     cands = best_of_starts(results, start)
     for c in cands:
         _score(c, base_val, base_rmse, opts)
-    # more starts only where a gap is left to explain: none when the nominal model already
-    # fits VALID or a candidate closed the gap (to near the noise). Then the defaults of the
-    # candidates whose first fit found nothing on TRAIN (from the neutral value some effects
-    # never move) and of the leading ones (a better basin may exist), and the alternative
-    # starts of the leading ones (of all when none explains anything yet). Leading: the
-    # `leaders` significant candidates of the best score; the rest only imitate part of the gap.
-    ranked = sorted((c for c in cands if c.significant), key=lambda c: -c.score)
-    leaders = {c.effect for c in ranked[:opts.leaders]}
-    closed = (base_val.normalized_rms() <= opts.closed_gap
-              or any(c.significant and c.validation.normalized_rms() < opts.closed_gap for c in cands))
-    retry = leaders | {c.effect for c in cands if not math.isfinite(c.shrink)}
-    if ranked and explained_share(base_val, ranked[0].validation) >= opts.dominant:
-        leaders = retry = {ranked[0].effect}
-    more = [(start, train, valid, (eff,), k, opts, segments)
-            for n in order for k, eff in enumerate(candidate_starts(n))
-            if (k == 1 and n in retry and first_start[n] != 1) or (k > 1 and (not leaders or n in leaders))]
-    if more and not closed:
+    more = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments)
+            for n, k in further_starts(cands, base_val, order, first_start, opts)]
+    if more:
         say(f"  trying {len(more)} further starts (the effects' defaults and alternatives) ...")
         results += _run_jobs(more, opts.workers)
         cands = best_of_starts(results, start)
@@ -529,6 +515,29 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
         regions=regions(nominal, valid, base_val, shown.validation if shown is not None else None),
         subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
         correlations=correlations, base_validation=base_val, wall_s=time.perf_counter() - t_start)
+
+
+def further_starts(cands: list[Candidate], base: Validation, order: list[str], first_start: dict[str, int],
+                   opts: DiagnoseOptions) -> list[tuple[str, int]]:
+    """The (effect, start index into candidate_starts) fits to run after the first pass.
+
+    None where no gap is left to explain: the nominal model already fits VALID or a candidate
+    closed the gap (to near the noise). Otherwise the defaults of the candidates whose first
+    fit found nothing on TRAIN (from the neutral value some effects never move) and of the
+    leading ones (a better basin may exist), and the alternative starts of the leading ones
+    (of all when none explains anything yet). Leading: the `leaders` significant candidates of
+    the best score; the rest only imitate part of the gap. When the best explains `dominant`
+    of the gap, only its own further starts run: no other effect's would change the verdict."""
+    if base.normalized_rms() <= opts.closed_gap or any(
+            c.significant and c.validation.normalized_rms() < opts.closed_gap for c in cands):
+        return []
+    ranked = sorted((c for c in cands if c.significant), key=lambda c: -c.score)
+    leaders = {c.effect for c in ranked[:opts.leaders]}
+    retry = leaders | {c.effect for c in cands if not math.isfinite(c.shrink)}
+    if ranked and explained_share(base, ranked[0].validation) >= opts.dominant:
+        leaders = retry = {ranked[0].effect}
+    return [(n, k) for n in order for k in range(1, len(candidate_starts(n)))
+            if (k == 1 and n in retry and first_start[n] != 1) or (k > 1 and (not leaders or n in leaders))]
 
 
 def explained_share(base: Validation, cand: Validation | None) -> float:
