@@ -27,10 +27,24 @@ REALTIME_MODULES = {"test_live_e2e", "test_rig_server", "test_stream", "test_fir
                     "test_transports"}
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups into the node ids
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.module is not None and item.module.__name__ in REALTIME_MODULES:
             item.add_marker(pytest.mark.xdist_group("realtime"))
+
+
+def pytest_collection_finish(session):
+    """On an xdist worker: the real-time group must have reached the node ids, or the
+    scheduler spreads those tests over all workers and they overload the machine (pytest 9.2
+    with pytest-xdist 3.8 silently stopped grouping, pytest-xdist#1386)."""
+    if not getattr(session.config.option, "loadgroup", False):
+        return
+    lost = [i.nodeid for i in session.items if i.get_closest_marker("xdist_group") and "@" not in i.nodeid]
+    if lost:
+        raise pytest.UsageError(f"pytest-xdist did not group {len(lost)} real-time tests (e.g. {lost[0]}): "
+                                "this pytest and pytest-xdist do not work together; install the versions "
+                                "pyproject.toml's test extra names")
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -82,9 +82,15 @@ def run_live(args) -> int:
     if effects and not args.virtual:
         raise UsageError("--effect switches effects on in the virtual rig; it needs --virtual.")
     console = Console(status=not args.quiet)
-    rig = open_rig(args, cyl, effects, rate=args.rate, paced=True, on_event=console.warn)
+    link_events: list[str] = []  # what the link and the rig said, kept for the JSON as well
+
+    def link_event(msg: str) -> None:
+        link_events.append(msg)
+        console.warn(msg)
+
+    rig = open_rig(args, cyl, effects, rate=args.rate, paced=True, on_event=link_event)
     return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, inline=False,
-                        console=console)
+                        console=console, link_events=link_events)
 
 
 def run_replay(args) -> int:
@@ -128,7 +134,7 @@ def _rerun_sink(args, cyl, window_s: float, near: str, say):
                             say=say)
 
 
-def _session_json(result, options, wall_s: float) -> dict:
+def _session_json(result, options, wall_s: float, link_events: list[str]) -> dict:
     import numpy as np
 
     final = result.final
@@ -139,7 +145,7 @@ def _session_json(result, options, wall_s: float) -> dict:
         "update_ms_p50": float(np.percentile(walls, 50)) if len(walls) else None,
         "update_ms_p95": float(np.percentile(walls, 95)) if len(walls) else None,
         "n_samples": int(result.run.n), "stop_reason": result.stop_reason, "rig_time_at_start": result.t0},
-        "link": result.counters, "events": result.events,
+        "link": result.counters, "events": result.events + list(link_events),
         # t: s since the session's first sample; t_rig: the rig's clock (the recording's t)
         "history": [{"t": e.t - result.t0, "t_rig": e.t, "values": e.values, "std": e.std, "sigma": e.sigma}
                     for e in result.estimates]}
@@ -179,7 +185,7 @@ class _Signals:
 
 
 def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, inline: bool,
-                 console) -> int:
+                 console, link_events: list[str] | None = None) -> int:
     from hw.realtime import realtime_available
 
     from ..files import clean_json, cylinder_tag, write_json_atomic
@@ -261,7 +267,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
     else:
         print("no online estimate: fewer samples than one estimation window.")
     if args.json:
-        write_json_atomic(args.json, clean_json(_session_json(result, options, wall)))
+        write_json_atomic(args.json, clean_json(_session_json(result, options, wall, link_events or [])))
     if getattr(estimator, "error", None):
         return 1
     return 1 if result.stop_reason.startswith("no samples") else 0

@@ -51,6 +51,9 @@ NONMONOTONE = 3
 # a damped step closer than this (relative, in the scaled variables) to one whose line search
 # just failed is not searched again
 _SAME_STEP = 1e-2
+# residual sigma (x noise) up to which a fit whose parameters no longer move has converged
+# although a node defect is left (see the end of a failed line search)
+_SETTLED_SIGMA = 1.5
 
 
 @dataclass(frozen=True)
@@ -299,11 +302,19 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
             # the step the line search could not take moves no parameter by a tenth of what the
             # data determine (a noisy rig's cost surface is rough at that scale)
             noise_floor = step is not None and predicted < 1.0 and viol < 1e-2 * max(1, Ktot)
-            if first_step is not None and nth and viol < 1e-2 * max(1, Ktot):
+            if first_step is not None and nth:
                 std_here = standard_deviations(Nmat, R * nx, cost, mask.sum())
                 ok = np.isfinite(std_here) & (std_here > 0)
                 tiny = np.abs(first_step[R * nx:])[ok] <= 0.1 * std_here[ok]
-                noise_floor = noise_floor or bool(ok.all() and tiny.all())
+                # nor when the last steps (short ones, in a curved valley of the node states)
+                # moved no parameter by a quarter of its std and the fit is at the noise: a defect
+                # left at an end stop's stiff contact (where the piston leaves the stop is all
+                # but discontinuous in the node state) is one the data cannot resolve
+                recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [theta.tolist()])
+                settled = (len(history) >= 2 * NONMONOTONE and 2 * cost <= _SETTLED_SIGMA ** 2 * mask.sum()
+                           and bool(np.all(np.ptp(recent, axis=0)[ok] <= 0.25 * std_here[ok])))
+                closed = viol < 1e-2 * max(1, Ktot)
+                noise_floor = noise_floor or bool(ok.all() and ((closed and tiny.all()) or settled))
             status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
             break
         lam = lam / 10 if lam > 1e-6 else 0.0
