@@ -220,7 +220,12 @@ def _truth_text(r: dict) -> str:
 
 
 def _top_text(r: dict) -> str:
-    return ", ".join(f"{e} {s:.0%}/{sa:.0%} z={t_:.1f}{'*' if sig else ''}" for e, s, sa, t_, sig in r["ranking"][:3])
+    def row(e, s, sa, t_, sig):
+        if not (math.isfinite(s) and math.isfinite(t_)):
+            return f"{e} not scored"  # no start beat the nominal model (the report says why)
+        return f"{e} {s:.0%}/{sa:.0%} z={t_:.1f}{'*' if sig else ''}"
+
+    return ", ".join(row(*x) for x in r["ranking"][:3])
 
 
 def main() -> int:
