@@ -56,6 +56,16 @@ _SAME_STEP = 1e-2
 _SETTLED_SIGMA = 1.5
 
 
+def _settled(history: list[dict], theta: np.ndarray, std: np.ndarray) -> bool:
+    """Whether the last 2 NONMONOTONE iterations moved no parameter by a quarter of its
+    standard deviation (every parameter determined): more iterations only polish node states."""
+    ok = np.isfinite(std) & (std > 0)
+    if len(history) < 2 * NONMONOTONE or not len(theta) or not ok.all():
+        return False
+    recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [np.asarray(theta).tolist()])
+    return bool(np.all(np.ptp(recent, axis=0) <= 0.25 * std))
+
+
 @dataclass(frozen=True)
 class IdentifyOptions:
     drive: str = "command"
@@ -310,9 +320,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
                 # moved no parameter by a quarter of its std and the fit is at the noise: a defect
                 # left at an end stop's stiff contact (where the piston leaves the stop is all
                 # but discontinuous in the node state) is one the data cannot resolve
-                recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [theta.tolist()])
-                settled = (len(history) >= 2 * NONMONOTONE and 2 * cost <= _SETTLED_SIGMA ** 2 * mask.sum()
-                           and bool(np.all(np.ptp(recent, axis=0)[ok] <= 0.25 * std_here[ok])))
+                settled = 2 * cost <= _SETTLED_SIGMA ** 2 * mask.sum() and _settled(history, theta, std_here)
                 closed = viol < 1e-2 * max(1, Ktot)
                 noise_floor = noise_floor or bool(ok.all() and ((closed and tiny.all()) or settled))
             status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
@@ -338,6 +346,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         new_viol = float(np.sum(np.abs(ev[1])))
         if rel_step < 1e-3 and new_viol < 1e-2 * max(1, Ktot) and alpha == 1.0:
             status = "converged"
+            break
+        if new_viol < 1e-2 * max(1, Ktot) and _settled(history, theta, std):
+            status = "converged"  # short steps that only polish node states (e.g. around gaps)
             break
         if (abs(cost - 0.5 * float(np.sum(ev[0] ** 2)) - prior_cost(theta)) < 1e-12 * cost
                 and new_viol < 1e-2 * max(1, Ktot)):
