@@ -133,6 +133,29 @@ def test_offline_identification_never_bridges_lost_samples(cyl_a, run_a):
         assert abs(res.params[n].value - cyl_a.value(n)) < 4 * res.params[n].std
 
 
+def test_a_fit_still_descending_above_the_noise_has_not_settled():
+    """Parameters that stopped moving by a quarter std end the fit only when the cost stopped
+    falling too or the residual is at the noise: a misfit's stds are inflated with its residual
+    (a lossy live recording was stopped 'converged' at 5.1 x noise while still descending)."""
+    from combined_reality.identify.offline import parameters_settled
+
+    n, std = 30000.0, np.array([0.4, 0.15, 2.4e-6])
+    theta = np.array([24.3, 13.6, 3.18e-5])
+
+    def history(costs, wobble=0.1):
+        return [{"cost": c, "theta": (theta + wobble * std * (-1) ** i).tolist()} for i, c in enumerate(costs)]
+
+    descending = np.geomspace(2.0e6, 1.2e6, 6)
+    assert not parameters_settled(history(descending), theta, std, 1.1e6, n)
+    flat = 1.1e6 + np.linspace(30.0, 0.0, 6)  # less than one unit of chi-square gained
+    assert parameters_settled(history(flat), theta, std, 1.1e6, n)
+    at_noise = np.geomspace(2.0e4, 1.6e4, 6)  # residual sigma ~1: polishing node states
+    assert parameters_settled(history(at_noise), theta, std, 1.55e4, n)
+    assert not parameters_settled(history(flat, wobble=0.3), theta, std, 1.1e6, n)  # still moving
+    assert not parameters_settled(history(flat[:5]), theta, std, 1.1e6, n)  # too few iterations
+    assert not parameters_settled(history(flat), theta, np.array([0.4, np.inf, 2.4e-6]), 1.1e6, n)
+
+
 def _with_holes(run, seed=0, share=0.01):
     """The run with `share` of each of x, p1, p2 not measured (NaN), at random samples."""
     from dataclasses import replace

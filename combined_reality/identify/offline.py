@@ -52,18 +52,26 @@ NONMONOTONE = 3
 # just failed is not searched again
 _SAME_STEP = 1e-2
 # residual sigma (x noise) up to which a fit whose parameters no longer move has converged
-# although a node defect is left (see the end of a failed line search)
-_SETTLED_SIGMA = 1.5
+# although its cost still creeps down (node states polished around gaps and end stops)
+SETTLED_SIGMA = 1.5
 
 
-def _settled(history: list[dict], theta: np.ndarray, std: np.ndarray) -> bool:
-    """Whether the last 2 NONMONOTONE iterations moved no parameter by a quarter of its
-    standard deviation (every parameter determined): more iterations only polish node states."""
+def parameters_settled(history: list[dict], theta: np.ndarray, std: np.ndarray, cost: float, n_res: float) -> bool:
+    """Whether more iterations would only polish node states: the last 2 NONMONOTONE iterations
+    moved no parameter by a quarter of its standard deviation (every parameter determined), and
+    either the fit is at the sensor noise (residual sigma <= SETTLED_SIGMA) or the cost stopped
+    falling (those iterations gained less than one unit of chi-square at the present residual
+    level). A misfit's standard deviations are inflated with its residual, so without the second
+    test a fit still descending far above the noise would look settled."""
     ok = np.isfinite(std) & (std > 0)
-    if len(history) < 2 * NONMONOTONE or not len(theta) or not ok.all():
+    if len(history) < 2 * NONMONOTONE or not len(theta) or not ok.all() or n_res <= 0:
         return False
     recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [np.asarray(theta).tolist()])
-    return bool(np.all(np.ptp(recent, axis=0) <= 0.25 * std))
+    if not np.all(np.ptp(recent, axis=0) <= 0.25 * std):
+        return False
+    at_noise = 2 * cost <= SETTLED_SIGMA ** 2 * n_res
+    gained = history[-2 * NONMONOTONE]["cost"] - min(cost, history[-1]["cost"])
+    return bool(at_noise or gained <= cost / n_res)
 
 
 @dataclass(frozen=True)
@@ -317,10 +325,10 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
                 ok = np.isfinite(std_here) & (std_here > 0)
                 tiny = np.abs(first_step[R * nx:])[ok] <= 0.1 * std_here[ok]
                 # nor when the last steps (short ones, in a curved valley of the node states)
-                # moved no parameter by a quarter of its std and the fit is at the noise: a defect
+                # moved no parameter by a quarter of its std and the cost no longer falls: a defect
                 # left at an end stop's stiff contact (where the piston leaves the stop is all
                 # but discontinuous in the node state) is one the data cannot resolve
-                settled = 2 * cost <= _SETTLED_SIGMA ** 2 * mask.sum() and _settled(history, theta, std_here)
+                settled = parameters_settled(history, theta, std_here, cost, mask.sum())
                 closed = viol < 1e-2 * max(1, Ktot)
                 noise_floor = noise_floor or bool(ok.all() and ((closed and tiny.all()) or settled))
             status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
@@ -347,7 +355,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
         if rel_step < 1e-3 and new_viol < 1e-2 * max(1, Ktot) and alpha == 1.0:
             status = "converged"
             break
-        if new_viol < 1e-2 * max(1, Ktot) and _settled(history, theta, std):
+        if new_viol < 1e-2 * max(1, Ktot) and parameters_settled(history, theta, std, cost, mask.sum()):
             status = "converged"  # short steps that only polish node states (e.g. around gaps)
             break
         if (abs(cost - 0.5 * float(np.sum(ev[0] ** 2)) - prior_cost(theta)) < 1e-12 * cost
