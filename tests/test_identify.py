@@ -156,6 +156,40 @@ def test_a_fit_still_descending_above_the_noise_has_not_settled():
     assert not parameters_settled(history(flat), theta, np.array([0.4, np.inf, 2.4e-6]), 1.1e6, n)
 
 
+def test_a_fit_stuck_far_above_the_noise_is_started_again_from_where_it_ended(cyl_a, run_a):
+    """Node states in a wrong basin (here: every node at mid-stroke, at rest) stop the fit far
+    above the noise; the restart from the parameters it reached, with node states afresh from the
+    data, recovers the truth, is reported, and the first fit's start values stay the initial ones."""
+    from dataclasses import replace
+
+    from combined_reality.identify import IdentifyOptions, identify
+
+    good = identify(cyl_a, [run_a], IdentifyOptions())
+    assert "restart" not in good.solver  # at the noise: nothing to restart
+    stuck = good.nodes.copy()
+    stuck[0], stuck[1] = 0.05, 0.0
+    once = identify(cyl_a, [run_a], IdentifyOptions(restart_misfit=False), nodes=stuck)
+    assert once.solver["residual_sigma"] > 10
+    res = identify(cyl_a, [run_a], IdentifyOptions(), nodes=stuck)
+    assert res.solver["restart"]["kept"] == "restart"
+    assert res.solver["restart"]["residual_sigma_before"] == pytest.approx(once.solver["residual_sigma"])
+    assert res.solver["status"] == "converged" and res.solver["residual_sigma"] < 1.1
+    assert res.solver["iterations"] > once.solver["iterations"]
+    for n in ("Fc", "Fv", "kp"):
+        assert abs(res.params[n].value - cyl_a.value(n)) < 3 * res.params[n].std, n
+        assert res.params[n].initial == once.params[n].initial
+    # a model that cannot explain the run (a leak it lacks) is restarted too, and never ends worse
+    from combined_reality.live import simulate_run
+    from sim.effects import EFFECTS
+
+    leaky = simulate_run(cyl_a, 10.0, seed=5, effects=[EFFECTS["leakage"].typical(cyl_a, 0.3)])
+    misfit = identify(cyl_a, [leaky], replace(IdentifyOptions(), restart_misfit=False))
+    both = identify(cyl_a, [leaky], IdentifyOptions())
+    assert misfit.solver["residual_sigma"] > 3 and "restart" in both.solver
+    assert both.solver["cost"] <= misfit.solver["cost"]
+    assert both.solver["restart"]["kept"] == ("restart" if both.solver["cost"] < misfit.solver["cost"] else "first")
+
+
 def _with_holes(run, seed=0, share=0.01):
     """The run with `share` of each of x, p1, p2 not measured (NaN), at random samples."""
     from dataclasses import replace

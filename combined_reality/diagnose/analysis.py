@@ -248,7 +248,9 @@ def fit_candidate(args) -> Candidate:
 
 def _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0, label) -> Candidate:
     names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
-    options = IdentifyOptions(estimate=names, threads=1, max_iter=opts.max_iter,
+    # candidates have further starts of their own (further_starts); the nominal model was fitted
+    # without a restart too, so that every candidate is measured against the same baseline
+    options = IdentifyOptions(estimate=names, threads=1, max_iter=opts.max_iter, restart_misfit=False,
                               give_up_above=nominal.train_cost * (1 + opts.min_train_gain))
     if start == NESTED_START:
         # from the nominal optimum, node states included: the fit starts at the nominal
@@ -457,7 +459,7 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
                 f"{m['unit']} ({m['change']:+.1%})")
         cyl = cal.cylinder
     say("identifying the nominal model on TRAIN ...")
-    base = identify(cyl, [train], IdentifyOptions())
+    base = identify(cyl, [train], IdentifyOptions(restart_misfit=False))
     nominal = base.cylinder
     segments = validation_segments(valid, opts.horizon_s)
     base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments)
@@ -680,7 +682,7 @@ def subsystem_split(cyl: Cylinder, nominal: Cylinder, train: Run, valid: Run, ba
     rows = []
     label = "piston force balance (friction, mass), driven by the measured pressures"
     try:
-        mech = identify(cyl, [train], IdentifyOptions(drive="pressure", threads=opts.workers))
+        mech = identify(cyl, [train], IdentifyOptions(drive="pressure", threads=opts.workers, restart_misfit=False))
         mval = validate(mech.cylinder, (), valid, opts.horizon_s, drive="pressure", segments=segments)
         rng = np.random.default_rng(seed)
         sen, sim = cyl.sensors, base_val.simulated
