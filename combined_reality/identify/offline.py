@@ -160,14 +160,16 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     t_start = time.perf_counter()
     first = _identify_once(cyl, runs, options, effects, initial, nodes, progress, prior)
     sol = first.solver
+    left_s = options.time_limit_s - (time.perf_counter() - t_start)  # the user's guard covers both fits
     if not (options.restart_misfit and first.params and sol["status"] in ("converged", "line_search_failed")
-            and sol["residual_sigma"] > SETTLED_SIGMA):
+            and sol["residual_sigma"] > SETTLED_SIGMA and left_s > 0):
         return first
     if progress:
         progress(f"  residual {sol['residual_sigma']:.2f} x the noise: started again from these parameters "
                  "with node states afresh from the data")
     ended = {n: e.value for n, e in first.params.items()}
-    again = _identify_once(cyl, runs, replace(options, restart_misfit=False), effects, ended, None, progress, prior)
+    again = _identify_once(cyl, runs, replace(options, restart_misfit=False, time_limit_s=left_s), effects, ended,
+                           None, progress, prior)
     kept = again if again.solver["cost"] < sol["cost"] else first
     for n, e in kept.params.items():
         e.initial = first.params[n].initial
