@@ -160,8 +160,6 @@ def test_a_fit_stuck_far_above_the_noise_is_started_again_from_where_it_ended(cy
     """Node states in a wrong basin (here: every node at mid-stroke, at rest) stop the fit far
     above the noise; the restart from the parameters it reached, with node states afresh from the
     data, recovers the truth, is reported, and the first fit's start values stay the initial ones."""
-    from dataclasses import replace
-
     from combined_reality.identify import IdentifyOptions, identify
 
     good = identify(cyl_a, [run_a], IdentifyOptions())
@@ -183,7 +181,7 @@ def test_a_fit_stuck_far_above_the_noise_is_started_again_from_where_it_ended(cy
     from sim.effects import EFFECTS
 
     leaky = simulate_run(cyl_a, 10.0, seed=5, effects=[EFFECTS["leakage"].typical(cyl_a, 0.3)])
-    misfit = identify(cyl_a, [leaky], replace(IdentifyOptions(), restart_misfit=False))
+    misfit = identify(cyl_a, [leaky], IdentifyOptions(restart_misfit=False))
     both = identify(cyl_a, [leaky], IdentifyOptions())
     assert misfit.solver["residual_sigma"] > 3 and "restart" in both.solver
     assert both.solver["cost"] <= misfit.solver["cost"]

@@ -52,7 +52,8 @@ NONMONOTONE = 3
 # just failed is not searched again
 _SAME_STEP = 1e-2
 # residual sigma (x noise) up to which a fit whose parameters no longer move has converged
-# although its cost still creeps down (node states polished around gaps and end stops)
+# although its cost still creeps down (node states polished around gaps and end stops); above
+# it, a fit that ended is restarted once (IdentifyOptions.restart_misfit)
 SETTLED_SIGMA = 1.5
 
 
