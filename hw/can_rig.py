@@ -13,6 +13,9 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import can
+import serial
+from can.exceptions import error_check
+from can.interfaces.slcan import slcanBus
 
 from .can_mapping import CanCodec, SampleAssembler
 from .protocol import HostFrame, LinkDown, LinkRig
@@ -42,7 +45,10 @@ class CanRig(LinkRig):
 
     def _open(self) -> None:
         try:
-            bus = can.Bus(channel=self.channel, interface=self.interface, bitrate=self.bitrate, **self.bus_kwargs)
+            if self.interface == "slcan":
+                bus = ChunkedSlcanBus(channel=self.channel, bitrate=self.bitrate, **self.bus_kwargs)
+            else:
+                bus = can.Bus(channel=self.channel, interface=self.interface, bitrate=self.bitrate, **self.bus_kwargs)
         except (can.CanError, OSError, ValueError, ImportError) as e:
             raise RigError(f"cannot open CAN {self.interface} channel {self.channel}: {e}") from None
         self._assembler.reset()
@@ -86,3 +92,36 @@ class CanRig(LinkRig):
 
     def _frame_counts(self) -> tuple[int, int]:
         return self._bad_lines + self._assembler.malformed, 0
+
+
+class ChunkedSlcanBus(slcanBus):
+    """python-can's SLCAN bus reading whatever the port holds in one call.
+
+    python-can 4.6.1 reads SLCAN text one byte per system call (python-can#2027): a rig
+    streaming at 1 kHz sends three 26-character frames per sample, so the host's reader
+    thread made ~80 000 calls a second, took a whole core, answered every command after
+    the rig's next tick and starved the estimator (online update 140 ms instead of 20 ms).
+    This is the read of python-can#2028 (merged after 4.6.1); drop the class once a release
+    with it is the lowest python-can allowed."""
+
+    def _read(self, timeout: float | None) -> str | None:
+        deadline = serial.Timeout(timeout)
+        port, buf = self.serialPortOrig, self._buffer
+        with error_check("Could not read from serial device"):
+            while True:
+                end = _line_end(buf)
+                if end < 0:
+                    buf.extend(port.read(port.in_waiting or 1))  # blocks up to the port's timeout
+                    end = _line_end(buf)
+                if end >= 0:
+                    line = buf[: end + 1].decode(errors="replace")
+                    del buf[: end + 1]
+                    return line
+                if deadline.expired():
+                    return None
+
+
+def _line_end(buf: bytearray) -> int:
+    """Index of the first SLCAN terminator (CR, or BEL for an error) in `buf`, -1 if none."""
+    ends = [i for i in (buf.find(b"\r"), buf.find(b"\a")) if i >= 0]
+    return min(ends) if ends else -1
