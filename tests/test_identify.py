@@ -154,6 +154,21 @@ def test_a_fit_still_descending_above_the_noise_has_not_settled():
     assert not parameters_settled(history(flat, wobble=0.3), theta, std, 1.1e6, n)  # still moving
     assert not parameters_settled(history(flat[:5]), theta, std, 1.1e6, n)  # too few iterations
     assert not parameters_settled(history(flat), theta, np.array([0.4, np.inf, 2.4e-6]), 1.1e6, n)
+    # a drive by measured pressures stays far above the sensor noise in its raw cost: at its own
+    # noise floor (told by the caller), a fit still polishing node states has settled
+    assert parameters_settled(history(descending), theta, std, 1.1e6, n, at_noise=True)
+    assert not parameters_settled(history(descending, wobble=0.3), theta, std, 1.1e6, n, at_noise=True)
+
+
+def test_a_pressure_drive_fit_at_its_noise_floor_ends_converged_not_failed(cyl_a, run_a):
+    """1 % of the samples lost to each channel cut the pressure-driven run into 360 pieces; the
+    fit reaches the truth within 10 iterations, then polishes node states until a line search
+    fails. Judged against that drive's noise floor and its reported std, it has converged."""
+    holey = _with_holes(run_a)
+    res = identify(cyl_a, [holey], IdentifyOptions(drive="pressure"))
+    assert res.solver["status"] == "converged" and res.solver["residual_sigma"] < 1.1
+    for n in ("Fc", "Fv", "kp"):
+        assert abs(res.params[n].value - cyl_a.value(n)) < 3 * res.params[n].std, n
 
 
 def test_a_fit_stuck_far_above_the_noise_is_started_again_from_where_it_ended(cyl_a, run_a):
@@ -244,3 +259,46 @@ def test_newton_friction_uses_no_window_with_a_missing_or_lost_sample(cyl_a, run
     same = np.isin(run.t[idx_full], t)
     assert same.sum() == len(idx) == len(idx_full) - 31 - 1 - 31
     np.testing.assert_allclose(F, F_full[same])
+
+
+def test_a_piece_that_starts_braking_after_lost_samples_starts_at_its_own_speed(cyl_a, run_a):
+    """Lost samples just before the piston comes to rest: the piece after the gap starts at
+    speed and brakes within a few ms. Its first node must start at that speed, not at the
+    rest a slope held from 10 samples in saw: a live recording over a lossy serial link was
+    fitted from there into a wrong stick-slip basin (residual 5.6 x noise, 0.36 mm off over
+    a whole piece; at 1.00 x noise with the speed from the piece's own first samples)."""
+    from combined_reality.files import Run, split_at_gaps
+    from combined_reality.identify import velocity_estimate
+    from combined_reality.live import simulate_run
+
+    clean = simulate_run(cyl_a, 20.0, seed=1, noise=False)  # run_a without its sensor noise
+    v_true = np.gradient(clean.x, clean.t)
+    starts = [i for i in range(100, run_a.n - 100) if abs(v_true[i]) > 0.05 and abs(v_true[i + 8]) < 0.005]
+    starts = [i for k, i in enumerate(starts) if k == 0 or i - starts[k - 1] > 300]
+    assert len(starts) >= 10, starts
+    keep = np.ones(run_a.n, bool)
+    for i in starts:
+        keep[i - 12:i] = False
+    idx = np.flatnonzero(keep)
+    run = Run(t=run_a.t[idx], u=run_a.u[idx], x=run_a.x[idx], p1=run_a.p1[idx], p2=run_a.p2[idx])
+    pieces = split_at_gaps(run)[1:]
+    assert len(pieces) == len(starts)
+    for i, piece in zip(starts, pieces):
+        assert piece.t[0] == run_a.t[i]
+        assert abs(velocity_estimate(piece.t, piece.x)[0] - v_true[i]) < 0.15 * abs(v_true[i]), piece.t[0]
+
+
+def test_the_velocity_at_the_start_of_a_piece_is_its_own_not_held_from_further_in():
+    from combined_reality.identify import velocity_estimate
+
+    rng = np.random.default_rng(0)
+    t = np.arange(300) * 1e-3
+    # 80 mm/s braking to rest in 8 ms (constant deceleration), then at rest; 2 um noise
+    tb = np.minimum(t, 0.008)
+    x = 0.08 * tb - 0.5 * 10.0 * tb ** 2 + rng.normal(0, 2e-6, t.size)
+    v = velocity_estimate(t, x)
+    truth = np.maximum(0.08 - 10.0 * t, 0.0)
+    assert abs(v[0] - 0.08) < 0.01
+    assert np.max(np.abs(v[:6] - truth[:6])) < 0.012
+    assert np.max(np.abs(v[30:] - truth[30:])) < 0.002  # at rest: the noise stays small
+    assert abs(v[-1]) < 0.002

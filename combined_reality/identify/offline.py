@@ -33,11 +33,11 @@ from sim.plant import plant_for
 from ..files import Run, split_at_gaps
 from .newton import equation_error_friction
 from .preflight import check_determinable
-from .shooting import (IdentificationError, PriorRow, RunLayout, ShootingProblem, at_bounds, cluster_covariance,
-                       condense, covariance, drives_with_measured_inputs, fit_metrics, free_parameters,
-                       interval_residual_sigma, line_search, linearize, parameter_bounds, parameter_unit, pooled_fit,
-                       prior_matrix, residual_scales, run_layout, simulate_layout, solve_bounded, standard_deviations,
-                       warm_nodes, with_effect_values)
+from .shooting import (IdentificationError, PriorRow, RunLayout, ShootingProblem, at_bounds, condense,
+                       drives_with_measured_inputs, fit_metrics, free_parameters, interval_residual_sigma,
+                       line_search, linearize, parameter_bounds, parameter_unit, pooled_fit, prior_matrix,
+                       reported_covariance, residual_scales, run_layout, simulate_layout, solve_bounded,
+                       standard_deviations, warm_nodes, with_effect_values)
 
 
 # a model whose residual is this many times the sensor noise does not explain the run: its
@@ -57,20 +57,22 @@ _SAME_STEP = 1e-2
 SETTLED_SIGMA = 1.5
 
 
-def parameters_settled(history: list[dict], theta: np.ndarray, std: np.ndarray, cost: float, n_res: float) -> bool:
+def parameters_settled(history: list[dict], theta: np.ndarray, std: np.ndarray, cost: float, n_res: float,
+                       at_noise: bool = False) -> bool:
     """Whether more iterations would only polish node states: the last 2 NONMONOTONE iterations
     moved no parameter by a quarter of its standard deviation (every parameter determined), and
-    either the fit is at the sensor noise (residual sigma <= SETTLED_SIGMA) or the cost stopped
-    falling (those iterations gained less than one unit of chi-square at the present residual
-    level). A misfit's standard deviations are inflated with its residual, so without the second
-    test a fit still descending far above the noise would look settled."""
+    either the fit is at the sensor noise (residual sigma <= SETTLED_SIGMA, or `at_noise`: found
+    so by a measure that knows the drive's noise floor) or the cost stopped falling (those
+    iterations gained less than one unit of chi-square at the present residual level). A
+    misfit's standard deviations are inflated with its residual, so without the second test a
+    fit still descending far above the noise would look settled."""
     ok = np.isfinite(std) & (std > 0)
     if len(history) < 2 * NONMONOTONE or not len(theta) or not ok.all() or n_res <= 0:
         return False
     recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [np.asarray(theta).tolist()])
     if not np.all(np.ptp(recent, axis=0) <= 0.25 * std):
         return False
-    at_noise = 2 * cost <= SETTLED_SIGMA ** 2 * n_res
+    at_noise = at_noise or 2 * cost <= SETTLED_SIGMA ** 2 * n_res
     gained = history[-2 * NONMONOTONE]["cost"] - min(cost, history[-1]["cost"])
     return bool(at_noise or gained <= cost / n_res)
 
@@ -225,6 +227,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
 
     dt0 = runs[0].sample_period
     M = max(5, int(round(options.interval_s / dt0)))
+    cluster = max(1, int(round(1.0 / (M * dt0))))  # intervals per second: the robust std's clusters
     sf = shooting_functions(plant, M, free, options.integrator, progress=progress, with_sens=True)
     nx, ny, nth = plant.nx, len(plant.output_names), len(free)
     out_idx = [plant.state_names.index(n) for n in plant.output_names]
@@ -366,6 +369,17 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
                 # left at an end stop's stiff contact (where the piston leaves the stop is all
                 # but discontinuous in the node state) is one the data cannot resolve
                 settled = parameters_settled(history, theta, std_here, cost, mask.sum())
+                if not settled and ok.all() and options.noise_floor and drives_with_measured_inputs(plant):
+                    # the raw residual of a drive by measured (noisy) signals stays above the
+                    # sensor noise however good the model: judge it against that drive's floor
+                    # and its Gauss-Newton std understate what it determines (the std it reports
+                    # is the cluster-robust one, often tens of times larger)
+                    sigma, _ = interval_residual_sigma(problem, layouts, cyl, S, p, G, E,
+                                                       mask.sum() - Ktot * nx - nth)
+                    cov_here = reported_covariance(Nmat, scores, layouts, R * nx, cost, mask.sum(), cluster)
+                    if cov_here is not None:
+                        settled = parameters_settled(history, theta, np.sqrt(np.maximum(np.diag(cov_here), 0.0)),
+                                                     cost, mask.sum(), at_noise=sigma <= SETTLED_SIGMA)
                 closed = viol < 1e-2 * max(1, Ktot)
                 noise_floor = noise_floor or bool(ok.all() and ((closed and tiny.all()) or settled))
             status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
@@ -415,17 +429,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         Nfinal, gfinal, _, _, _, scores = condense(linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E,
                                                     D * sscale[:, None], layouts, has_next, nx, nth)
         Nfinal, _ = with_prior(Nfinal, gfinal, theta)
-    cov_gn = covariance(Nfinal, len(layouts) * nx, cost, nres)
-    cov_robust = cluster_covariance(Nfinal, scores, layouts, len(layouts) * nx,
-                                     max(1, int(round(1.0 / (M * dt0)))))
-    # residuals of real rigs (and of the pressure drive, whose inputs are noisy) are not
-    # white: report the larger of the Gauss-Newton and the cluster-robust variances
-    cov = cov_gn
-    if cov_gn is not None and cov_robust is not None:
-        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-            scale = np.sqrt(np.maximum(np.diag(cov_robust), 0) / np.maximum(np.diag(cov_gn), 1e-300))
-        scale = np.where(np.isfinite(scale), np.maximum(scale, 1.0), 1.0)
-        cov = cov_gn * np.outer(scale, scale)
+    cov = reported_covariance(Nfinal, scores, layouts, len(layouts) * nx, cost, nres, cluster)
     at_bound = at_bounds(theta, lower, upper)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(nth, np.nan)
     corr = None

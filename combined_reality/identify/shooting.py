@@ -385,6 +385,21 @@ def cluster_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int,
     return cov if np.all(np.isfinite(cov)) else None
 
 
+def reported_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int, cost: float, nres: float,
+                        block: int) -> np.ndarray | None:
+    """The parameter covariance a fit reports: residuals of real rigs (and of a drive by noisy
+    measured signals) are not white, so each variance is the larger of the Gauss-Newton and
+    the cluster-robust one (clusters of `block` intervals), correlations as Gauss-Newton's."""
+    cov_gn = covariance(N, n_state, cost, nres)
+    cov_robust = cluster_covariance(N, scores, layouts, n_state, block)
+    if cov_gn is None or cov_robust is None:
+        return cov_gn
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        scale = np.sqrt(np.maximum(np.diag(cov_robust), 0) / np.maximum(np.diag(cov_gn), 1e-300))
+    scale = np.where(np.isfinite(scale), np.maximum(scale, 1.0), 1.0)
+    return cov_gn * np.outer(scale, scale)
+
+
 def standard_deviations(N, n_state, cost, nres) -> np.ndarray:
     cov = covariance(N, n_state, cost, nres)
     if cov is None:

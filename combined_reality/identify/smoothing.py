@@ -7,16 +7,30 @@ import numpy as np
 __all__ = ["savgol_kernels", "derivative_kernels", "velocity_estimate", "fill_missing"]
 
 
-def velocity_estimate(t: np.ndarray, x: np.ndarray, half: int = 10) -> np.ndarray:
-    """Savitzky-Golay slope over +-half samples, held constant at the ends. Positions not
-    measured (NaN) are interpolated first: an estimate for starting guesses and for sorting
-    samples into regimes, not a measurement."""
+def velocity_estimate(t: np.ndarray, x: np.ndarray, half: int = 10, edge: int = 3) -> np.ndarray:
+    """Savitzky-Golay slope over +-half samples; near the ends the window shrinks to what the
+    samples allow, down to a quadratic through the last 2*edge+1 samples evaluated at the end
+    (a run cut at lost samples often starts mid-stroke, braking: a slope held from `half`
+    samples in called a piston at 80 mm/s resting, and its fit started in a wrong stick-slip
+    basin). Positions not measured (NaN) are interpolated first: an estimate for starting
+    guesses and for sorting samples into regimes, not a measurement."""
     x = fill_missing(t, x)
-    if len(x) < 2 * half + 1:
+    n = len(x)
+    if n < 2 * edge + 1:
         return np.gradient(x, t)
-    v = np.convolve(x, derivative_kernels(half)[0], mode="same") / np.median(np.diff(t))
-    v[:half] = v[half]
-    v[-half:] = v[-half - 1]
+    dt = np.median(np.diff(t))
+    v = np.empty(n)
+    h = min(half, (n - 1) // 2)
+    v[h:n - h] = np.convolve(x, derivative_kernels(h)[0], mode="valid") / dt
+    for i in range(h):  # the same sample counted from either end
+        w = max(i, edge)
+        if w == i:
+            k = derivative_kernels(w)[0][::-1]  # convolve's kernel, flipped back for a dot product
+            v[i], v[n - 1 - i] = k @ x[:2 * w + 1] / dt, k @ x[n - 2 * w - 1:] / dt
+        else:  # the end quadratic, evaluated i samples in
+            coef = np.linalg.pinv(np.vander(np.arange(-w, w + 1.0), 3, increasing=True))
+            v[i] = (coef[1] + 2 * (i - w) * coef[2]) @ x[:2 * w + 1] / dt
+            v[n - 1 - i] = (coef[1] + 2 * (w - i) * coef[2]) @ x[n - 2 * w - 1:] / dt
     return v
 
 
