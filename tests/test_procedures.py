@@ -361,9 +361,16 @@ def test_sweep_end_to_end_over_the_serial_link(serial_rig, cyl, tmp_path, monkey
                  "--vmax", "0.15", "--out", str(out), "--json", str(js), "-q"], monkeypatch)
     err = capsys.readouterr().err
     assert code == 0, err
-    rows = read_points(out)
-    print(f"serial sweep: {rows.tolist()}; session {json.loads(js.read_text())['session']}")
-    assert len(rows) == 4 and sorted(np.sign(rows[:, 0])) == [-1, -1, 1, 1]
+    rows, res = read_points(out), json.loads(js.read_text())
+    print(f"serial sweep: {rows.tolist()}; skipped {res['skipped']}; session {res['session']}")
+    # every stroke gives a point or says why not; on a busy host (the velocity loop runs there)
+    # the fast stroke may ring or end short, the slow ones must be steady points
+    targets = [p["target"] for p in res["points"]] + [s["target"] for s in res["skipped"]]
+    assert sorted(targets) == pytest.approx([-0.15, -0.05, 0.05, 0.15])
+    assert all(s["reason"] for s in res["skipped"])
+    slow = [p for p in res["points"] if abs(p["target"]) < 0.1]
+    assert len(slow) == 2 and all(p["steady"] for p in slow)
+    assert len(rows) >= 2 and sorted(np.sign(rows[:, 0]))[0] == -1 and sorted(np.sign(rows[:, 0]))[-1] == 1
     assert np.all(np.sign(rows[:, 0]) == np.sign(rows[:, 1]))
     assert np.all(np.abs(rows[:, 0]) > 0.03)
     assert np.allclose(rows[:, 1], true_friction(cyl, rows[:, 0]), rtol=0.03)

@@ -100,8 +100,11 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
             if try_opts.max_iter == 0:
                 res.solver["status"] = "converged"  # a simulation, not a fit that ran out
             meas = np.vstack([getattr(piece, o) for o in res.output_names])
+            sim = res.simulated[0]
+            if not np.all(np.isfinite(sim)):
+                continue  # diverged: its cost would count only the samples before
             # outputs not measured at a sample (NaN) have no residual there
-            cost = float(np.nansum(((meas - res.simulated[0]) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
+            cost = float(np.nansum(((meas - sim) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
             if not math.isfinite(cost):
                 continue
             if best is None or cost < best[0]:
