@@ -422,9 +422,10 @@ def rmse_r2(meas: np.ndarray, sim: np.ndarray) -> tuple[float, float]:
     ok = np.isfinite(meas)
     meas, sim = meas[ok], sim[ok]
     err = sim - meas
-    rmse = float(np.sqrt(np.mean(err * err))) if err.size else float("nan")
-    sst = float(np.sum((meas - meas.mean()) ** 2)) if err.size else 0.0
-    r2 = 1.0 - float(np.sum(err * err)) / sst if sst > 0 else float("nan")
+    with np.errstate(over="ignore"):  # a diverged simulation (a start validation drops): inf, said so
+        rmse = float(np.sqrt(np.mean(err * err))) if err.size else float("nan")
+        sst = float(np.sum((meas - meas.mean()) ** 2)) if err.size else 0.0
+        r2 = 1.0 - float(np.sum(err * err)) / sst if sst > 0 else float("nan")
     return rmse, r2
 
 
