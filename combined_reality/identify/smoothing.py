@@ -2,6 +2,8 @@
 acceleration): one kernel builder for every estimate the tool makes from measured motion."""
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 __all__ = ["savgol_kernels", "derivative_kernels", "velocity_estimate", "fill_missing"]
@@ -27,23 +29,13 @@ def velocity_estimate(t: np.ndarray, x: np.ndarray, half: int = 10, edge: int = 
     v[:h], v[n - h:] = v[h], v[n - h - 1]
     if h <= edge:
         return v
-    lead, tail = np.empty(h), np.empty(h)  # shrinking windows, sample i from the start / the end
-    end_kernel = np.zeros(0)
-    for i in range(h):
-        w = max(i, edge)
-        if w == i:
-            k = derivative_kernels(w)[0][::-1]  # convolve's kernel, flipped back for a dot product
-            lead[i], tail[i] = k @ x[:2 * w + 1] / dt, k @ x[n - 2 * w - 1:] / dt
-        else:  # the end quadratic, evaluated i samples in
-            coef = np.linalg.pinv(np.vander(np.arange(-w, w + 1.0), 3, increasing=True))
-            k = coef[1] + 2 * (i - w) * coef[2]
-            end_kernel = end_kernel if i else k
-            lead[i] = k @ x[:2 * w + 1] / dt
-            tail[i] = -k[::-1] @ x[n - 2 * w - 1:] / dt
+    kernels = _end_slope_kernels(h, edge)
+    lead = np.array([k @ x[:len(k)] for k in kernels]) / dt  # shrinking windows, sample i from the start
+    tail = np.array([-k[::-1] @ x[n - len(k):] for k in kernels]) / dt  # ... and from the end
     # the position noise from second differences (robust: motion adds little at these rates)
     d2 = np.diff(x, 2)
     sigma_x = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0)
-    noise = 3.0 * np.linalg.norm(end_kernel) * sigma_x / dt
+    noise = 3.0 * np.linalg.norm(kernels[0]) * sigma_x / dt
     if abs(lead[0] - v[h]) > noise:
         v[:h] = lead
     if abs(tail[0] - v[n - h - 1]) > noise:
@@ -60,10 +52,31 @@ def fill_missing(t: np.ndarray, values: np.ndarray) -> np.ndarray:
     return np.interp(t, t[ok], values[ok])
 
 
+@functools.lru_cache(maxsize=64)
+def _quadratic_fit(half: int) -> np.ndarray:
+    """Least-squares coefficients (rows: c0, c1, c2 of c0 + c1 j + c2 j^2) of samples j = -half..half."""
+    pinv = np.linalg.pinv(np.vander(np.arange(-half, half + 1, dtype=float), 3, increasing=True))
+    pinv.flags.writeable = False  # shared by every caller
+    return pinv
+
+
+@functools.lru_cache(maxsize=16)
+def _end_slope_kernels(half: int, edge: int) -> tuple[np.ndarray, ...]:
+    """For sample i = 0..half-1 of a signal: the kernel on its first len(kernel) samples that
+    gives the slope there per sample (velocity_estimate's shrinking windows)."""
+    out = []
+    for i in range(half):
+        w = max(i, edge)
+        c = _quadratic_fit(w)
+        k = c[1] + 2 * (i - w) * c[2]  # the quadratic's slope i samples in (i == w: centred)
+        k.flags.writeable = False
+        out.append(k)
+    return tuple(out)
+
+
 def savgol_kernels(half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Savitzky-Golay kernels (quadratic, window 2*half+1): smoothing, first and second derivative."""
-    j = np.arange(-half, half + 1, dtype=float)
-    pinv = np.linalg.pinv(np.vander(j, 3, increasing=True))
+    pinv = _quadratic_fit(half)
     return pinv[0][::-1], pinv[1][::-1], 2.0 * pinv[2][::-1]
 
 
