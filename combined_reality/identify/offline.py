@@ -371,9 +371,9 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
                 settled = parameters_settled(history, theta, std_here, cost, mask.sum())
                 if not settled and ok.all() and options.noise_floor and drives_with_measured_inputs(plant):
                     # the raw residual of a drive by measured (noisy) signals stays above the
-                    # sensor noise however good the model: judge it against that drive's floor
-                    # and its Gauss-Newton std understate what it determines (the std it reports
-                    # is the cluster-robust one, often tens of times larger)
+                    # sensor noise however good the model, so it is judged against that drive's
+                    # floor; and its Gauss-Newton std understates what the data leave open (the
+                    # std it reports is the cluster-robust one, here ~30 times larger)
                     sigma, _ = interval_residual_sigma(problem, layouts, cyl, S, p, G, E,
                                                        mask.sum() - Ktot * nx - nth)
                     cov_here = reported_covariance(Nmat, scores, layouts, R * nx, cost, mask.sum(), cluster)
