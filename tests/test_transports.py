@@ -301,3 +301,34 @@ def test_serial_rig_retries_then_gives_up(pty):
     assert events[0].startswith(f"serial link lost ({path}: ") and events[0].endswith("; retrying")
     assert "gave up" in events[-1]
     rig.stop()
+
+
+def test_slcan_lines_are_read_in_whole_chunks_not_byte_by_byte():
+    """python-can 4.6.1 reads SLCAN one byte per system call (a core at 1 kHz); CanRig's bus
+    reads what the port holds: 100 frames and an error BEL, split across reads as they come."""
+    import serial
+
+    from hw.can_rig import ChunkedSlcanBus
+
+    class CountingPort:
+        def __init__(self):
+            self.port, self.reads = serial.serial_for_url("loop://", timeout=0.01), 0
+
+        @property
+        def in_waiting(self):
+            return self.port.in_waiting
+
+        def read(self, n):
+            self.reads += 1
+            return self.port.read(n)
+
+    bus = ChunkedSlcanBus.__new__(ChunkedSlcanBus)  # the read path only: no adapter to open
+    bus.serialPortOrig, bus._buffer = CountingPort(), bytearray()
+    frames = [f"t1{i % 100:02d}2AABB\r" for i in range(100)]
+    bus.serialPortOrig.port.write("".join(frames[:60]).encode() + b"t7" + b"\a")  # a line cut short, then BEL
+    lines = [bus._read(0.1) for _ in range(61)]
+    bus.serialPortOrig.port.write("".join(frames[60:]).encode())
+    lines += [bus._read(0.1) for _ in range(40)]
+    assert lines == frames[:60] + ["t7\a"] + frames[60:]
+    assert bus.serialPortOrig.reads <= 4  # python-can 4.6.1's own read: 1003, a byte per call
+    assert bus._read(0.02) is None  # nothing left: the timeout, not a hang
