@@ -370,7 +370,6 @@ def test_sweep_end_to_end_over_the_serial_link(serial_rig, cyl, tmp_path, monkey
     assert all(s["reason"] for s in res["skipped"])
     slow = [p for p in res["points"] if abs(p["target"]) < 0.1]
     assert len(slow) == 2 and all(p["steady"] for p in slow)
-    assert len(rows) >= 2 and sorted(np.sign(rows[:, 0]))[0] == -1 and sorted(np.sign(rows[:, 0]))[-1] == 1
     assert np.all(np.sign(rows[:, 0]) == np.sign(rows[:, 1]))
     assert np.all(np.abs(rows[:, 0]) > 0.03)
     assert np.allclose(rows[:, 1], true_friction(cyl, rows[:, 0]), rtol=0.03)

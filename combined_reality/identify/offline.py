@@ -58,23 +58,24 @@ SETTLED_SIGMA = 1.5
 
 
 def parameters_settled(history: list[dict], theta: np.ndarray, std: np.ndarray, cost: float, n_res: float,
-                       at_noise: bool = False) -> bool:
+                       at_noise: Callable[[], bool] | None = None) -> bool:
     """Whether more iterations would only polish node states: the last 2 NONMONOTONE iterations
     moved no parameter by a quarter of its standard deviation (every parameter determined), and
-    either the fit is at the sensor noise (residual sigma <= SETTLED_SIGMA, or `at_noise`: found
-    so by a measure that knows the drive's noise floor) or the cost stopped falling (those
-    iterations gained less than one unit of chi-square at the present residual level). A
-    misfit's standard deviations are inflated with its residual, so without the second test a
-    fit still descending far above the noise would look settled."""
+    either the fit is at the sensor noise (residual sigma <= SETTLED_SIGMA, or `at_noise()`: a
+    test that knows the drive's noise floor, asked only once the parameters are steady as it
+    costs simulations) or the cost stopped falling (those iterations gained less than one unit
+    of chi-square at the present residual level). A misfit's standard deviations are inflated
+    with its residual, so without the second test a fit still descending far above the noise
+    would look settled."""
     ok = np.isfinite(std) & (std > 0)
     if len(history) < 2 * NONMONOTONE or not len(theta) or not ok.all() or n_res <= 0:
         return False
     recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [np.asarray(theta).tolist()])
     if not np.all(np.ptp(recent, axis=0) <= 0.25 * std):
         return False
-    at_noise = at_noise or 2 * cost <= SETTLED_SIGMA ** 2 * n_res
     gained = history[-2 * NONMONOTONE]["cost"] - min(cost, history[-1]["cost"])
-    return bool(at_noise or gained <= cost / n_res)
+    return bool(2 * cost <= SETTLED_SIGMA ** 2 * n_res or gained <= cost / n_res
+                or (at_noise is not None and at_noise()))
 
 
 @dataclass(frozen=True)
@@ -374,12 +375,14 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
                     # sensor noise however good the model, so it is judged against that drive's
                     # floor; and its Gauss-Newton std understates what the data leave open (the
                     # std it reports is the cluster-robust one, here ~30 times larger)
-                    sigma, _ = interval_residual_sigma(problem, layouts, cyl, S, p, G, E,
-                                                       mask.sum() - Ktot * nx - nth)
+                    def at_floor() -> bool:
+                        return interval_residual_sigma(problem, layouts, cyl, S, p, G, E,
+                                                       mask.sum() - Ktot * nx - nth)[0] <= SETTLED_SIGMA
+
                     cov_here = reported_covariance(Nmat, scores, layouts, R * nx, cost, mask.sum(), cluster)
                     if cov_here is not None:
                         settled = parameters_settled(history, theta, np.sqrt(np.maximum(np.diag(cov_here), 0.0)),
-                                                     cost, mask.sum(), at_noise=sigma <= SETTLED_SIGMA)
+                                                     cost, mask.sum(), at_noise=at_floor)
                 closed = viol < 1e-2 * max(1, Ktot)
                 noise_floor = noise_floor or bool(ok.all() and ((closed and tiny.all()) or settled))
             status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"

@@ -29,17 +29,16 @@ def velocity_estimate(t: np.ndarray, x: np.ndarray, half: int = 10, edge: int = 
     v[:h], v[n - h:] = v[h], v[n - h - 1]
     if h <= edge:
         return v
-    kernels = _end_slope_kernels(h, edge)
-    lead = np.array([k @ x[:len(k)] for k in kernels]) / dt  # shrinking windows, sample i from the start
-    tail = np.array([-k[::-1] @ x[n - len(k):] for k in kernels]) / dt  # ... and from the end
+    kernels = _end_slope_kernels(h, edge)  # shrinking windows: sample i from the start
+    k0 = kernels[0]
     # the position noise from second differences (robust: motion adds little at these rates)
     d2 = np.diff(x, 2)
     sigma_x = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0)
-    noise = 3.0 * np.linalg.norm(kernels[0]) * sigma_x / dt
-    if abs(lead[0] - v[h]) > noise:
-        v[:h] = lead
-    if abs(tail[0] - v[n - h - 1]) > noise:
-        v[n - h:] = tail[::-1]
+    noise = 3.0 * np.linalg.norm(k0) * sigma_x / dt
+    if abs(k0 @ x[:len(k0)] / dt - v[h]) > noise:
+        v[:h] = [k @ x[:len(k)] / dt for k in kernels]
+    if abs(-k0[::-1] @ x[n - len(k0):] / dt - v[n - h - 1]) > noise:  # mirrored: slope sign flips
+        v[n - h:] = [-k[::-1] @ x[n - len(k):] / dt for k in reversed(kernels)]
     return v
 
 
