@@ -25,6 +25,7 @@ from typing import Callable, Sequence
 
 import casadi as ca
 import numpy as np
+from filelock import FileLock, Timeout
 
 from .integrator import IntegratorOptions, StepBuilder
 from .plant import Plant
@@ -63,31 +64,56 @@ def load_or_build(key_parts: Sequence, build: Callable[[], list[ca.Function]], n
     ser = d / f"cr_{key}.casadi"
     stats = BuildStats()
     t0 = time.perf_counter()
-    if so.exists():
-        try:
-            fns = {n: ca.external(n, str(so)) for n in names}
-            stats.cache_hit, stats.path = True, str(so)
-            return fns, stats
-        except RuntimeError:
-            pass  # stale or foreign library: rebuild below
     failed = d / f"cr_{key}.compile_failed"
     cc = _compiler()
+    found = _cached(so, ser, failed, cc, names)
+    if found is None:
+        # one process builds, the others wait and load its result: the workers of a batch or
+        # a test session that start cold would otherwise each compile the same library
+        d.mkdir(parents=True, exist_ok=True)
+        lock = FileLock(d / f"cr_{key}.lock")
+        try:
+            lock.acquire(blocking=False)
+        except Timeout:
+            if progress:
+                progress("another process is building these model functions; waiting for it")
+            lock.acquire()
+        try:
+            found = _cached(so, ser, failed, cc, names)
+            if found is None:
+                return _build_and_store(key, build, names, d, so, ser, failed, cc, stats, t0, progress)
+        finally:
+            lock.release()
+    stats.cache_hit, stats.path = True, found[1]
+    return found[0], stats
+
+
+def _cached(so: Path, ser: Path, failed: Path, cc: str | None,
+            names: Sequence[str]) -> tuple[dict[str, ca.Function], str] | None:
+    """The functions from the cache and the file they came from, or None."""
+    if so.exists():
+        try:
+            return {n: ca.external(n, str(so)) for n in names}, str(so)
+        except RuntimeError:
+            pass  # stale or foreign library: rebuild
     # the serialised form stands in when there is no compiler, or when this one failed on this
     # structure before (not retried); a compiler installed later still gets its chance
     if ser.exists() and (cc is None or failed.exists()):
         try:
-            fs = ca.Function.load(str(ser))  # a single Function holding all, see below
-            fns = {n: fs.find_function(n) for n in names}
-            stats.cache_hit, stats.path = True, str(ser)
-            return fns, stats
+            fs = ca.Function.load(str(ser))  # a single Function holding all, see _bundle
+            return {n: fs.find_function(n) for n in names}, str(ser)
         except Exception:
             pass
+    return None
 
+
+def _build_and_store(key: str, build: Callable[[], list[ca.Function]], names: Sequence[str], d: Path, so: Path,
+                     ser: Path, failed: Path, cc: str | None, stats: BuildStats, t0: float,
+                     progress: Callable[[str], None] | None) -> tuple[dict[str, ca.Function], BuildStats]:
     if progress:
         progress("building the model functions (first use of this model structure; cached afterwards)")
     funcs = build()
     stats.build_s = time.perf_counter() - t0
-    d.mkdir(parents=True, exist_ok=True)
     if cc is not None:
         t1 = time.perf_counter()
         if progress:

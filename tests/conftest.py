@@ -27,11 +27,20 @@ REALTIME_MODULES = {"test_live_e2e", "test_rig_server", "test_stream", "test_fir
                     "test_transports"}
 
 
+# Modules whose module-scoped fixtures are costly (the reference plant's runs of every effect
+# form, a calibration's training run and its compiled functions) stay on one worker each:
+# spread over two, each worker computed them again (about two minutes of the suite).
+SHARED_FIXTURE_MODULES = {"test_reference_plant", "test_calibrate"}
+
+
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups into the node ids
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        if item.module is not None and item.module.__name__ in REALTIME_MODULES:
+        name = item.module.__name__ if item.module is not None else ""
+        if name in REALTIME_MODULES:
             item.add_marker(pytest.mark.xdist_group("realtime"))
+        elif name in SHARED_FIXTURE_MODULES:
+            item.add_marker(pytest.mark.xdist_group(name))
 
 
 def pytest_collection_finish(session):

@@ -111,3 +111,38 @@ def test_numpy_call_gives_the_dm_call_numbers_and_refuses_wrong_shapes():
         call(X[:, :7], P)
     with pytest.raises(TypeError, match="takes 2 inputs, got 1"):
         call(X)
+
+
+def test_processes_that_start_cold_together_build_once(tmp_path, monkeypatch):
+    """The workers of a batch start at once on an empty cache: one builds and compiles, the
+    others wait for it and load its library (each compiling it too cost the suite minutes)."""
+    import threading
+    import time
+
+    import casadi as ca
+
+    from sim.compiled import load_or_build
+
+    monkeypatch.setenv("COMBINED_REALITY_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "none")  # the serialised form: the test is about who builds, not about gcc
+    builds, said, got = [], [], []
+
+    def build():
+        builds.append(threading.get_ident())
+        time.sleep(0.5)  # long enough for the other one to arrive while this one builds
+        x = ca.SX.sym("x")
+        return [ca.Function("twice", [x], [2 * x])]
+
+    def worker():
+        fns, stats = load_or_build(("lock test",), build, ["twice"], progress=said.append)
+        got.append((float(fns["twice"](3.0)), stats.cache_hit))
+
+    threads = [threading.Thread(target=worker) for _ in range(2)]
+    for th in threads:
+        th.start()
+        time.sleep(0.1)
+    for th in threads:
+        th.join(timeout=30)
+    assert len(builds) == 1
+    assert sorted(got) == [(6.0, False), (6.0, True)]
+    assert any("another process is building" in s for s in said)

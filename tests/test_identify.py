@@ -101,12 +101,13 @@ def test_result_json_follows_formats(cyl_a, run_a):
 @pytest.mark.slow
 @pytest.mark.parametrize("which", ["cyl_a", "cyl_50"])
 def test_reported_std_is_honest_over_20_seeds(which, request):
-    """The true value lies within 3 reported standard deviations in >= 90 % of 20 seeds."""
+    """The true value lies within 3 reported standard deviations in >= 90 % of 20 seeds (10 s
+    runs: the std scales with the run, the coverage must not)."""
     cyl = request.getfixturevalue(which)
     inside = {"Fc": 0, "Fv": 0, "kp": 0}
     zs = []
     for seed in range(100, 120):
-        run = simulate_run(cyl, 20.0, seed=seed)
+        run = simulate_run(cyl, 10.0, seed=seed)
         res = identify(_start(cyl), [run], IdentifyOptions())
         assert res.solver["status"] == "converged"
         z = {n: (res.params[n].value - cyl.value(n)) / res.params[n].std for n in inside}
