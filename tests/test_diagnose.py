@@ -18,7 +18,7 @@ CANDIDATES = "stiction,valve_delay,leakage"
 def test_diagnose_names_the_withheld_effect_or_none(cyl_a, tmp_path, capsys, spec, verdict):
     effects = [parse_effect_spec(spec)] if spec else []
     for seed, name in ((1, "train.csv"), (2, "valid.csv")):
-        write_run(tmp_path / name, simulate_run(cyl_a, 20.0, seed=seed, effects=effects), comments=[cylinder_tag(cyl_a)])
+        write_run(tmp_path / name, simulate_run(cyl_a, 12.0, seed=seed, effects=effects), comments=[cylinder_tag(cyl_a)])
     out = tmp_path / "d.json"
     report = tmp_path / "report.html"
     assert main(["diagnose", str(tmp_path / "train.csv"), "--validate", str(tmp_path / "valid.csv"),
