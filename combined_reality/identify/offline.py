@@ -370,29 +370,28 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
                 # left at an end stop's stiff contact (where the piston leaves the stop is all
                 # but discontinuous in the node state) is one the data cannot resolve
                 settled = parameters_settled(history, theta, std_here, cost, mask.sum())
-                if not settled and ok.all() and options.noise_floor and drives_with_measured_inputs(plant):
-                    # the raw residual of a drive by measured (noisy) signals stays above the
-                    # sensor noise however good the model, so it is judged against that drive's
-                    # floor; and its Gauss-Newton std understates what the data leave open (the
-                    # std it reports is the cluster-robust one, here ~30 times larger)
+                # the raw residual of a drive by measured (noisy) signals stays above the sensor
+                # noise however good the model, so it is judged against that drive's floor; and
+                # its Gauss-Newton std understates what the data leave open (the std it reports
+                # is the cluster-robust one, here ~30 times larger)
+                by_floor = (not settled and ok.all() and options.noise_floor
+                            and drives_with_measured_inputs(plant))
+                at_noise = ok.all() and 2 * cost <= SETTLED_SIGMA ** 2 * mask.sum()
+                cov_rep = (reported_covariance(Nmat, scores, layouts, R * nx, cost, mask.sum(), cluster)
+                           if by_floor or at_noise else None)
+                std_rep = None if cov_rep is None else np.sqrt(np.maximum(np.diag(cov_rep), 0.0))
+                if by_floor and std_rep is not None:
                     def at_floor() -> bool:
                         return interval_residual_sigma(problem, layouts, cyl, S, p, G, E,
                                                        mask.sum() - Ktot * nx - nth)[0] <= SETTLED_SIGMA
 
-                    cov_here = reported_covariance(Nmat, scores, layouts, R * nx, cost, mask.sum(), cluster)
-                    if cov_here is not None:
-                        settled = parameters_settled(history, theta, np.sqrt(np.maximum(np.diag(cov_here), 0.0)),
-                                                     cost, mask.sum(), at_noise=at_floor)
+                    settled = parameters_settled(history, theta, std_rep, cost, mask.sum(), at_noise=at_floor)
                 closed = viol < 1e-2 * max(1, Ktot)
                 # nor, at the sensor noise, when that step would move no parameter by half the std
                 # the fit reports: the data cannot tell the two apart (a lossy live recording, 303
-                # pieces, failed so at 1.003 x noise with its defects not quite closed)
-                at_noise_step = False
-                if ok.all() and 2 * cost <= SETTLED_SIGMA ** 2 * mask.sum():
-                    cov_rep = reported_covariance(Nmat, scores, layouts, R * nx, cost, mask.sum(), cluster)
-                    if cov_rep is not None:
-                        std_rep = np.sqrt(np.maximum(np.diag(cov_rep), 0.0))
-                        at_noise_step = bool(np.all(np.abs(first_step[R * nx:]) <= 0.5 * std_rep))
+                # pieces, failed so at 1.01 x noise with its defects not quite closed)
+                at_noise_step = bool(at_noise and std_rep is not None
+                                     and np.all(np.abs(first_step[R * nx:]) <= 0.5 * std_rep))
                 noise_floor = noise_floor or bool(ok.all() and ((closed and tiny.all()) or settled or at_noise_step))
             status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
             break
