@@ -12,7 +12,8 @@ import pytest
 
 from combined_reality import cli
 from combined_reality.friction.procedures import (TABLE_COLUMNS, BreakawayOptions, ProcedureError, SafetyOptions,
-                                         SweepOptions, breakaway_test, speed_sweep, target_speeds, write_points)
+                                         SweepOptions, breakaway_test, speed_sweep, steady_speed, target_speeds,
+                                         write_points)
 from combined_reality.files import read_run
 from conftest import assert_refused
 from hw.rig import Sample
@@ -376,3 +377,22 @@ def test_sweep_end_to_end_over_the_serial_link(serial_rig, cyl, tmp_path, monkey
     assert np.all(np.sign(rows[:, 0]) == np.sign(rows[:, 1]))
     assert np.all(np.abs(rows[:, 0]) > 0.03)
     assert np.allclose(rows[:, 1], true_friction(cyl, rows[:, 0]), rtol=0.03)
+
+
+def test_a_stroke_that_nearly_stops_is_not_steady_even_within_the_spread():
+    """Beside two busy processes a -0.05 m/s stroke at 23 % speed spread (within the 25 % allowed)
+    dipped to 3 % of its mean speed once, and its friction read 1.6 % low: a near stop is
+    stick-slip. A ringing stroke of the same spread that never comes near rest stays steady."""
+    opts = SweepOptions()
+    t = np.arange(1000) * 1e-3
+    ringing = -0.05 * (1 + 0.3 * np.sin(2 * np.pi * 20 * t))  # spread 21 %, down to 70 % of the mean
+    near_stop = -0.05 * (1 + 0.1 * np.sin(2 * np.pi * 20 * t))
+    near_stop[500:520] = -0.05 * np.linspace(1.0, 0.03, 20)  # one dip to 3 % of the mean speed
+    assert np.std(near_stop) < 0.25 * 0.05 and np.std(ringing) < 0.25 * 0.05
+    assert steady_speed(ringing, -1, opts)
+    assert not steady_speed(near_stop, -1, opts)
+    assert steady_speed(near_stop, -1, SweepOptions(min_speed_ratio=0.0))  # the spread alone lets it pass
+    assert not steady_speed(-0.05 * (1 + 0.5 * np.sin(2 * np.pi * 20 * t)), -1, opts)  # spread 35 %
+    assert not steady_speed(-ringing, -1, opts)  # the wrong way
+    with pytest.raises(ValueError, match="min_speed_ratio"):
+        SweepOptions(min_speed_ratio=1.0)

@@ -7,10 +7,10 @@ from .dynamic import (DYNAMIC_SPECS, ModelComparison, check_model, compare_frict
 from .map import (FIT_SPECS, FitSpec, FrictionMap, FrictionMapError, MapPoint, PointsFormatError, SegmentOptions,
                   TooFewPointsError, build_map, fit_model, is_points_table, plot_map, points_from_run, read_points)
 from .procedures import (BreakawayOptions, ProcedureError, SafetyOptions, SweepOptions, breakaway_test, speed_sweep,
-                         target_speeds, write_points)
+                         steady_speed, target_speeds, write_points)
 
 __all__ = ["DYNAMIC_SPECS", "ModelComparison", "check_model", "compare_friction_models", "identify_friction_model",
            "identify_model", "model_parameters", "FIT_SPECS", "FitSpec", "FrictionMap", "FrictionMapError", "MapPoint",
            "PointsFormatError", "SegmentOptions", "TooFewPointsError", "build_map", "fit_model", "is_points_table",
            "plot_map", "points_from_run", "read_points", "BreakawayOptions", "ProcedureError", "SafetyOptions",
-           "SweepOptions", "breakaway_test", "speed_sweep", "target_speeds", "write_points"]
+           "SweepOptions", "breakaway_test", "speed_sweep", "steady_speed", "target_speeds", "write_points"]

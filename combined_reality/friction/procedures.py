@@ -124,6 +124,10 @@ class SweepOptions:
     max_stroke_s: float = 5.0  # slow strokes only travel what this takes at their speed
     min_samples: int = 50  # a shorter steady part gives no point
     max_speed_spread: float = 0.25  # a point whose speed varies more (std / mean) is not steady
+    # nor one whose speed drops below this share of its mean anywhere: the piston all but stopped
+    # (stick-slip), where friction is static, not the sliding map (a stroke at 23 % spread that
+    # nearly stopped read 1.6 % low beside two busy processes)
+    min_speed_ratio: float = 0.25
     rest_s: float = 0.3  # valve centred between strokes
     bandwidth_hz: float = 5.0  # outer velocity loop (PI, critically damped on the moving mass)
     force_bandwidth_hz: float = 40.0  # inner net-force loop: above the air-spring resonance, to damp it
@@ -144,6 +148,8 @@ class SweepOptions:
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive number, not {v}")
+        if not 0 <= self.min_speed_ratio < 1:
+            raise ValueError(f"min_speed_ratio must lie in [0, 1), not {self.min_speed_ratio}")
 
 
 # ------------------------------------------------------------------ results
@@ -219,7 +225,7 @@ class SweepPoint:
     u_mean: float  # mean command over the steady part
     dp: float  # Pa, mean |p1 - p2| over it (seal friction grows with it: kp)
     pc: float  # Pa gauge, mean counter pressure (p2 - pa extending, p1 - pa retracting)
-    steady: bool  # speed spread within max_speed_spread; else stick-slip or ringing: no static-map point
+    steady: bool  # speed spread within max_speed_spread and never near rest; else stick-slip or ringing
 
 
 @dataclass(frozen=True, eq=False)
@@ -789,6 +795,14 @@ def _standard_error(y: np.ndarray, block: int) -> float:
     return max(white, float(means.std(ddof=1) / math.sqrt(nb)))
 
 
+def steady_speed(v: np.ndarray, direction: int, opts: SweepOptions) -> bool:
+    """Whether a stroke's velocity samples slid steadily: spread within max_speed_spread of the mean
+    speed, and never below min_speed_ratio of it (a near stop is stick-slip)."""
+    speed = abs(float(np.mean(v)))
+    return bool(speed > 0 and np.std(v) <= opts.max_speed_spread * speed
+                and np.min(direction * v) >= opts.min_speed_ratio * speed)
+
+
 def _sweep_point(d: _Driver, direction: int, v_target: float, seg: _Stroke,
                  opts: SweepOptions) -> tuple[SweepPoint | None, str]:
     """The stroke's point: friction from Newton's law with the measured pressures, over its steady part."""
@@ -817,4 +831,4 @@ def _sweep_point(d: _Driver, direction: int, v_target: float, seg: _Stroke,
                       x_start=float(run.x[sel[0]]), x_end=float(run.x[sel[-1]]), u_mean=float(run.u[sel].mean()),
                       dp=float(np.abs(run.p1[sel] - run.p2[sel]).mean()),
                       pc=float(((run.p2[sel] if direction > 0 else run.p1[sel]) - d.cyl.supply.atmosphere).mean()),
-                      steady=bool(v.std() <= opts.max_speed_spread * abs(v_mean))), ""
+                      steady=steady_speed(v, direction, opts)), ""

@@ -312,7 +312,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         for _attempt in range(8):
             if _attempt and out_of_time():
                 break  # a struggling line search is where the time goes
-            step = solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam)
+            step = solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam, np.tile(sscale, R))
             if first_step is None:
                 first_step = step  # the least damped: what the model still expects to gain
             if step is None:

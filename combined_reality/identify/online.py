@@ -495,7 +495,7 @@ class MovingHorizonEstimator:
             # a bounded line search: an update that cannot improve keeps the previous
             # estimate and tries again with the next data, instead of stalling the stream
             for lam in (lam, max(1e-2, 10 * lam)):
-                step = solve_bounded(Nm, g, theta, lower, upper, R * nx, lam)
+                step = solve_bounded(Nm, g, theta, lower, upper, R * nx, lam, np.tile(self.sscale, R))
                 if step is None:
                     continue
                 ds0, dth = step[:R * nx].reshape(R, nx), step[R * nx:]

@@ -242,9 +242,23 @@ def scaled_inverse(N: np.ndarray) -> np.ndarray:
     return np.linalg.inv(N / np.outer(scale, scale)) / np.outer(scale, scale)
 
 
-def solve_bounded(N: np.ndarray, g: np.ndarray, theta, lower, upper, n_state: int, lam: float):
-    """min 0.5 d'Nd + g'd with theta + d_theta kept in bounds (active set on the parameters)."""
+# weight of the proximal term on the free node states, per squared defect scale: next to the
+# data's curvature of an observable state (the samples of a whole interval) it is nothing, but it
+# bounds the step of a state the data cannot see (the velocity of a piston that sticks at the
+# start of a gap-free piece, which the Gauss-Newton step of a lossy recording moved by 10 m/s)
+NODE_PROXIMAL = 1e-2
+
+
+def solve_bounded(N: np.ndarray, g: np.ndarray, theta, lower, upper, n_state: int, lam: float,
+                  state_scale: np.ndarray | None = None):
+    """min 0.5 d'Nd + g'd with theta + d_theta kept in bounds (active set on the parameters);
+    with `state_scale` (the defect scale of each of the n_state node states) a proximal term
+    NODE_PROXIMAL * |ds / state_scale|^2 / 2 keeps the steps of unobservable node states bounded."""
     n = len(g)
+    if state_scale is not None and n_state:
+        N = N.copy()
+        idx = np.arange(n_state)
+        N[idx, idx] += NODE_PROXIMAL / np.asarray(state_scale, float) ** 2
     fixed = np.zeros(n, bool)
     d = np.zeros(n)
     for _ in range(len(theta) + 1):
