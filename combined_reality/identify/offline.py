@@ -312,7 +312,12 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         for _attempt in range(8):
             if _attempt and out_of_time():
                 break  # a struggling line search is where the time goes
-            step = solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam, np.tile(sscale, R))
+            # once a step has failed, the damping bounds the free node states too: a state the data
+            # cannot see (the velocity of a piston stuck where a piece starts) may have taken it
+            # all. Not before: the Gauss-Newton path of a fit that works stays as it was (a
+            # stiction fit went to another local minimum, 1.09 x noise, when always damped so)
+            step = solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam,
+                                 np.tile(sscale, R) if failed_step is not None else None)
             if first_step is None:
                 first_step = step  # the least damped: what the model still expects to gain
             if step is None:

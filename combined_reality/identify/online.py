@@ -494,8 +494,10 @@ class MovingHorizonEstimator:
             accepted = converged = False
             # a bounded line search: an update that cannot improve keeps the previous
             # estimate and tries again with the next data, instead of stalling the stream
-            for lam in (lam, max(1e-2, 10 * lam)):
-                step = solve_bounded(Nm, g, theta, lower, upper, R * nx, lam, np.tile(self.sscale, R))
+            for attempt, lam in enumerate((lam, max(1e-2, 10 * lam))):
+                # the second attempt also bounds the free node states (as the offline fit does)
+                step = solve_bounded(Nm, g, theta, lower, upper, R * nx, lam,
+                                     np.tile(self.sscale, R) if attempt else None)
                 if step is None:
                     continue
                 ds0, dth = step[:R * nx].reshape(R, nx), step[R * nx:]

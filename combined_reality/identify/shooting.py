@@ -242,10 +242,11 @@ def scaled_inverse(N: np.ndarray) -> np.ndarray:
     return np.linalg.inv(N / np.outer(scale, scale)) / np.outer(scale, scale)
 
 
-# weight of the proximal term on the free node states, per squared defect scale: next to the
-# data's curvature of an observable state (the samples of a whole interval) it is nothing, but it
-# bounds the step of a state the data cannot see (the velocity of a piston that sticks at the
-# start of a gap-free piece, which the Gauss-Newton step of a lossy recording moved by 10 m/s)
+# weight of the proximal term on the free node states, per squared defect scale, that the fits
+# add once a step has failed: next to the data's curvature of an observable state (the samples
+# of a whole interval) it is nothing, but it bounds the step of a state the data cannot see (the
+# velocity of a piston that sticks at the start of a gap-free piece, which the Gauss-Newton step
+# of a lossy recording moved by 10 m/s)
 NODE_PROXIMAL = 1e-2
 
 
