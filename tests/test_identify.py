@@ -322,7 +322,8 @@ def test_a_piece_that_starts_while_the_piston_sticks_takes_bounded_steps(cyl_a, 
     processes beside it): a gap-free piece starts at t = 8.761 s with the piston stuck, where
     its velocity is invisible to the data. The Gauss-Newton step moved that node's velocity by
     10 m/s and no step length helped: the whole 30 s recording ended line_search_failed at 9.16 x
-    noise from the equation-error start below. A proximal term on the node states bounds it."""
+    noise from the equation-error start below. The damped retry after a failed step now adds a
+    proximal term on the free node states, which bounds it."""
     from pathlib import Path
 
     from combined_reality.files import read_run
