@@ -255,6 +255,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     for l in layouts:
         has_next[l.node0 + l.K - 1] = False
     nxt = np.flatnonzero(has_next)
+    node_scale = np.tile(sscale, len(layouts))  # the free node states' defect scales (proximal retry)
 
     threads = max(1, min(options.threads, Ktot))
     problem = ShootingProblem(sf, Ktot, threads, W, H, Y, mask, wts, sscale, nxt)
@@ -317,7 +318,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
             # all. Not before: the Gauss-Newton path of a fit that works stays as it was (a
             # stiction fit went to another local minimum, 1.09 x noise, when always damped so)
             step = solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam,
-                                 np.tile(sscale, R) if failed_step is not None else None)
+                                 node_scale if failed_step is not None else None)
             if first_step is None:
                 first_step = step  # the least damped: what the model still expects to gain
             if step is None:

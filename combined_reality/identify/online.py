@@ -472,6 +472,7 @@ class MovingHorizonEstimator:
             n_iter = max(n_iter, min(3, self.options.first_iterations))
         nu = nth + G
         th_sl = slice(R * nx, R * nx + nu)
+        node_scale = np.tile(self.sscale, R)  # the free node states' defect scales (proximal retry)
         for it in range(1, n_iter + 1):
             # Jacobians are taken fresh every iteration: reusing those of the overlap (taken
             # before the last step) fails at reversals, where stick and slip switch
@@ -497,7 +498,7 @@ class MovingHorizonEstimator:
             for attempt, lam in enumerate((lam, max(1e-2, 10 * lam))):
                 # the second attempt also bounds the free node states (as the offline fit does)
                 step = solve_bounded(Nm, g, theta, lower, upper, R * nx, lam,
-                                     np.tile(self.sscale, R) if attempt else None)
+                                     node_scale if attempt else None)
                 if step is None:
                     continue
                 ds0, dth = step[:R * nx].reshape(R, nx), step[R * nx:]

@@ -301,7 +301,7 @@ class LockstepSimulator:
     def _run(self, s0: np.ndarray, u: np.ndarray, h: np.ndarray) -> np.ndarray:
         """States after each step of holding u[i] for h[i], from s0: (nx, len(u))."""
         B, out = self.B, np.empty((self.plant.nx, len(u)))
-        P = np.tile(self.p[:, None], (1, B))
+        P = self.p[:, None]  # a column: NumpyCall gives it to every step of the block
         for a in range(0, len(u), B):
             m = min(B, len(u) - a)
             U, H = np.zeros(B), np.zeros(B)  # zero-length steps pad the block, leaving the state alone
@@ -368,7 +368,7 @@ class LockstepSimulator:
         S[:, :n] = states
         Uf = np.zeros(self.B)
         Uf[:n] = u
-        F = self._friction(S, Uf[None], np.tile(self.p[:, None], (1, self.B)))[0].ravel()[:n]
+        F = self._friction(S, Uf[None], self.p[:, None])[0].ravel()[:n]
         return np.vstack([states[self._out], F[None]])
 
 
