@@ -544,6 +544,7 @@ def seed_papers_rows(tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("seed_papers")  # one worker computes the fixture, not two
 def test_seed_papers_batch(seed_papers_rows):
     summary, out, rows = seed_papers_rows
     assert (summary.total, summary.ok, summary.failed) == (10, 10, 0), summary.to_json()["failures"]
@@ -553,6 +554,7 @@ def test_seed_papers_batch(seed_papers_rows):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("seed_papers")  # one worker computes the fixture, not two
 def test_seed004_per_direction_friction_recovered(seed_papers_rows):
     rows = [r for r in seed_papers_rows[2] if r["name"].startswith("seed004_")]
     assert len(rows) == 8
@@ -561,6 +563,7 @@ def test_seed004_per_direction_friction_recovered(seed_papers_rows):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("seed_papers")  # one worker computes the fixture, not two
 def test_seed002_nominal_friction_recovered(seed_papers_rows):
     rows = [r for r in seed_papers_rows[2] if r["name"].startswith("seed002_")]
     assert len(rows) == 2

@@ -3,10 +3,11 @@ plant on the nominal physics, its integration is converged, every effect form va
 neutral value and is visible at its strong one, air is conserved in closed chambers, the end
 stops hold, and the truth travels with the run.
 
-Most checks share the simulations of the default cylinder in closed loop (seed 5, which moves
-fast enough for the supply effects to matter): the nominal plant alone (2 s) and every effect
-form at its neutral value (2 s) and at its strong value (2 s, or 1 s for the friction forms
-that need a finer step and show plainly within a second), with the automatic step.
+Most checks share 1 s simulations of the default cylinder in closed loop (seed 5, which moves
+fast enough for the supply effects to matter): the nominal plant alone and every effect form at
+its neutral and at its strong value, with the automatic step. Every strong form changes the
+position by at least twice the test's threshold within that second (the weakest, supply_droop:line
+and heat_transfer:wall, by about 100 um).
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from sim.cylinder import load_cylinder
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CYLINDER = ROOT / "combined_reality" / "data" / "cyl_a_32x100.toml"
-SEED, DURATION = 5, 2.0
+SEED, DURATION = 5, 1.0
 
 
 def _load_module():
@@ -59,14 +60,11 @@ def nominal(cyl):
 def effect_runs(cyl, nominal):
     """Every form at its neutral and at its strong value: {(form, level): Result}. The cases
     that share the nominal step run as one batch that holds every form (so neutral values are
-    checked among all the others); a run's first second does not depend on its length."""
+    checked among all the others)."""
     cases, keys = [], []
     for cls in FORMS:
         for level, eff in (("neutral", cls.neutral()), ("strong", cls.typical(cyl, 1.0))):
-            case = rp.Case(cyl, DURATION, SEED, noise=False, effects=(eff,))
-            if rp.substeps_for(case) != nominal.substeps:
-                case = rp.Case(cyl, 1.0, SEED, noise=False, effects=(eff,))
-            cases.append(case)
+            cases.append(rp.Case(cyl, DURATION, SEED, noise=False, effects=(eff,)))
             keys.append((cls, level))
     return dict(zip(keys, rp.simulate_detailed(cases)))
 
@@ -203,12 +201,8 @@ def test_every_form_vanishes_at_its_neutral_value(cls, nominal, effect_runs):
 @pytest.mark.parametrize("cls", FORMS, ids=lambda c: f"{c.WORD}:{c.FORM}")
 def test_every_form_is_visible_at_its_strong_value(cls, cyl, nominal, effect_runs):
     run = effect_runs[(cls, "strong")].run
-    if len(run.x) < len(nominal.run.x):  # the shorter run's excitation is the longer one's beginning
-        from combined_reality.live.programs import PositionProgram
-
-        short = PositionProgram(cyl, run.t[-1], seed=SEED).segments
-        assert short[:-1] == PositionProgram(cyl, DURATION, seed=SEED).segments[:len(short) - 1]
-    dx = _rms(run.x, nominal.run.x[:len(run.x)])
+    assert len(run.x) == len(nominal.run.x)
+    dx = _rms(run.x, nominal.run.x)
     print(f"\n{cls.WORD}:{cls.FORM} strong {cls.typical(cyl, 1.0).values()}: RMS x change {dx * 1e6:.1f} um")
     assert dx > 10 * cyl.sensors.position_noise
 
