@@ -274,7 +274,7 @@ def main() -> int:
         label = c["effect"] + (f":{c['form']}" if c.get("form") else "")
         print(f"[{i:3d}/{len(cases)}] {mark:4s} {c.get('plant', 'project')[:3]} {c['cylinder']:22s} {label:26s} "
               f"-> {r['verdict']:19s} "
-              f"true shrink {r['true_shrink'] if r['true_shrink'] is not None else float('nan'):6.1%}  "
+              f"true shrink {'-' if r['true_shrink'] is None else format(r['true_shrink'], '.1%'):>6s}  "
               f"{r['t_diagnose']:5.1f} s", flush=True)
     print(f"\n{len(cases)} cases in {time.perf_counter() - t_all:.0f} s")
     for pl in plants:

@@ -271,7 +271,10 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         return 0.5 * float(rp @ rp)
 
     def merit(E, D, mu, th):
-        return 0.5 * float(np.sum(E * E)) + prior_cost(th) + mu * float(np.sum(np.abs(D)))
+        # a trial step so far off that its squared residuals overflow has an infinite merit,
+        # which the line search rejects: no warning for the user
+        with np.errstate(over="ignore"):
+            return 0.5 * float(np.sum(E * E)) + prior_cost(th) + mu * float(np.sum(np.abs(D)))
 
     def with_prior(Nmat: np.ndarray, g: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if not len(tp):
