@@ -455,7 +455,8 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     corr = None
     if cov is not None and nth:
         d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
-        corr = cov / np.outer(d, d)
+        with np.errstate(over="ignore", invalid="ignore"):  # an undetermined parameter: no finite correlation
+            corr = cov / np.outer(d, d)
     params = {n: Estimate(n, float(v), float(s), parameter_unit(plant, n), float(v0), bool(b))
               for n, v, s, v0, b in zip(estimate, theta, std, theta_init, at_bound)}
     # the fit: simulate every run from its identified initial state in one piece

@@ -336,8 +336,12 @@ def reduce_nodes(lin, E, Draw, has_next, nx, nth):
 def condense(lin, E, Draw, layouts, has_next, nx, nth):
     """The reduced normal equations (N, g) in (ds0 per run, dtheta), with P, Q, q of `reduce_nodes`
     and the per-interval gradient contributions."""
-    P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, Draw, has_next, nx, nth)
-    N, g, scores = normal_equations(Js, Jt, r0, layouts, nx, nth)
+    # the transition products of a long piece can overflow where a trial model is unstable; the
+    # normal equations are then not finite, every step from them fails and the fit says so, so
+    # numpy's warnings would only alarm the user
+    with np.errstate(over="ignore", invalid="ignore"):
+        P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, Draw, has_next, nx, nth)
+        N, g, scores = normal_equations(Js, Jt, r0, layouts, nx, nth)
     return N, g, P, Q, q, scores
 
 
