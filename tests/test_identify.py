@@ -342,3 +342,26 @@ def test_a_piece_that_starts_while_the_piston_sticks_takes_bounded_steps(cyl_a, 
     assert res.solver["status"] == "converged", res.solver
     assert res.solver["residual_sigma"] < 1.05
     assert _rel(res, cyl_a, "Fc") < 0.005 and _rel(res, cyl_a, "Fv") < 0.02
+
+
+def test_an_overflowing_linearisation_gives_no_step_and_no_warning():
+    """A piece whose linearised transitions grow without bound (an unstable trial model): the
+    condensed normal equations are not finite, no step comes of them, and numpy stays silent."""
+    import warnings
+
+    from combined_reality.identify.shooting import RunLayout, condense, solve_bounded
+
+    K, M, ny, nx, nth = 400, 3, 1, 2, 1
+    G = np.ones((K, M, ny, nx))
+    Hth = np.ones((K, M, ny, nth))
+    A = np.tile(1e3 * np.eye(nx), (K, 1, 1))  # grows by 1e3 per interval: past float range after ~100
+    B = np.ones((K, nx, nth))
+    E = np.ones((K, M, ny))
+    has_next = np.ones(K, bool)
+    has_next[-1] = False
+    layout = RunLayout(None, K, 0, None, None, None, None, None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        N, g, *_ = condense((G, Hth, A, B), E, np.zeros((nx, K - 1)), [layout], has_next, nx, nth)
+        assert not np.all(np.isfinite(N))
+        assert solve_bounded(N, g, np.zeros(nth), np.full(nth, -1.0), np.full(nth, 1.0), nx, 0.0) is None

@@ -7,8 +7,7 @@ Most checks share 0.5 s simulations of the default cylinder in closed loop (seed
 fast enough for the supply effects to matter): the nominal plant alone and every effect form at
 its neutral and at its strong value, with the automatic step. Every strong form changes the
 position by at least twice the test's threshold within that half second (the weakest,
-supply_droop:line, by 108 um; in 2 s runs, which cost four times as much, the weakest forms
-show less, about 80 um).
+supply_droop:line, by 108 um; in 2 s runs, which cost four times as much, it shows less: 81 um).
 """
 from __future__ import annotations
 
@@ -58,7 +57,7 @@ def nominal(cyl):
 
 
 @pytest.fixture(scope="module")
-def effect_runs(cyl, nominal):
+def effect_runs(cyl):
     """Every form at its neutral and at its strong value: {(form, level): Result}. The cases
     that share the nominal step run as one batch that holds every form (so neutral values are
     checked among all the others)."""

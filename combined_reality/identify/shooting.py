@@ -304,6 +304,10 @@ def linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
     return G, Hth, A, B
 
 
+# The transition products of a long piece overflow where a linearised model is unstable: the
+# normal equations are then not finite, solve_bounded returns no step and the fit ends saying
+# so; numpy's overflow warnings would only alarm the user.
+@np.errstate(over="ignore", invalid="ignore")
 def reduce_nodes(lin, E, Draw, has_next, nx, nth):
     """Eliminate the node increments: ds_k = P_k ds0 + Q_k dtheta + q_k within each run.
 
@@ -336,15 +340,12 @@ def reduce_nodes(lin, E, Draw, has_next, nx, nth):
 def condense(lin, E, Draw, layouts, has_next, nx, nth):
     """The reduced normal equations (N, g) in (ds0 per run, dtheta), with P, Q, q of `reduce_nodes`
     and the per-interval gradient contributions."""
-    # the transition products of a long piece can overflow where a trial model is unstable; the
-    # normal equations are then not finite, every step from them fails and the fit says so, so
-    # numpy's warnings would only alarm the user
-    with np.errstate(over="ignore", invalid="ignore"):
-        P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, Draw, has_next, nx, nth)
-        N, g, scores = normal_equations(Js, Jt, r0, layouts, nx, nth)
+    P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, Draw, has_next, nx, nth)
+    N, g, scores = normal_equations(Js, Jt, r0, layouts, nx, nth)
     return N, g, P, Q, q, scores
 
 
+@np.errstate(over="ignore", invalid="ignore")  # see reduce_nodes
 def normal_equations(Js, Jt, r0, layouts, nx, nth):
     """(N, g, scores) of the reduced problem in (ds0 of every run or gap-free piece, dtheta):
     `layouts` give each piece's first interval (node0) and its number of intervals (K);
