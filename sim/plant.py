@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import casadi as ca
+import numpy as np
 
 from .cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, PARAMETERS, VALVE_DIRECTIONS, Cylinder
 from .extension import Effect, Signals, check_combination
@@ -72,6 +73,16 @@ class Plant:
         for e in self.effects:
             vals.extend(e.values())
         return vals
+
+    def possible_states(self, cyl: Cylinder) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper): per state, a range no state of this cylinder can leave, with a wide
+        margin (pressures between minus and ten times the supply, the piston within a stroke of
+        its travel, slower than 100 m/s; effect states unbounded). A solver's trial point outside
+        it is one whose simulation diverges, and rejected without one."""
+        ps, L = cyl.value("supply_pressure"), cyl.value("stroke")
+        wide = {"p1": (-ps, 10 * ps), "p2": (-ps, 10 * ps), "x": (-L, 2 * L), "v": (-100.0, 100.0)}
+        lo, hi = zip(*(wide.get(n, (-np.inf, np.inf)) for n in self.state_names))
+        return np.array(lo), np.array(hi)
 
     def initial_state(self, cyl: Cylinder, x0: float, p1: float, p2: float, v0: float = 0.0) -> list[float]:
         """The state at a measured (x, v, p1, p2): pressures as the sensors read them."""

@@ -2,6 +2,7 @@
 identifier (fast): a weak winner is `unexplained`, combining effects give the pair, a
 nested candidate never ends worse than the nominal model, and no fit has a wall-clock limit."""
 import math
+import time
 
 import numpy as np
 import pytest
@@ -85,6 +86,38 @@ def test_a_dominant_candidate_keeps_the_further_starts_to_itself():
     assert len(starts) == len(candidate_starts("valve_deadzone")) - 1
     # below the dominant share the others keep theirs
     assert {n for n, _ in _starts_of(cands, base=2000.0, dominant=0.9999)} > {"valve_deadzone", "leakage"}
+
+
+def _slow_first_fit(args) -> Candidate:
+    """A stub fit: the first job is the slowest, so the others finish before it."""
+    effect, delay = args
+    time.sleep(delay)
+    return Candidate(effect, status="converged")
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_further_starts_end_at_the_first_in_job_order_that_closes_the_gap(monkeypatch, workers):
+    """Which fits count never depends on which finished first: the results end at the first job,
+    in job order, that closes the gap, with one worker or two."""
+    monkeypatch.setattr(analysis, "fit_candidate", _slow_first_fit)
+    jobs = [("leakage", 0.5), ("valve_deadzone", 0.0), ("mass", 0.0), ("stiction", 0.0)]
+    closes = {"valve_deadzone", "stiction"}
+    got = analysis._run_jobs(jobs, workers, lambda c: c.effect in closes)
+    assert [c.effect for c in got] == ["leakage", "valve_deadzone"]
+    assert [c.effect for c in analysis._run_jobs(jobs, workers)] == [e for e, _ in jobs]
+    assert [c.effect for c in analysis._run_jobs(jobs, workers, lambda c: False)] == [e for e, _ in jobs]
+
+
+def test_one_start_closes_the_gap_when_it_is_significant_and_near_the_noise():
+    base = _val(10.0)
+    near, far = _cand("leakage", 1.1), _cand("leakage", 3.0)
+    for c in (near, far):  # the same measurements: what the residual lost, the simulation gained
+        c.validation.simulated[:] = base.residual - c.validation.residual
+        c.score = -1.0
+    opts = DiagnoseOptions()
+    assert analysis.closes_gap(near, base, 1e-4, opts) and not analysis.closes_gap(far, base, 1e-4, opts)
+    assert not analysis.closes_gap(Candidate("mass"), base, 1e-4, opts)  # not validated: no fit on TRAIN
+    assert near.score == -1.0  # scored on a copy
 
 
 def test_a_candidate_that_closes_most_of_the_gap_is_the_verdict():

@@ -365,3 +365,38 @@ def test_an_overflowing_linearisation_gives_no_step_and_no_warning():
         N, g, *_ = condense((G, Hth, A, B), E, np.zeros((nx, K - 1)), [layout], has_next, nx, nth)
         assert not np.all(np.isfinite(N))
         assert solve_bounded(N, g, np.zeros(nth), np.full(nth, -1.0), np.full(nth, 1.0), nx, 0.0) is None
+
+
+def test_node_states_no_cylinder_can_have_are_rejected_without_a_simulation(cyl_a):
+    """A step from a far-off linearisation may put node states at 1e20 Pa: the trial is
+    rejected without simulating it (a simulation from there refines every sample and costs ten
+    normal ones), while every state a run of the cylinder reaches lies inside the range."""
+    from combined_reality.identify.shooting import ShootingProblem, free_parameters
+    from sim.compiled import shooting_functions
+    from sim.plant import plant_for
+
+    plant = plant_for(cyl_a)
+    lo, hi = plant.possible_states(cyl_a)
+    run = simulate_run(cyl_a, 2.0, seed=4)
+    reached = np.vstack([run.p1, run.p2, run.x, np.gradient(run.x, run.t)])
+    assert plant.state_names == ("p1", "p2", "x", "v")
+    assert np.all((reached >= lo[:, None]) & (reached <= hi[:, None]))
+
+    K, M = 2, 100
+    sf = shooting_functions(plant, M, free_parameters(plant, ("Fc", "Fv", "kp")), with_sens=True)
+    ny = len(plant.output_names)
+    prob = ShootingProblem(sf, K, 1, np.full((1, K * (M + 1)), 0.1), np.full((1, K * M), run.sample_period),
+                           np.zeros((K, M, ny)), np.ones((K, M, ny)), np.ones(ny), np.ones(plant.nx),
+                           np.array([0]), (lo, hi))
+    S = np.array(plant.initial_state(cyl_a, 0.05, 3e5, 3e5), float)[:, None].repeat(K, axis=1)
+    p = np.array(plant.parameter_vector(cyl_a), float)
+    assert prob.evaluate(S, p, False) is not None  # a possible start is simulated
+
+    def no_simulation(*_a):
+        raise AssertionError("simulated from an impossible node state")
+
+    prob.f_sim = prob.f_sens = no_simulation
+    for i, bad in ((0, 1e20), (1, -1e7), (2, 5 * cyl_a.geometry.stroke), (3, 300.0)):
+        S_bad = S.copy()
+        S_bad[i, 1] = bad
+        assert prob.evaluate(S_bad, p, False) is None and prob.evaluate(S_bad, p, True) is None

@@ -20,10 +20,11 @@ candidate's is.
 """
 from __future__ import annotations
 
+import copy
 import math
+import multiprocessing as mp
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -305,11 +306,27 @@ def _nested_floor(c: Candidate, nominal: NominalFit) -> Candidate:
                            "is reported at its neutral value, i.e. the nominal model: not validated")
 
 
-def _run_jobs(jobs: list, workers: int) -> list[Candidate]:
-    if workers > 1 and len(jobs) > 1:
-        with ProcessPoolExecutor(min(workers, len(jobs))) as pool:
-            return list(pool.map(fit_candidate, jobs))
-    return [fit_candidate(j) for j in jobs]
+def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | None = None) -> list[Candidate]:
+    """The fits of `jobs`, in job order. With `enough`, the results end at the first job (in job
+    order, whatever finished first) for which it holds: the same fits count on any machine and
+    any number of workers; the later jobs still running are stopped."""
+    results: list[Candidate] = []
+    if workers > 1 and len(jobs) > 1 and not mp.current_process().daemon:
+        pool = mp.get_context("fork").Pool(min(workers, len(jobs)))
+        try:
+            for c in pool.imap(fit_candidate, jobs):
+                results.append(c)
+                if enough is not None and enough(c):
+                    break
+        finally:
+            pool.terminate()
+            pool.join()
+        return results
+    for j in jobs:
+        results.append(fit_candidate(j))
+        if enough is not None and enough(results[-1]):
+            break
+    return results
 
 
 def best_of_starts(results: list[Candidate], nominal: NominalFit) -> list[Candidate]:
@@ -480,11 +497,16 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     cands = best_of_starts(results, start)
     for c in cands:
         _score(c, base_val, base_rmse, opts)
+    # the cheapest first: they end at the first start that closes the gap (closes_gap)
     more = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments)
-            for n, k in further_starts(cands, base_val, order, first_start, opts)]
+            for n, k in further_starts(cands, base_val, order[::-1], first_start, opts)]
     if more:
         say(f"  trying {len(more)} further starts (the effects' defaults and alternatives) ...")
-        results += _run_jobs(more, opts.workers)
+        done = _run_jobs(more, opts.workers, lambda c: closes_gap(c, base_val, base_rmse, opts))
+        if len(done) < len(more):
+            say(f"  {done[-1].effect} (start {done[-1].start}) closed the gap: the {len(more) - len(done)} "
+                "further starts after it were not needed")
+        results += done
         cands = best_of_starts(results, start)
         for c in cands:
             _score(c, base_val, base_rmse, opts)
@@ -540,6 +562,14 @@ def further_starts(cands: list[Candidate], base: Validation, order: list[str], f
         leaders = retry = {ranked[0].effect}
     return [(n, k) for n in order for k in range(1, len(candidate_starts(n)))
             if (k == 1 and n in retry and first_start[n] != 1) or (k > 1 and (not leaders or n in leaders))]
+
+
+def closes_gap(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOptions) -> bool:
+    """Whether one fit (of one start) leaves VALID significantly better and near the noise
+    (`closed_gap`): then no further start can change the verdict much. Scored on a copy."""
+    c = copy.copy(c)
+    _score(c, base, base_rmse_x, opts)
+    return bool(c.significant and c.validation.normalized_rms() < opts.closed_gap)
 
 
 def explained_share(base: Validation, cand: Validation | None) -> float:

@@ -258,7 +258,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     node_scale = np.tile(sscale, len(layouts))  # the free node states' defect scales (proximal retry)
 
     threads = max(1, min(options.threads, Ktot))
-    problem = ShootingProblem(sf, Ktot, threads, W, H, Y, mask, wts, sscale, nxt)
+    problem = ShootingProblem(sf, Ktot, threads, W, H, Y, mask, wts, sscale, nxt, plant.possible_states(cyl))
     evaluate = problem.evaluate
 
     def out_of_time() -> bool:

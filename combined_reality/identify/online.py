@@ -112,12 +112,12 @@ class _PaddedProblem:
     padded with empty intervals (zero-length steps, no samples), which cost next to nothing,
     so that the compiled maps are built once rather than for every window size."""
 
-    def __init__(self, sf, capacity: int, threads: int, wts, sscale):
+    def __init__(self, sf, capacity: int, threads: int, wts, sscale, possible=None):
         M, nw, ny = sf.interval_len, len(sf.plant.input_names), len(wts)
         self.capacity, self.M, self.Kw = capacity, M, capacity
         self.prob = ShootingProblem(sf, capacity, max(1, min(threads, capacity)), np.zeros((nw, capacity * (M + 1))),
                                     np.zeros((1, capacity * M)), np.zeros((capacity, M, ny)),
-                                    np.zeros((capacity, M, ny)), wts, sscale, np.empty(0, int))
+                                    np.zeros((capacity, M, ny)), wts, sscale, np.empty(0, int), possible)
         self.out_idx = self.prob.out_idx
 
     def set(self, lay: dict) -> None:
@@ -378,7 +378,8 @@ class MovingHorizonEstimator:
         """The shooting problem for this window (built once, again only for a larger window)."""
         Kw = len(lay["starts"])
         if self._prob is None or self._prob.capacity < Kw:
-            self._prob = _PaddedProblem(self.sf, Kw + self.K, self.options.threads, self.wts, self.sscale)
+            self._prob = _PaddedProblem(self.sf, Kw + self.K, self.options.threads, self.wts, self.sscale,
+                                        self.plant.possible_states(self.cyl))
         self._prob.set(lay)
         return self._prob
 
