@@ -287,7 +287,9 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
 
     ev = evaluate(S, p, True)
     if ev is None:
-        raise IdentificationError("the simulation from the initial guess is not finite; check the cylinder file "
+        raise IdentificationError("the simulation from the initial guess is not finite, or starts where this "
+                                  "cylinder cannot be (a position beyond a stroke outside its travel, pressures "
+                                  "beyond ten times the supply); check the cylinder file "
                                   "(units, dead volumes, supply pressure) against the run.")
     lam, mu = 0.0, 0.0
     creeping = 0  # accepted steps in a row that were backtracked to 1/8 or less
