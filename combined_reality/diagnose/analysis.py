@@ -310,22 +310,18 @@ def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | No
     """The fits of `jobs`, in job order. With `enough`, the results end at the first job (in job
     order, whatever finished first) for which it holds: the same fits count on any machine and
     any number of workers; the later jobs still running are stopped."""
+    parallel = workers > 1 and len(jobs) > 1 and not mp.current_process().daemon
+    pool = mp.get_context("fork").Pool(min(workers, len(jobs))) if parallel else None
     results: list[Candidate] = []
-    if workers > 1 and len(jobs) > 1 and not mp.current_process().daemon:
-        pool = mp.get_context("fork").Pool(min(workers, len(jobs)))
-        try:
-            for c in pool.imap(fit_candidate, jobs):
-                results.append(c)
-                if enough is not None and enough(c):
-                    break
-        finally:
+    try:
+        for c in pool.imap(fit_candidate, jobs) if pool is not None else map(fit_candidate, jobs):
+            results.append(c)
+            if enough is not None and enough(c):
+                break
+    finally:
+        if pool is not None:
             pool.terminate()
             pool.join()
-        return results
-    for j in jobs:
-        results.append(fit_candidate(j))
-        if enough is not None and enough(results[-1]):
-            break
     return results
 
 
@@ -552,8 +548,7 @@ def further_starts(cands: list[Candidate], base: Validation, order: list[str], f
     (of all when none explains anything yet). Leading: the `leaders` significant candidates of
     the best score; the rest only imitate part of the gap. When the best explains `dominant`
     of the gap, only its own further starts run: no other effect's would change the verdict."""
-    if base.normalized_rms() <= opts.closed_gap or any(
-            c.significant and c.validation.normalized_rms() < opts.closed_gap for c in cands):
+    if base.normalized_rms() <= opts.closed_gap or any(_near_noise(c, opts) for c in cands):
         return []
     ranked = sorted((c for c in cands if c.significant), key=lambda c: -c.score)
     leaders = {c.effect for c in ranked[:opts.leaders]}
@@ -569,6 +564,11 @@ def closes_gap(c: Candidate, base: Validation, base_rmse_x: float, opts: Diagnos
     (`closed_gap`): then no further start can change the verdict much. Scored on a copy."""
     c = copy.copy(c)
     _score(c, base, base_rmse_x, opts)
+    return _near_noise(c, opts)
+
+
+def _near_noise(c: Candidate, opts: DiagnoseOptions) -> bool:
+    """A scored candidate that is significant and leaves VALID within `closed_gap` x the noise."""
     return bool(c.significant and c.validation.normalized_rms() < opts.closed_gap)
 
 

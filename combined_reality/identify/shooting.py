@@ -142,7 +142,7 @@ class ShootingProblem:
 
         A step from a far-off linearisation can put node states at 1e20 Pa: simulating from
         there refines every sample and costs ten normal evaluations (a strong dead zone's
-        nominal fit spent 11 of its 13 s so), and the line search rejects the result anyway."""
+        nominal fit spent 12.7 of its 13.2 s so), and the line search rejects the result anyway."""
         nx, K, M = self.nx, self.K, self.M
         if self.possible is not None and not np.all((S >= self.possible[0]) & (S <= self.possible[1])):
             return None
