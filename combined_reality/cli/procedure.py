@@ -21,7 +21,7 @@ KINDS = ("breakaway", "sweep")
 _DIRECTIONS = {"both": (1, -1), "extension": (1,), "retraction": (-1,)}
 # option field -> command-line flag, so that the library's messages name what the user typed
 _FLAGS = {"trials": "--trials", "force_rate": "--force-rate", "speeds": "--speeds", "v_min": "--vmin",
-          "v_max": "--vmax", "u_max": "--u-max", "margin": "--margin", "start": "--start"}
+          "v_max": "--vmax", "attempts": "--attempts", "u_max": "--u-max", "margin": "--margin", "start": "--start"}
 
 
 def add_parser(sub) -> None:
@@ -54,6 +54,9 @@ def add_parser(sub) -> None:
     p.add_argument("--vmin", type=float, metavar="V", help="sweep: slowest target speed, m/s (default vmax / 20)")
     p.add_argument("--vmax", type=float, metavar="V",
                    help="sweep: fastest target speed, m/s (default: the working travel in 0.4 s, at most 0.5)")
+    p.add_argument("--attempts", type=int, metavar="N",
+                   help="sweep: strokes per target at most; one that gives no steady point (stick-slip, or ringing "
+                        "on a busy host) is run again from its start (default 2)")
     p.add_argument("--directions", choices=tuple(_DIRECTIONS), default="both",
                    help="which directions to test: both (default), extension or retraction")
     p.add_argument("--u-max", type=float, default=0.8, help="command bound (default 0.8)")
@@ -103,8 +106,12 @@ def run(args) -> int:
     _write_outputs(args, cyl, result, comments, where, wall)
     print(_summary(args.kind, result))
     if args.kind == "sweep" and not result.table():
-        eprint("combined-reality procedure: no steady point: every stroke stuck, slipped or was too short "
-                    "(see the lines above; try other --vmin/--vmax).")
+        c = result.counters
+        late, sent = c.get("commands_late", 0), c.get("commands_sent", 0)
+        busy = (f"; {late} of {sent} commands reached the rig after its next sample: the host is too busy for "
+                "the velocity loop, run on a quieter one" if sent and late > 0.01 * sent else "")
+        eprint(f"combined-reality procedure: no steady point: every stroke stuck, slipped or was too short, "
+               f"{len(result.retried)} of them run again{busy} (see the lines above; try other --vmin/--vmax).")
         return 1
     return 0
 
@@ -114,9 +121,9 @@ def run(args) -> int:
 def _options(args, cyl):
     from ..friction.procedures import BreakawayOptions, SafetyOptions, SweepOptions, target_speeds
 
-    given = {f: getattr(args, f) for f in ("trials", "force_rate", "start", "speeds", "vmin", "vmax")
+    given = {f: getattr(args, f) for f in ("trials", "force_rate", "start", "speeds", "vmin", "vmax", "attempts")
              if getattr(args, f) is not None}
-    other = {"breakaway": ("speeds", "vmin", "vmax"), "sweep": ("trials", "force_rate", "start")}[args.kind]
+    other = {"breakaway": ("speeds", "vmin", "vmax", "attempts"), "sweep": ("trials", "force_rate", "start")}[args.kind]
     wrong = [f"--{f.replace('_', '-')}" for f in other if f in given]
     if wrong:
         raise UsageError(f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply to the {args.kind} "
@@ -132,7 +139,8 @@ def _options(args, cyl):
             kw = {k: v for k, v in (("trials", args.trials), ("force_rate", args.force_rate), ("start", args.start))
                   if v is not None}
             return BreakawayOptions(directions=directions, safety=safety, **kw)
-        kw = {k: v for k, v in (("speeds", args.speeds), ("v_min", args.vmin), ("v_max", args.vmax)) if v is not None}
+        kw = {k: v for k, v in (("speeds", args.speeds), ("v_min", args.vmin), ("v_max", args.vmax),
+                                ("attempts", args.attempts)) if v is not None}
         opts = SweepOptions(directions=directions, safety=safety, **kw)
         target_speeds(cyl, opts)  # checks --vmin against the default --vmax of this cylinder
         return opts
@@ -196,7 +204,7 @@ def _write_outputs(args, cyl, result, comments, where: str, wall: float) -> None
         what = ["v: mean velocity (m/s, + extension), F: mean friction (N, sign of v) over the steady part of a "
                 "constant-speed stroke, from Newton's law with the measured pressures",
                 f"{len(result.table())} steady points; {n_unsteady} unsteady (stick-slip) and {len(result.skipped)} "
-                "strokes without a point left out"]
+                f"strokes without a point left out; {len(result.retried)} strokes without a steady point run again"]
     what.append("F_std, v_std: spreads (N, m/s); count: samples (sweep) or trials (breakaway) averaged; "
                 "dp: mean |p1 - p2| (Pa); pc: counter pressure (Pa gauge: p2 - pa extending, p1 - pa retracting); "
                 "breakaway: 1 a breakaway force, 0 a sliding point")

@@ -129,6 +129,9 @@ class SweepOptions:
     # nearly stopped read 1.6 % low beside two busy processes)
     min_speed_ratio: float = 0.25
     rest_s: float = 0.3  # valve centred between strokes
+    # strokes per target at most: one that gives no steady point is run again from its start end
+    # (a busy host's late commands make a stroke ring now and then, not every time)
+    attempts: int = 2
     bandwidth_hz: float = 5.0  # outer velocity loop (PI, critically damped on the moving mass)
     force_bandwidth_hz: float = 40.0  # inner net-force loop: above the air-spring resonance, to damp it
     safety: SafetyOptions = SafetyOptions()
@@ -136,6 +139,8 @@ class SweepOptions:
     def __post_init__(self) -> None:
         if isinstance(self.speeds, bool) or not (isinstance(self.speeds, int) and self.speeds >= 1):
             raise ValueError(f"speeds must be a whole number >= 1, not {self.speeds}")
+        if isinstance(self.attempts, bool) or not (isinstance(self.attempts, int) and self.attempts >= 1):
+            raise ValueError(f"attempts must be a whole number >= 1, not {self.attempts}")
         _check_directions(self.directions)
         for name in ("v_min", "v_max"):
             v = getattr(self, name)
@@ -235,6 +240,7 @@ class SweepResult:
     run: Run
     counters: dict
     options: SweepOptions
+    retried: tuple[dict, ...] = ()  # attempts that gave no steady point and were run again, with the reason
 
     def table(self) -> list[dict[str, float]]:
         """Rows of the points table (TABLE_COLUMNS): the steady points, in order of v."""
@@ -243,7 +249,7 @@ class SweepResult:
 
     def to_json(self) -> dict:
         return {"procedure": "sweep", "options": asdict(self.options), "points": [asdict(p) for p in self.points],
-                "skipped": list(self.skipped), "session": self.counters}
+                "skipped": list(self.skipped), "retried": list(self.retried), "session": self.counters}
 
 
 def write_points(path, rows: Sequence[Mapping[str, float]], comments: Sequence[str] = (),
@@ -665,37 +671,54 @@ def speed_sweep(rig: Rig, cyl: Cylinder, options: SweepOptions = SweepOptions(),
     speeds = target_speeds(cyl, opts)
     points: list[SweepPoint] = []
     skipped: list[dict] = []
+    retried: list[dict] = []  # attempts run again, with why
     with _Driver(rig, cyl, opts.safety, record_to, record_comments, progress) as d:
         start_end = {1: d.lo, -1: d.hi}
         d.reposition(start_end[opts.directions[0]])
         d.hold(opts.rest_s)
         for k, v_target in enumerate(speeds.tolist()):
             for direction in opts.directions:
-                if len(opts.directions) == 1:  # one direction only: back to its start at moderate speed
-                    d.reposition(start_end[direction])
-                    d.hold(opts.rest_s)
-                # the friction expected: the nearest point measured so far in this direction, else the
-                # cylinder file's values (the loop's integral does the rest)
-                done = [p for p in points if p.direction == direction and p.steady]
-                if done:
-                    F_ff = abs(min(done, key=lambda p: abs(abs(p.v) - v_target)).F)
-                else:
-                    F_ff = cyl.friction.Fc + cyl.friction.Fv * v_target
-                seg = _stroke(d, direction, v_target, F_ff, opts)
-                d.hold(opts.rest_s)
-                point, why = _sweep_point(d, direction, v_target, seg, opts)
                 head = f"sweep {DIRECTION_NAMES[direction]:10s} {v_target:.4g} m/s ({k + 1}/{len(speeds)}):"
-                if point is None:
-                    skipped.append({"direction": direction, "target": direction * v_target, "reason": why})
-                    d.say(f"{head} no point, {why}")
-                    continue
-                points.append(point)
-                d.say(f"{head} v = {point.v:+.4g} ± {point.v_std:.2g} m/s, F = {point.F:+.4g} ± {point.F_sem:.2g} N "
-                      f"({point.n} samples)"
-                      + ("" if point.steady else "; unsteady (stick-slip or ringing): left out of the points table"))
+                for attempt in range(1, opts.attempts + 1):
+                    if len(opts.directions) == 1 or attempt > 1:  # back to this direction's start
+                        d.reposition(start_end[direction])
+                        d.hold(opts.rest_s)
+                    point, why, repeatable = _sweep_attempt(d, direction, v_target, points, opts)
+                    last = attempt == opts.attempts or not repeatable or (point is not None and point.steady)
+                    if not last:
+                        why = why or "unsteady (stick-slip or ringing)"
+                        retried.append({"direction": direction, "target": direction * v_target, "attempt": attempt,
+                                        "reason": why})
+                        d.say(f"{head} attempt {attempt} gave no steady point ({why}): once more")
+                        continue
+                    if point is None:
+                        skipped.append({"direction": direction, "target": direction * v_target, "reason": why})
+                        d.say(f"{head} no point, {why}")
+                    else:
+                        points.append(point)
+                        d.say(f"{head} v = {point.v:+.4g} ± {point.v_std:.2g} m/s, F = {point.F:+.4g} ± "
+                              f"{point.F_sem:.2g} N ({point.n} samples)"
+                              + ("" if point.steady else "; unsteady (stick-slip or ringing): left out of the points "
+                                                         "table"))
+                    break
         d.warn_if_unhealthy("strokes")
         run, counters = d.run(), d.counters()
-    return SweepResult(tuple(points), tuple(skipped), run, counters, opts)
+    return SweepResult(tuple(points), tuple(skipped), run, counters, opts, tuple(retried))
+
+
+def _sweep_attempt(d: _Driver, direction: int, v_target: float, points: Sequence[SweepPoint],
+                   opts: SweepOptions) -> tuple[SweepPoint | None, str, bool]:
+    """One stroke and its point (or why none, and whether another attempt can help)."""
+    # the friction expected: the nearest point measured so far in this direction, else the
+    # cylinder file's values (the loop's integral does the rest)
+    done = [p for p in points if p.direction == direction and p.steady]
+    if done:
+        F_ff = abs(min(done, key=lambda p: abs(abs(p.v) - v_target)).F)
+    else:
+        F_ff = d.cyl.friction.Fc + d.cyl.friction.Fv * v_target
+    seg = _stroke(d, direction, v_target, F_ff, opts)
+    d.hold(opts.rest_s)
+    return _sweep_point(d, direction, v_target, seg, opts)
 
 
 @dataclass(frozen=True)
@@ -804,26 +827,27 @@ def steady_speed(v: np.ndarray, direction: int, opts: SweepOptions) -> bool:
 
 
 def _sweep_point(d: _Driver, direction: int, v_target: float, seg: _Stroke,
-                 opts: SweepOptions) -> tuple[SweepPoint | None, str]:
-    """The stroke's point: friction from Newton's law with the measured pressures, over its steady part."""
+                 opts: SweepOptions) -> tuple[SweepPoint | None, str, bool]:
+    """The stroke's point: friction from Newton's law with the measured pressures, over its steady
+    part; else why not, and whether running it again can help (not when the travel is too short)."""
     if seg.i_steady < 0:
         if seg.cruised:
             return None, (f"the piston never slid for {opts.settle_s:g} s without sticking (stick-slip: the speed "
-                          "is too low for this friction)")
-        return None, "the stroke is too short to reach this speed (lower --vmax)"
+                          "is too low for this friction)"), True
+        return None, "the stroke is too short to reach this speed (lower --vmax)", False
     # the derivative window must not reach into the braking: it would smear the deceleration into
     # the steady part and bias the mean friction by M times a share of it
     i_end = seg.i_brake - _HALF - 5
     if i_end - seg.i_steady < opts.min_samples:
         return None, (f"the steady part is too short ({max(i_end - seg.i_steady, 0)} samples < "
-                      f"{opts.min_samples}): lower --vmax")
+                      f"{opts.min_samples}): lower --vmax"), False
     a, b = max(seg.i_start - _HALF, 0), min(seg.i_end + _HALF, d.n)
     run = d.run(a, b)
     idx, v, F = friction_from_newton(d.cyl, run, _HALF, plant=d.plant)
     keep = (idx >= seg.i_steady - a) & (idx < i_end - a)
     v, F, sel = v[keep], F[keep], idx[keep]
     if len(v) < opts.min_samples or np.median(v) * direction <= 0:
-        return None, "the piston did not move in the commanded direction"
+        return None, "the piston did not move in the commanded direction", True
     v_mean = float(v.mean())
     return SweepPoint(direction=direction, target=direction * v_target, v=v_mean, F=float(F.mean()),
                       v_std=float(v.std()), F_std=float(F.std()), F_sem=_standard_error(F, 4 * _HALF + 2),
@@ -831,4 +855,4 @@ def _sweep_point(d: _Driver, direction: int, v_target: float, seg: _Stroke,
                       x_start=float(run.x[sel[0]]), x_end=float(run.x[sel[-1]]), u_mean=float(run.u[sel].mean()),
                       dp=float(np.abs(run.p1[sel] - run.p2[sel]).mean()),
                       pc=float(((run.p2[sel] if direction > 0 else run.p1[sel]) - d.cyl.supply.atmosphere).mean()),
-                      steady=steady_speed(v, direction, opts)), ""
+                      steady=steady_speed(v, direction, opts)), "", True
