@@ -170,11 +170,23 @@ def chamber_prefit(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float]
     widths = np.diff(np.r_[0.0, OPENING_GRID])
     weight = np.sqrt(np.mean((rhs * w) ** 2))  # the data rows' typical size
 
+    opens = (ub > 0, ub < 0)  # per direction, the samples that open it
+    columns: dict[tuple[int, float], np.ndarray] = {}
+
+    def rises(d: int, overlap: float) -> np.ndarray:
+        """Each sample's rises of direction d summed in its block's row, (rows, K); the overlap
+        search asks for each value several times."""
+        if (d, overlap) not in columns:
+            sel = opens[d]
+            per_sample = np.zeros(ub.shape + (K,))
+            per_sample[sel] = opening_basis(np.abs(ub[sel]), overlap) * qb[sel][:, None]
+            columns[(d, overlap)] = per_sample.sum(axis=1)
+        return columns[(d, overlap)]
+
     def solve(overlaps: tuple[float, float]):
         A = np.zeros((len(rhs), 2 * K + 2))
-        for d, sel in ((0, ub > 0), (1, ub < 0)):  # each sample's rises, in its block's row
-            contrib = opening_basis(np.abs(ub[sel]), overlaps[d]) * qb[sel][:, None]
-            np.add.at(A, (np.nonzero(sel)[0][:, None], np.arange(d * K, (d + 1) * K)[None, :]), contrib)
+        for d in (0, 1):
+            A[:, d * K:(d + 1) * K] = rises(d, overlaps[d])
         A[chamber == 0, 2 * K] = -v0col[chamber == 0]
         A[chamber == 1, 2 * K + 1] = -v0col[chamber == 1]
         Aw, bw = A * w[:, None], rhs * w
