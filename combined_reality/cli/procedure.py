@@ -77,7 +77,7 @@ def run(args) -> int:
     from hw.rig import RigError
 
     from ..files import cylinder_tag
-    from ..friction.procedures import ProcedureError
+    from ..friction.procedures import ProcedureError, late_commands
 
     cyl = load_config(args.config)
     opts = _options(args, cyl)
@@ -106,10 +106,8 @@ def run(args) -> int:
     _write_outputs(args, cyl, result, comments, where, wall)
     print(_summary(args.kind, result))
     if args.kind == "sweep" and not result.table():
-        c = result.counters
-        late, sent = c.get("commands_late", 0), c.get("commands_sent", 0)
-        busy = (f"; {late} of {sent} commands reached the rig after its next sample: the host is too busy for "
-                "the velocity loop, run on a quieter one" if sent and late > 0.01 * sent else "")
+        late = late_commands(result.counters)
+        busy = f"; {late}: the host is too busy for the velocity loop, run on a quieter one" if late else ""
         eprint(f"combined-reality procedure: no steady point: every stroke stuck, slipped or was too short, "
                f"{len(result.retried)} of them run again{busy} (see the lines above; try other --vmin/--vmax).")
         return 1

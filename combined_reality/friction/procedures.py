@@ -157,6 +157,13 @@ class SweepOptions:
             raise ValueError(f"min_speed_ratio must lie in [0, 1), not {self.min_speed_ratio}")
 
 
+def late_commands(counters: Mapping[str, float]) -> str:
+    """"N of M commands reached the rig after its next sample" when more than 1 % did (a wire
+    rig's session counters; the loops then act a sample later than designed), else ""."""
+    late, sent = int(counters.get("commands_late", 0)), int(counters.get("commands_sent", 0))
+    return f"{late} of {sent} commands reached the rig after its next sample" if sent and late > 0.01 * sent else ""
+
+
 # ------------------------------------------------------------------ results
 
 @dataclass(frozen=True)
@@ -413,10 +420,9 @@ class _Driver:
         if self.watchdog_samples:
             self.say(f"warning: the rig's watchdog centred the valve for {self.watchdog_samples} samples (the host "
                      f"answered too late, longest pause {self.longest_pause * 1e3:.0f} ms): check the {what}")
-        stats = getattr(self.rig, "stats", None)
-        late, sent = getattr(stats, "commands_late", 0), getattr(stats, "commands_sent", 0)
-        if sent and late > 0.01 * sent:  # the loops then act a sample later than designed
-            self.say(f"warning: {late} of {sent} commands reached the rig after its next sample (a busy host or "
+        late = late_commands(self.counters())
+        if late:
+            self.say(f"warning: {late} (a busy host or "
                      f"link): check the {what}")
 
     def say(self, msg: str) -> None:

@@ -79,7 +79,7 @@ def parameters_settled(history: list[dict], theta: np.ndarray, std: np.ndarray, 
                 or (at_noise is not None and at_noise()))
 
 
-def states_settled(history: list[dict], cost: float) -> bool:
+def states_settled(history: list[dict]) -> bool:
     """Whether a fit of initial states alone (a validation segment) has stopped gaining: the last
     2 NONMONOTONE iterations lowered the cost by less than STATES_SETTLED_GAIN of it. Only the
     simulation from the first node counts there, so defects the steps still trade against the
@@ -87,8 +87,8 @@ def states_settled(history: list[dict], cost: float) -> bool:
     (a heat-exchange candidate's validation on a leakage case: 50 s, 8 s so, its score within 0.1 %)."""
     if len(history) < 2 * NONMONOTONE:
         return False
-    gained = history[-2 * NONMONOTONE]["cost"] - min(cost, history[-1]["cost"])
-    return gained <= STATES_SETTLED_GAIN * cost
+    now = history[-1]["cost"]
+    return history[-2 * NONMONOTONE]["cost"] - now <= STATES_SETTLED_GAIN * now
 
 
 @dataclass(frozen=True)
@@ -444,7 +444,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         if new_viol < 1e-2 * max(1, Ktot) and parameters_settled(history, theta, std, cost, mask.sum()):
             status = "converged"  # short steps that only polish node states (e.g. around gaps)
             break
-        if not nth and states_settled(history, cost):
+        if not nth and states_settled(history):
             status = "converged"
             break
         if (abs(cost - 0.5 * float(np.sum(ev[0] ** 2)) - prior_cost(theta)) < 1e-12 * cost
