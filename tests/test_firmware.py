@@ -195,7 +195,10 @@ def test_firmware_scaling_is_its_config_header_and_the_plant_converts_with_it(fi
         # the valve output the firmware latched is what it reports, in command units
         assert s.u_applied == pytest.approx(hello.u_of(int(ticks["valve_out"][i])), abs=1e-7)
         assert s.u_applied == pytest.approx(ticks["u_applied"][i], abs=1e-7)
-    assert matched > 800
+    # the count of ticks in the 1 s is real time (a CI run beside busy processes: 731 ticks, 96
+    # overruns, 728 samples sent); what must hold is that every sample received is a tick of the
+    # plant, converted as the header says, and that enough were checked
+    assert matched >= len(host.samples) - 2 and matched >= 500, (matched, len(host.samples))
 
 
 def test_bounds_soft_limits_and_corrupted_bytes_are_the_firmwares_own(firmware, cyl_a):
