@@ -6,6 +6,8 @@ The truth here is the project's own plant with departed values (the benchmark
 benchmarks/calibration.py uses an independently written plant and other curve shapes)."""
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 from dataclasses import replace
@@ -54,31 +56,51 @@ def train(truth, cyl_a):
     return record(truth, cyl_a, seed=1)
 
 
+@pytest.fixture(scope="module")
+def calibrated(cyl_a, truth, train, tmp_path_factory):
+    """One `calibrate` of the departed rig's TRAIN run through the command line, validated on
+    another run: the recovery and the command line's outputs are checked on it (each
+    calibration costs about a minute of the suite)."""
+    d = tmp_path_factory.mktemp("calibrated")
+    tr, va = d / "train.csv", d / "valid.csv"
+    write_run(tr, train, comments=list(train.comments))
+    valid = record(truth, cyl_a, seed=2, program="mixed")
+    write_run(va, valid, comments=list(valid.comments))
+    out, cal_toml = d / "cal.json", d / "cal.toml"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["calibrate", "--config", str(CONFIGS / "cyl_a_32x100.toml"), str(tr), "--validate", str(va),
+                     "--json", str(out), "--write-config", str(cal_toml), "-q"])
+    assert code == 0, printed.getvalue()
+    return json.loads(out.read_text()), cal_toml, va
+
+
 @pytest.mark.slow
-def test_calibration_recovers_every_departed_quantity_and_the_friction(cyl_a, truth, train):
-    cal = calibrate(cyl_a, [train])
-    res = cal.result
-    assert res.solver["status"] == "converged"
-    assert 0.9 < res.solver["residual_sigma"] < 1.1  # at the sensor noise
+def test_calibration_recovers_every_departed_quantity_and_the_friction(truth, calibrated):
+    doc, cal_toml, _ = calibrated
+    params, coverage = doc["params"], doc["identifiability"]["flow_coverage"]
+    assert doc["solver"]["status"] == "converged"
+    assert 0.9 < doc["solver"]["residual_sigma"] < 1.1  # at the sensor noise
     for name in ("Fc", "Fv", "mass", "dead_volume_cap", "dead_volume_rod"):
-        assert res.params[name].value == pytest.approx(truth.value(name), rel=0.01), name
-    assert res.params["kp"].value == pytest.approx(truth.value("kp"), rel=0.05)
-    assert res.params["critical_ratio"].value == pytest.approx(0.4, abs=0.005)
+        assert params[name]["value"] == pytest.approx(truth.value(name), rel=0.01), name
+    assert params["kp"]["value"] == pytest.approx(truth.value("kp"), rel=0.05)
+    assert params["critical_ratio"]["value"] == pytest.approx(0.4, abs=0.005)
     for name in ("offset_p1", "offset_p2"):
-        assert res.params[name].value == pytest.approx(truth.value(name), abs=50.0), name
-    assert res.params["external_force"].value == pytest.approx(3.0, abs=0.3)
+        assert params[name]["value"] == pytest.approx(truth.value(name), abs=50.0), name
+    assert params["external_force"]["value"] == pytest.approx(3.0, abs=0.3)
+    valve = load_cylinder(cal_toml).valve
     for d in ("extend", "retract"):
-        assert getattr(cal.cylinder.valve, f"overlap_{d}") == pytest.approx(getattr(truth.valve, f"overlap_{d}"),
-                                                                            abs=0.003)
+        assert getattr(valve, f"overlap_{d}") == pytest.approx(getattr(truth.valve, f"overlap_{d}"), abs=0.003)
+        assert doc["valve"][d]["overlap"] == getattr(valve, f"overlap_{d}")
         # where the run opens the valve, the curve is measured to a few per cent
-        measured = [k for k in range(len(GRID)) if cal.identifiability.coverage[f"flow_{d}_{k + 1}"] > 0.003]
+        measured = [k for k in range(len(GRID)) if coverage[f"flow_{d}_{k + 1}"] > 0.003]
         assert len(measured) >= 3
         for k in measured:
-            assert getattr(cal.cylinder.valve, f"flow_{d}")[k] == pytest.approx(getattr(truth.valve, f"flow_{d}")[k],
-                                                                                rel=0.05), (d, k)
+            assert getattr(valve, f"flow_{d}")[k] == pytest.approx(getattr(truth.valve, f"flow_{d}")[k],
+                                                                   rel=0.05), (d, k)
     # honest uncertainties: the truth lies within 3 std of most estimates
-    z = [abs(e.value - truth.value(n)) / e.std for n, e in res.params.items() if e.std > 0 and math.isfinite(e.std)
-         and cal.identifiability.coverage.get(n, 1.0) > 0.003]
+    z = [abs(e["value"] - truth.value(n)) / e["std"] for n, e in params.items()
+         if e["std"] > 0 and math.isfinite(e["std"]) and coverage.get(n, 1.0) > 0.003]
     assert np.mean(np.array(z) < 3) >= 0.9, z
 
 
@@ -93,19 +115,8 @@ def test_the_nominal_file_alone_is_a_misfit_that_identify_names(cyl_a, train, tm
 
 
 @pytest.mark.slow
-def test_the_command_line_writes_a_complete_cylinder_file_with_the_comments_kept(cyl_a, truth, train, tmp_path,
-                                                                                 capsys):
-    tr, va = tmp_path / "train.csv", tmp_path / "valid.csv"
-    write_run(tr, train, comments=list(train.comments))
-    valid = record(truth, cyl_a, seed=2, program="mixed")
-    write_run(va, valid, comments=list(valid.comments))
-    out, cal_toml = tmp_path / "cal.json", tmp_path / "cal.toml"
-    src = CONFIGS / "cyl_a_32x100.toml"
-    code = main(["calibrate", "--config", str(src), str(tr), "--validate", str(va), "--json", str(out),
-                 "--write-config", str(cal_toml), "-q"])
-    printed = capsys.readouterr().out
-    assert code == 0, printed
-    doc = json.loads(out.read_text())
+def test_the_command_line_writes_a_complete_cylinder_file_with_the_comments_kept(truth, calibrated, capsys):
+    doc, cal_toml, va = calibrated
     for name in ("Fc", "Fv", "kp", "mass", "offset_p1", "flow_extend_3"):
         assert set(doc["params"][name]) >= {"value", "std", "unit"}
     assert doc["params"]["Fc"]["value"] == pytest.approx(truth.value("Fc"), rel=0.01)
@@ -115,7 +126,7 @@ def test_the_command_line_writes_a_complete_cylinder_file_with_the_comments_kept
     assert doc["fit"]["rmse_x"] < 6e-6 and doc["solver"]["status"] == "converged"
     # the calibrated file: every comment line of the user's file is still there, and it loads
     text = cal_toml.read_text()
-    for line in src.read_text().splitlines():
+    for line in (CONFIGS / "cyl_a_32x100.toml").read_text().splitlines():
         if line.startswith("#"):
             assert line in text
     cal = load_cylinder(cal_toml)
@@ -124,6 +135,38 @@ def test_the_command_line_writes_a_complete_cylinder_file_with_the_comments_kept
     # and every other subcommand takes it: identify now explains the run
     code = main(["identify", "--config", str(cal_toml), str(va), "-q"])
     assert code == 0, capsys.readouterr().err
+
+
+def test_the_staged_fits_end_once_their_parameters_settle(truth, cyl_a, train):
+    """A calibration's first two stages only start the whole model's fit: such a fit
+    (start_only) ends once 6 iterations moved no parameter by a quarter of its reported std and
+    gained less than 0.1 % of the cost, its defects closed or not, and is not restarted. On the
+    departed rig's force balance it stops where the full fit (which restarts) ends, in half the
+    iterations."""
+    from combined_reality.calibrate import MECHANICAL
+    from combined_reality.calibrate.prefit import force_balance_prefit
+    from combined_reality.identify.offline import start_settled
+
+    theta = np.array([25.0, 13.0])
+    std = np.array([0.04, 0.06])
+    steady = [{"cost": 2.8e7 + 1e3 * i, "theta": (theta + 0.004 * (-1) ** i).tolist()} for i in range(6)]
+    assert start_settled(steady, theta, std)
+    assert not start_settled(steady[1:], theta, std)  # too few iterations
+    assert not start_settled(steady, theta + [0.011, 0.0], std)  # Fc moved by more than std / 4
+    assert not start_settled(steady, theta, np.array([0.04, np.inf]))  # an undetermined parameter
+    falling = [dict(h, cost=2.8e7 * (1 + 0.002 * (6 - i))) for i, h in enumerate(steady)]
+    assert not start_settled(falling, theta, std)  # 1 % gained
+
+    cyl = cyl_a.with_values(force_balance_prefit(cyl_a, [train]))
+    fits = {so: identify(cyl, [train], IdentifyOptions(drive="pressure", estimate=MECHANICAL, prefit=False,
+                                                       start_only=so, restart_misfit=not so))
+            for so in (True, False)}
+    start, full = fits[True], fits[False]
+    print({so: (f.solver["iterations"], f.solver["status"]) for so, f in fits.items()})
+    assert start.solver["status"] == "converged" and "restart" not in start.solver
+    assert start.solver["iterations"] <= 20 and 2 * start.solver["iterations"] <= full.solver["iterations"] + 1
+    for n, e in full.params.items():
+        assert abs(start.params[n].value - e.value) <= 0.25 * e.std, n
 
 
 def test_a_written_cylinder_file_round_trips_and_keeps_defaults_out(cyl_a):

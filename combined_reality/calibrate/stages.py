@@ -103,8 +103,12 @@ def _stage(name: str, cyl: Cylinder, runs: Sequence[Run], drive: str, estimate: 
     if not estimate:
         return None
     t0 = time.perf_counter()
+    # the first two stages only start the whole model's fit, which settles their node states
+    # and escapes a wrong basin itself (it is restarted when it ends above the noise)
+    start_only = drive != "command"
     res = identify(cyl, runs, IdentifyOptions(drive=drive, estimate=tuple(estimate), interval_s=opts.interval_s,
-                                              max_iter=opts.max_iter, prefit=False, threads=opts.threads),
+                                              max_iter=opts.max_iter, prefit=False, threads=opts.threads,
+                                              start_only=start_only, restart_misfit=not start_only),
                    prior=smooth_valve_prior())
     say(f"  {name}: {res.solver['status']} after {res.solver['iterations']} iterations, "
         f"{time.perf_counter() - t0:.1f} s, residual {res.solver['residual_sigma']:.3g} x noise")
