@@ -216,7 +216,6 @@ class MovingHorizonEstimator:
         else:
             t_before = np.r_[self._last_row[0] if self._last_row else np.inf, rows[0, :-1]]
             gap = rows[0] - t_before > 1.5 * self.dt
-        M = self.M
         out = []  # the rows to append, with a row for the start of each bridged gap
         for j in range(n):
             i = self._seen + len(out)
@@ -239,17 +238,31 @@ class MovingHorizonEstimator:
                     self._open = [i, 0, _NEW_PIECE]
                 else:
                     self._open[2] = _NEW_PIECE
-            if self._open is None:
-                self._open = [i, 0, _NEW_PIECE]
-            out.append(rows[:, j])
-            self._last_row = (float(rows[0, j]), float(rows[1, j]))
-            self._open[1] += 1
-            if self._open[1] == M:
-                self._close_open()
-                self._open = [i + 1, 0, _JOINED]
+            elif self._last_row is not None and rows[0, j] - self._last_row[0] > 1.5 * self.dt:
+                # a stretched tick with nothing lost (the rig's numbers run on: its firmware
+                # overran): the valve held the last command all along, so it is known. Rows with
+                # nothing measured keep the steps at about a period; one step of 28 ms is beyond
+                # what the integrator refines (32 substeps) and wrecked a live estimate
+                t_prev, u_prev = self._last_row
+                k = int(round((rows[0, j] - t_prev) / self.dt))
+                for m in range(1, k):
+                    self._push(out, (t_prev + m * (rows[0, j] - t_prev) / k, u_prev, np.nan, np.nan, np.nan))
+            self._push(out, rows[:, j])
         self._buf = np.hstack([self._buf, np.array(out).T])
         self._seen += len(out)
         self._ended = False
+
+    def _push(self, out: list, row) -> None:
+        """Append one row to `out` (the rows of this add) and count it into its interval."""
+        i = self._seen + len(out)
+        if self._open is None:
+            self._open = [i, 0, _NEW_PIECE]
+        out.append(row)
+        self._last_row = (float(row[0]), float(row[1]))
+        self._open[1] += 1
+        if self._open[1] == self.M:
+            self._close_open()
+            self._open = [i + 1, 0, _JOINED]
 
     def _gap_link(self, row: int, length: float) -> int:
         """How the interval after a gap of `length` seconds before `row` joins the one before."""
