@@ -96,8 +96,8 @@ def start_settled(history: list[dict], theta: np.ndarray, std: np.ndarray) -> bo
     the last 2 NONMONOTONE iterations moved no parameter by a quarter of the std it reports and
     gained less than STATES_SETTLED_GAIN of the cost. What it would still do is close defects
     where the node states all but jump (stick-slip, an end stop's contact): a calibration's
-    force balance crept so for 50 iterations with its parameters within 0.3 std of where they
-    were after 12; the fit it starts settles those states itself."""
+    force balance crept so for 38 iterations (and 22 more once restarted) with its parameters
+    within 0.3 std of where they were after 12; the fit it starts settles those states itself."""
     ok = np.isfinite(std) & (std > 0)
     if not len(theta) or not ok.all() or not states_settled(history):
         return False
