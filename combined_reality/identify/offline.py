@@ -58,6 +58,16 @@ SETTLED_SIGMA = 1.5
 STATES_SETTLED_GAIN = 1e-3  # states_settled
 
 
+def parameters_steady(history: list[dict], theta: np.ndarray, std: np.ndarray) -> bool:
+    """Whether the last 2 NONMONOTONE iterations (and `theta`, where they ended) moved no
+    parameter by a quarter of its standard deviation, every parameter determined (std finite)."""
+    ok = np.isfinite(std) & (std > 0)
+    if len(history) < 2 * NONMONOTONE or not len(theta) or not ok.all():
+        return False
+    recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [np.asarray(theta).tolist()])
+    return bool(np.all(np.ptp(recent, axis=0) <= 0.25 * std))
+
+
 def parameters_settled(history: list[dict], theta: np.ndarray, std: np.ndarray, cost: float, n_res: float,
                        at_noise: Callable[[], bool] | None = None) -> bool:
     """Whether more iterations would only polish node states: the last 2 NONMONOTONE iterations
@@ -68,11 +78,7 @@ def parameters_settled(history: list[dict], theta: np.ndarray, std: np.ndarray, 
     of chi-square at the present residual level). A misfit's standard deviations are inflated
     with its residual, so without the second test a fit still descending far above the noise
     would look settled."""
-    ok = np.isfinite(std) & (std > 0)
-    if len(history) < 2 * NONMONOTONE or not len(theta) or not ok.all() or n_res <= 0:
-        return False
-    recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [np.asarray(theta).tolist()])
-    if not np.all(np.ptp(recent, axis=0) <= 0.25 * std):
+    if n_res <= 0 or not parameters_steady(history, theta, std):
         return False
     gained = history[-2 * NONMONOTONE]["cost"] - min(cost, history[-1]["cost"])
     return bool(2 * cost <= SETTLED_SIGMA ** 2 * n_res or gained <= cost / n_res
@@ -98,11 +104,7 @@ def start_settled(history: list[dict], theta: np.ndarray, std: np.ndarray) -> bo
     where the node states all but jump (stick-slip, an end stop's contact): a calibration's
     force balance crept so for 38 iterations (and 22 more once restarted) with its parameters
     within 0.3 std of where they were after 12; the fit it starts settles those states itself."""
-    ok = np.isfinite(std) & (std > 0)
-    if not len(theta) or not ok.all() or not states_settled(history):
-        return False
-    recent = np.array([h["theta"] for h in history[-2 * NONMONOTONE:]] + [np.asarray(theta).tolist()])
-    return bool(np.all(np.ptp(recent, axis=0) <= 0.25 * std))
+    return states_settled(history) and parameters_steady(history, theta, std)
 
 
 @dataclass(frozen=True)
