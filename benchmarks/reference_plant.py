@@ -1851,27 +1851,32 @@ def substeps_for(case: Case) -> int:
     return _Batch([case], None).N
 
 
-def simulate_detailed(cases: Sequence[Case], substeps: int | None = None,
+def simulate_detailed(cases: Sequence[Case], substeps: int | Sequence[int | None] | None = None,
                       progress: Callable[[str], None] | None = None) -> list[Result]:
     """Simulate cases, returning runs and true states. Cases with the same sample rate and the
     same number of substeps run as one vectorised batch.
 
-    substeps: RK4 substeps per sample period for every case (default: substeps_for(case), so
-    that a case's run does not depend on the other cases). Cases with different forms and steps
-    run faster as one batch at the finest step any of them needs, substeps=max(substeps_for(c)
-    for c in cases); their runs then differ from the default ones by nanometres."""
+    substeps: RK4 substeps per sample period for every case, or one per case (None: the case's
+    own choice, substeps_for(case), so that a case's run does not depend on the other cases; this
+    is the default). A batch costs about the same per step whatever number of cases it holds, so
+    cases with different forms and steps run faster together at the finest step any of them
+    needs, substeps=max(substeps_for(c) for c in cases); their runs then differ from the default
+    ones by nanometres."""
     cases = list(cases)
+    per_case = list(substeps) if isinstance(substeps, Sequence) else [substeps] * len(cases)
+    if len(per_case) != len(cases):
+        raise ValueError(f"substeps: {len(per_case)} values for {len(cases)} cases")
     results: list[Result | None] = [None] * len(cases)
     groups: dict[tuple[float, int], list[int]] = {}
-    for i, c in enumerate(cases):
-        groups.setdefault((float(c.rate), int(substeps) if substeps else substeps_for(c)), []).append(i)
+    for i, (c, n) in enumerate(zip(cases, per_case)):
+        groups.setdefault((float(c.rate), int(n) if n else substeps_for(c)), []).append(i)
     for (_, N), idx in groups.items():
         for i, r in zip(idx, _simulate_batch([cases[i] for i in idx], N, progress)):
             results[i] = r
     return [r for r in results if r is not None]
 
 
-def simulate(cases: Sequence[Case], substeps: int | None = None,
+def simulate(cases: Sequence[Case], substeps: int | Sequence[int | None] | None = None,
              progress: Callable[[str], None] | None = None) -> list[Run]:
     """The runs of `cases` (see Case), each with comment lines that describe the truth."""
     return [r.run for r in simulate_detailed(cases, substeps, progress)]

@@ -5,7 +5,7 @@ stops hold, and the truth travels with the run.
 
 Most checks share 0.5 s simulations of the default cylinder in closed loop (seed 5, which moves
 fast enough for the supply effects to matter): the nominal plant alone and every effect form at
-its neutral and at its strong value, with the automatic step. Every strong form changes the
+its neutral and at its strong value, simulated together in one call (see plant_runs). Every strong form changes the
 position by at least twice the test's threshold within that half second (the weakest,
 supply_droop:line, by 108 um; in 2 s runs, which cost four times as much, it shows less: 81 um).
 """
@@ -50,23 +50,44 @@ def cyl():
     return load_cylinder(DEFAULT_CYLINDER)
 
 
-@pytest.fixture(scope="module")
-def nominal(cyl):
-    """The nominal plant alone (no effect form in the batch), noise off."""
-    return rp.simulate_detailed([rp.Case(cyl, DURATION, SEED, noise=False)])[0]
+HALVED = (rp.DelayTransport, rp.DeadzoneHard, rp.DynamicsDahl)  # forms that switch within a step or carry a state
 
 
 @pytest.fixture(scope="module")
-def effect_runs(cyl):
-    """Every form at its neutral and at its strong value: {(form, level): Result}. The cases
-    that share the nominal step run as one batch that holds every form (so neutral values are
-    checked among all the others)."""
-    cases, keys = [], []
+def plant_runs(cyl):
+    """Every run the module's effect checks share, as one call: the nominal plant (no effect form,
+    noise off), every form at its neutral and at its strong value, and the nominal run and the
+    forms of HALVED again at half the nominal step ("fine", ...). A batch costs about the same
+    per step whatever it holds, so the cases at the nominal step run as one batch (the neutral
+    values among all the others) and every other case at one finer step: the strong forms that
+    ask for more than the nominal step (their visibility does not depend on it) and the halved
+    runs."""
+    nominal = rp.Case(cyl, DURATION, SEED, noise=False)
+    n0 = rp.substeps_for(nominal)
+    keys, cases = ["nominal"], [nominal]
     for cls in FORMS:
         for level, eff in (("neutral", cls.neutral()), ("strong", cls.typical(cyl, 1.0))):
             cases.append(rp.Case(cyl, DURATION, SEED, noise=False, effects=(eff,)))
             keys.append((cls, level))
-    return dict(zip(keys, rp.simulate_detailed(cases)))
+    auto = [rp.substeps_for(c) for c in cases]
+    fine = max([2 * n0] + auto)
+    steps = [n if n == n0 else fine for n in auto]
+    for cls in (None,) + HALVED:
+        keys.append(("fine", cls))
+        cases.append(nominal if cls is None else cases[keys.index((cls, "strong"))])
+        steps.append(2 * n0)
+    return dict(zip(keys, rp.simulate_detailed(cases, substeps=steps)))
+
+
+@pytest.fixture(scope="module")
+def nominal(plant_runs):
+    return plant_runs["nominal"]
+
+
+@pytest.fixture(scope="module")
+def effect_runs(plant_runs):
+    """{(form, level): Result}"""
+    return {k: v for k, v in plant_runs.items() if k != "nominal" and k[0] != "fine"}
 
 
 # ---------------------------------------------------------------- independence
@@ -121,13 +142,14 @@ def test_each_run_starts_at_rest_in_force_balance(cyl):
 
 
 @pytest.mark.slow
-def test_halving_the_step_changes_nothing_visible(cyl, nominal, effect_runs):
+def test_halving_the_step_changes_nothing_visible(cyl, nominal, effect_runs, plant_runs):
     """The nominal run and the forms that switch within a step (a dead time, a hard dead zone)
     or carry a state with a sign switch (Dahl), rerun with half the automatic step."""
-    forms = (rp.DelayTransport, rp.DeadzoneHard, rp.DynamicsDahl)
+    forms = HALVED
     coarse = [nominal] + [effect_runs[(cls, "strong")] for cls in forms]
     assert {r.substeps for r in coarse} == {nominal.substeps}
-    fine = rp.simulate_detailed([r.case for r in coarse], substeps=2 * nominal.substeps)
+    fine = [plant_runs[("fine", cls)] for cls in (None,) + forms]
+    assert {r.substeps for r in fine} == {2 * nominal.substeps}
     dx = [_rms(c.run.x, f.run.x) for c, f in zip(coarse, fine)]
     dp = [max(_rms(c.run.p1, f.run.p1), _rms(c.run.p2, f.run.p2)) for c, f in zip(coarse, fine)]
     print(f"\nRK4 {nominal.substeps} -> {2 * nominal.substeps} substeps per sample, {DURATION:g} s: RMS change of x "
