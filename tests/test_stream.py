@@ -12,10 +12,10 @@ import pytest
 
 from combined_reality.cli import main
 from combined_reality.live import simulate_run
-from combined_reality.identify import OnlineOptions
+from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
 from combined_reality.files import read_run, write_run
 from conftest import assert_refused
-from combined_reality.live import InlineEstimator, LockstepSimulator, ReplayRig, run_session
+from combined_reality.live import InlineEstimator, LockstepSimulator, PipelinedEstimator, ReplayRig, run_session
 from hw.rig import Sample
 
 
@@ -52,6 +52,56 @@ def test_replay_as_fast_as_possible_records_every_sample_and_estimates(cyl_a, ru
     assert res.final.samples_seen >= run_a.n - 100
     assert abs(res.final.values["Fc"] - cyl_a.friction.Fc) < 0.01 * cyl_a.friction.Fc
 
+
+
+def _feed(est, run, block=20):
+    """Rows in blocks as a session sends them; [(rows sent when handed out, estimate)]."""
+    rows = np.vstack([run.t, run.u, run.x, run.p1, run.p2, np.zeros(run.n)])
+    out, sent = [], 0
+    for a in range(0, run.n, block):
+        est.add(rows[:, a:a + block])
+        sent += rows[:, a:a + block].shape[1]
+        out += [(sent, e) for e in est.poll()]
+    out += [(math.inf, e) for e in est.finish()]
+    est.close()
+    return out
+
+
+def test_the_pipelined_estimator_gives_the_inline_estimates_a_window_later_whatever_its_speed(cyl_a, run_a,
+                                                                                            monkeypatch):
+    """Replay as fast as possible updates in a thread beside the session: the very estimates of
+    the inline estimator (the same updates on the same rows), each handed out when the rows sent
+    reach the block that made it due plus one window, also when the thread is slow."""
+    run = run_a.slice(0, 9000)
+    inline = _feed(InlineEstimator(cyl_a, run.sample_period, OnlineOptions()), run)
+    fast = _feed(PipelinedEstimator(cyl_a, run.sample_period, OnlineOptions()), run)
+    update = MovingHorizonEstimator.update
+    rng = np.random.default_rng(0)
+
+    def slow_update(self):
+        time.sleep(float(rng.uniform(0.0, 0.3)))  # a thread that falls behind, by varying amounts
+        return update(self)
+
+    monkeypatch.setattr(MovingHorizonEstimator, "update", slow_update)
+    slow = _feed(PipelinedEstimator(cyl_a, run.sample_period, OnlineOptions()), run)
+    assert len(inline) == len(fast) == len(slow) >= 4
+    N = round(OnlineOptions().window_s / run.sample_period)
+    for (k_in, a), (k_fast, b), (k_slow, c) in zip(inline, fast, slow):
+        assert a.t == b.t == c.t and a.values == b.values == c.values and a.std == b.std == c.std
+        # handed out a window after the block that made it due, however long the update took
+        assert k_fast == k_slow == (k_in + N if k_in + N <= run.n else math.inf)
+
+
+def test_a_failing_pipelined_estimator_is_reported_and_never_blocks_the_session(cyl_a, run_a, monkeypatch):
+    def broken_update(self):
+        raise np.linalg.LinAlgError("singular matrix")
+
+    monkeypatch.setattr(MovingHorizonEstimator, "update", broken_update)
+    run = run_a.slice(0, 6000)
+    res = run_session(cyl_a, ReplayRig(run, math.inf),
+                      estimator=PipelinedEstimator(cyl_a, run.sample_period, OnlineOptions()))
+    assert res.stop_reason == "end of the recorded run" and res.run.n == run.n and res.final is None
+    assert any("online estimator failed: LinAlgError: singular matrix" in e for e in res.events)
 
 def _cli(*args, env=None, **kw):
     env = dict(env or os.environ, PYTHONUNBUFFERED="1")

@@ -89,7 +89,7 @@ def run_live(args) -> int:
         console.warn(msg)
 
     rig = open_rig(args, cyl, effects, rate=args.rate, paced=True, on_event=link_event)
-    return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, inline=False,
+    return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, pipelined=False,
                         console=console, link_events=link_events)
 
 
@@ -104,7 +104,7 @@ def run_replay(args) -> int:
         raise UsageError(f"{args.run}: a run needs at least 3 samples.")
     speed = math.inf if args.speed == "max" else positive_float(args.speed, "--speed")
     return _run_session(args, cyl, ReplayRig(run, speed), None, None, None, run.sample_period,
-                        inline=speed == math.inf, console=Console(status=not args.quiet))
+                        pipelined=speed == math.inf, console=Console(status=not args.quiet))
 
 
 def _online_options(args, cyl):
@@ -184,13 +184,13 @@ class _Signals:
             signal.signal(sig, handler)
 
 
-def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, inline: bool,
+def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, pipelined: bool,
                  console, link_events: list[str] | None = None) -> int:
     from hw.realtime import realtime_available
 
     from ..files import clean_json, cylinder_tag, write_json_atomic
-    from ..live import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, InlineEstimator, LockstepSimulator,
-                        ProcessEstimator, run_session)
+    from ..live import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, LockstepSimulator,
+                        PipelinedEstimator, ProcessEstimator, run_session)
 
     options = _online_options(args, cyl)
     rr_sink = None
@@ -216,12 +216,15 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         sinks = [s for s in (ConsoleSink(console, link_counters), rr_sink) if s is not None]
         if not args.quiet:
             console.say("preparing the model (compiled once, then cached) ...")
-        simulator = LockstepSimulator(cyl)
+        # replayed as fast as possible, the estimates reach the model a window after their data
+        # (PipelinedEstimator): it runs on from each for up to two windows before it restarts
+        lag = 2 * options.window_s if pipelined else 0.0
+        simulator = LockstepSimulator(cyl, resync_s=max(2.0, lag + 0.5), history_s=max(10.0, lag + 2.0))
         # a live rig is acquired at real-time priority where the OS grants it; the estimator
         # then runs ahead of ordinary work (below acquisition), else behind acquisition
         realtime = None if args.command == "replay" else _ACQUISITION_PRIORITY
-        if inline:
-            estimator = InlineEstimator(cyl, sample_period, options)
+        if pipelined:
+            estimator = PipelinedEstimator(cyl, sample_period, options)
         else:
             ahead = realtime is not None and realtime_available()
             estimator = ProcessEstimator(cyl, sample_period, options,

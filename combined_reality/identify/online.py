@@ -469,13 +469,7 @@ class MovingHorizonEstimator:
                     S[:, k] = X[:, k - 1, M - 1]
                 X[:, k] = np.asarray(self.sf.interval(S[:, k], W[:, k * (M + 1):(k + 1) * (M + 1)], p[:npar],
                                                       lay["H"][:, k * M:(k + 1) * M]))
-        else:
-            ev0 = evaluate(S, p, False)
-            if ev0 is None:
-                raise RuntimeError(f"online estimate: the simulation of the window at t = {t_first:.3f} s "
-                                   "is not finite; check the cylinder file against the rig")
-            X = ev0[2]
-        E, D = prob.residuals(S, X)
+        # (else: the first iteration's evaluation is the first simulation of these nodes)
         lam, mu, it = 0.0, 0.0, 0
         lin_at = step_taken = None
         # the first window starts cold; a piece that starts in the new data (after an outage)

@@ -5,9 +5,10 @@ from .console import Console
 from .experiment import run_program, simulate_run
 from .programs import PROGRAMS, PositionProgram, ProgramOptions, guarded, make_program
 from .session import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, InlineEstimator, LockstepSimulator,
-                      PacedRig, ProcessEstimator, ReplayRig, SessionResult, run_session, set_estimator_priority)
+                      PacedRig, PipelinedEstimator, ProcessEstimator, ReplayRig, SessionResult, run_session, set_estimator_priority)
 
 __all__ = ["Console", "run_program", "simulate_run", "PROGRAMS", "PositionProgram", "ProgramOptions", "guarded",
-           "make_program", "ConsoleSink", "InlineEstimator", "LockstepSimulator", "PacedRig", "ProcessEstimator",
+           "make_program", "ConsoleSink", "InlineEstimator", "LockstepSimulator", "PacedRig", "PipelinedEstimator",
+           "ProcessEstimator",
            "ReplayRig", "SessionResult", "run_session", "ESTIMATOR_NICE_AHEAD", "ESTIMATOR_NICE_BEHIND",
            "set_estimator_priority"]

@@ -15,6 +15,7 @@ import multiprocessing as mp
 import os
 import queue
 import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Protocol, Sequence
@@ -138,6 +139,92 @@ class InlineEstimator:
     def close(self) -> None:
         pass
 
+
+
+class PipelinedEstimator:
+    """The moving-horizon estimator in a worker thread, one window behind the rows: replay as
+    fast as possible on two cores (the compiled model and numpy release the GIL, so one
+    window's update runs while the next window's rows are read, recorded and simulated).
+
+    Deterministic whatever the machine's speed: the thread updates exactly as InlineEstimator
+    with catch_up does, and an estimate is handed out once the rows sent reach the end of the
+    block that made it due plus one window (poll waits for the thread if it is behind)."""
+
+    def __init__(self, cyl: Cylinder, sample_period: float, options: OnlineOptions, effects: Sequence[Effect] = ()):
+        self._inline = InlineEstimator(cyl, sample_period, options, effects, catch_up=True)
+        self.lag = self._inline.mhe.N  # rows
+        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._cond = threading.Condition()
+        self._sent = 0
+        self._taken = 0  # rows the thread has taken in, with the updates they made due
+        self._due: list[tuple[int, OnlineEstimate]] = []  # (rows taken when due, estimate), in order
+        self._finished = False
+        self.error: str | None = None
+        self._thread = threading.Thread(target=self._work, name="combined-reality-estimator", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        # one BLAS thread, as in the estimator process: its own threads would compete with this
+        # one and the session's for two cores
+        with threadpool_limits(1):
+            while True:
+                msg = self._inbox.get()
+                if msg is None:
+                    return
+                try:
+                    if msg is _FINISH:
+                        out = self._inline.finish()
+                    else:
+                        self._inline.add(msg)
+                        out = self._inline.poll()
+                except Exception as exc:  # reported to the session, which keeps acquiring
+                    with self._cond:
+                        self.error = f"{type(exc).__name__}: {exc}"
+                        self._cond.notify_all()
+                    return
+                with self._cond:
+                    if msg is _FINISH:
+                        self._finished = True
+                    else:
+                        self._taken += msg.shape[1]
+                    self._due.extend((self._taken, e) for e in out)
+                    self._cond.notify_all()
+
+    def add(self, rows: np.ndarray) -> None:
+        self._sent += rows.shape[1]
+        self._inbox.put(np.array(rows, float))
+
+    def _take(self, upto: float) -> list[OnlineEstimate]:
+        i = 0
+        while i < len(self._due) and self._due[i][0] <= upto:
+            i += 1
+        out = [e for _, e in self._due[:i]]
+        del self._due[:i]
+        return out
+
+    def poll(self) -> list[OnlineEstimate]:
+        target = self._sent - self.lag
+        with self._cond:
+            self._cond.wait_for(lambda: self._taken >= target or self.error is not None)
+            return self._take(target)
+
+    def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = lambda: False) -> list[OnlineEstimate]:
+        self._inbox.put(_FINISH)
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not (self._finished or self.error is not None) and not cancelled():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(min(0.1, left))
+            return self._take(math.inf)
+
+    def close(self) -> None:
+        self._inbox.put(None)
+        self._thread.join(timeout=1.0)  # a daemon: an update still running ends with the process
+
+
+_FINISH = object()  # PipelinedEstimator's inbox: flush and finish
 
 # The estimator's nice increment. Behind acquisition and the link where acquisition has no
 # real-time priority (they share the time-sharing scheduler); ahead of ordinary work where
@@ -289,7 +376,8 @@ class LockstepSimulator:
         self.state: np.ndarray | None = None  # at the last row seen
         self._t_sync = -math.inf
         self._pending: tuple[float, np.ndarray] | None = None  # (t, state) of the newest estimate
-        self._hist = np.empty((3, 0))  # recent rows (t, u, x)
+        self._hist = np.empty((3, 4 * block))  # recent rows (t, u, x): the first _n_hist columns
+        self._n_hist = 0
         ix = plant.state_names.index
         self._out = [ix("x"), ix("p1"), ix("p2"), ix("v")]
         self._measured = (math.nan, math.nan, math.nan)  # the last measured x, p1, p2
@@ -311,6 +399,21 @@ class LockstepSimulator:
             s0 = X[:, m - 1]
         return out
 
+    def _remember(self, t: np.ndarray, u: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The rows of at least the last history_s with this block's last, as a view (the
+        buffer is compacted when full: a copy per block cost more than the block's simulation)."""
+        n, h = len(t), self._hist
+        if self._n_hist + n > h.shape[1]:
+            keep = np.flatnonzero(h[0, :self._n_hist] >= t[-1] - self.history_s)
+            kept = h[:, keep[0]:self._n_hist] if len(keep) else h[:, :0]
+            if kept.shape[1] + n > h.shape[1] // 2:  # room for as many rows again before the next compaction
+                h = np.empty((3, 2 * (kept.shape[1] + n)))
+            h[:, :kept.shape[1]] = kept.copy()
+            self._hist, self._n_hist = h, kept.shape[1]
+        h[:, self._n_hist:self._n_hist + n] = (t, u, x)
+        self._n_hist += n
+        return h[:, :self._n_hist]
+
     def _nearest_measured(self, *values: float) -> tuple[float, float, float]:
         """(x, p1, p2) with the last measured value standing in for one not measured now."""
         out = tuple(v if math.isfinite(v) else last for v, last in zip(values, self._measured))
@@ -321,12 +424,12 @@ class LockstepSimulator:
         """Simulated (x, p1, p2, v, friction) at each row's time: (5, n), n <= block."""
         t, u, x, p1, p2 = rows
         n, nx = len(t), self.plant.nx
-        hist = np.hstack([self._hist, np.vstack([t, u, x])])
-        hist = hist[:, hist[0] >= t[-1] - self.history_s]
+        hist = self._remember(t, u, x)
         if self._pending is not None and self.state is not None:
             te, se = self._pending
             i = int(np.searchsorted(hist[0], te - 1e-9))
-            if i < hist.shape[1] and abs(hist[0, i] - te) < 1e-6 and hist[0, i] <= t[0] - 1e-12:
+            if (i < hist.shape[1] and abs(hist[0, i] - te) < 1e-6 and hist[0, i] <= t[0] - 1e-12
+                    and te >= t[-1] - self.history_s):
                 j = hist.shape[1] - n  # rows before this block: carry the estimate up to the last of them
                 hs = np.diff(hist[0, i:j + 1])[: j - i - 1] if j - i > 1 else np.empty(0)
                 self.state = self._run(se, hist[1, i:j - 1], hs)[:, -1] if len(hs) else se
@@ -348,22 +451,21 @@ class LockstepSimulator:
                 v = float(np.polyfit(tt[ok], xx[ok], 2)[1]) if ok.sum() >= 4 else 0.0
                 states[:, k] = self.plant.initial_state(self.cyl, *self._nearest_measured(x[k], p1[k], p2[k]), v)
                 self._t_sync = t[k]
-            else:
-                h = t[k] - self._last[0]
-                states[:, k] = self._run(self.state, np.array([self._last[1]]), np.array([h]))[:, 0]
-            self.state = states[:, k]
-            self._last = (t[k], u[k])
-            k += 1
-            # the rest of the block in one call, up to a resynchronisation
-            m = 0
+                self.state = states[:, k]
+                self._last = (t[k], u[k])
+                k += 1
+                continue
+            # this row and the rest of the block in one call, up to a resynchronisation: each
+            # row is the step from the row before it, holding that row's command
+            m = 1
             while k + m < n and t[k + m] - self._t_sync < self.resync_s:
                 m += 1
-            if m:
-                states[:, k:k + m] = self._run(self.state, u[k - 1:k - 1 + m], t[k:k + m] - t[k - 1:k - 1 + m])
-                self.state = states[:, k + m - 1]
-                self._last = (t[k + m - 1], u[k + m - 1])
-                k += m
-        self._hist = hist
+            t_from = np.r_[self._last[0], t[k:k + m - 1]]
+            u_held = np.r_[self._last[1], u[k:k + m - 1]]
+            states[:, k:k + m] = self._run(self.state, u_held, t[k:k + m] - t_from)
+            self.state = states[:, k + m - 1]
+            self._last = (t[k + m - 1], u[k + m - 1])
+            k += m
         S = np.zeros((nx, self.B))
         S[:, :n] = states
         Uf = np.zeros(self.B)
