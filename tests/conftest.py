@@ -111,8 +111,21 @@ class BusyProcesses:
         self._hogs = []
 
 
+@pytest.fixture(scope="session")
+def realtime_models(cyl_a):
+    """The model functions of a live session on the default cylinder, built before any busy
+    processes start: the lock-step simulator's (which the virtual rig shares) and the online
+    estimator's. Compiled under that load into CI's fresh cache, they took the first live test
+    to 77-100 s (38 s otherwise), with both busy processes burning the cores all along."""
+    from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
+    from combined_reality.live import LockstepSimulator
+
+    LockstepSimulator(cyl_a)
+    MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions())
+
+
 @pytest.fixture
-def busy_machine():
+def busy_machine(realtime_models):
     """Two busy processes beside the test, as on a lab PC doing other work: the real-time
     tests must hold what they assert under this load (on a 2-core machine, more than all of it).
     A test whose real-time part ends early stops them (busy_machine.stop()): work after it, such

@@ -103,6 +103,27 @@ def test_lost_samples_are_bridged_and_the_commands_held_meanwhile_estimated(cyl_
     assert abs(est[-1].values["Fv"] - cyl_a.value("Fv")) < 0.01 * cyl_a.value("Fv")
 
 
+
+def test_threads_share_the_window_and_change_no_estimate(cyl_a, lossy_a):
+    """The compiled map gives each thread a contiguous block of slots: the window's intervals
+    are dealt to the blocks in turn, so each thread gets its share of the real ones (a padded
+    window had them all in the first block: two threads took as long as one). The estimates,
+    gaps bridged and all, are the same to the last bit."""
+    from combined_reality.identify.online import _PaddedProblem
+
+    mhe = MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions(threads=1))
+    prob = _PaddedProblem(mhe.sf, 45, 2, mhe.wts, mhe.sscale)
+    assert prob.capacity == 46 and sorted(prob.slot) == list(range(46))
+    for kw in (10, 20, 23, 24):  # real intervals per block: equal, or one apart
+        per_block = np.bincount(prob.slot[:kw] // 23, minlength=2)
+        assert per_block.max() - per_block.min() <= 1, (kw, per_block)
+    run = lossy_a.slice(0, 6000)
+    one = _stream(mhe, run)
+    two = _stream(MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions(threads=2)), run)
+    assert len(one) == len(two) > 15 and sum(e.gaps for e in one) > 100
+    for a, b in zip(one, two):
+        assert a.values == b.values and a.std == b.std and a.sigma == b.sigma
+
 def test_holding_the_last_command_across_a_gap_would_not_fit(cyl_a, lossy_a):
     """Why the command over a gap is estimated: held from the sample before, the windows do
     not fit (the estimator's bridge must beat this)."""

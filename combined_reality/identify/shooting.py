@@ -159,15 +159,20 @@ class ShootingProblem:
         return E, D, X, Sens
 
     def residuals(self, S: np.ndarray, X: np.ndarray):
-        """Weighted output residuals E (K, M, ny) and scaled defects D of trajectories X."""
-        M = self.M
-        # predicted outputs at the interval's own samples: node state, then the first M-1 steps
-        oi = self.out_idx
-        Ypred = np.concatenate([S[oi, :, None], X[oi][:, :, : M - 1]], axis=2).transpose(1, 2, 0)
-        E = (Ypred - self.Y) * self.wts * self.mask  # (K, M, ny)
-        nxt = self.nxt
-        D = (X[:, nxt, M - 1] - S[:, nxt + 1]) / self.sscale[:, None]  # scaled defects (nx, n_links)
-        return E, D
+        return shooting_residuals(S, X, self.Y, self.mask, self.wts, self.sscale, self.nxt, self.out_idx)
+
+
+def shooting_residuals(S: np.ndarray, X: np.ndarray, Y: np.ndarray, mask: np.ndarray, wts: np.ndarray,
+                       sscale: np.ndarray, nxt: np.ndarray, out_idx: Sequence[int]):
+    """Weighted output residuals E (K, M, ny) and scaled continuity defects D (nx, len(nxt)) of
+    node states S (nx, K) and trajectories X (nx, K, M); nxt: the intervals whose successor is
+    joined to them by continuity."""
+    M = X.shape[2]
+    # predicted outputs at the interval's own samples: node state, then the first M-1 steps
+    Ypred = np.concatenate([S[out_idx, :, None], X[out_idx][:, :, : M - 1]], axis=2).transpose(1, 2, 0)
+    E = (Ypred - Y) * wts * mask  # (K, M, ny)
+    D = (X[:, nxt, M - 1] - S[:, nxt + 1]) / sscale[:, None]  # scaled defects (nx, n_links)
+    return E, D
 
 
 def warm_nodes(plant: Plant, cyl: Cylinder, S: np.ndarray, warm: np.ndarray) -> np.ndarray:
