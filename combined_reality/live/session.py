@@ -140,7 +140,6 @@ class InlineEstimator:
         pass
 
 
-
 class PipelinedEstimator:
     """The moving-horizon estimator in a worker thread, one window behind the rows: replay as
     fast as possible on two cores (the compiled model and numpy release the GIL, so one
