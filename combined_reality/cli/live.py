@@ -2,7 +2,9 @@
 online estimation) and `combined-reality replay` (a recorded run through the same session)."""
 from __future__ import annotations
 
+import dataclasses
 import math
+import os
 import signal
 import time
 from pathlib import Path
@@ -223,11 +225,13 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         # a live rig is acquired at real-time priority where the OS grants it; the estimator
         # then runs ahead of ordinary work (below acquisition), else behind acquisition
         realtime = None if args.command == "replay" else _ACQUISITION_PRIORITY
+        # two threads for the estimator's model where nothing real-time can suffer from them
+        two = dataclasses.replace(options, threads=min(2, os.cpu_count() or 1))
         if pipelined:
-            estimator = PipelinedEstimator(cyl, sample_period, options)
+            estimator = PipelinedEstimator(cyl, sample_period, two)
         else:
             ahead = realtime is not None and realtime_available()
-            estimator = ProcessEstimator(cyl, sample_period, options,
+            estimator = ProcessEstimator(cyl, sample_period, two if ahead else options,
                                          nice=ESTIMATOR_NICE_AHEAD if ahead else ESTIMATOR_NICE_BEHIND)
         comments = [cylinder_tag(cyl), f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
                     f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import bisect
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -72,11 +71,12 @@ class OnlineOptions:
     memory_s: float = math.inf  # forgetting time constant of the arrival cost
     prefit: bool = True  # first window: start from the equation-error fit
     integrator: IntegratorOptions = IntegratorOptions()
-    # threads of the compiled window evaluation (the estimates do not depend on it): two where
-    # there are two cores, which halves the evaluation (update p50 33 -> 23 ms, p95 55 -> 37 ms
-    # on this 2-core machine) and, beside busy processes, gets the estimator a larger share of
-    # the cores; acquisition keeps its own (real-time priority, or the estimator niced behind it)
-    threads: int = min(2, os.cpu_count() or 1)
+    # threads of the compiled window evaluation (the estimates do not depend on it). One by
+    # default: the estimator runs beside acquisition, and a second thread took a core from
+    # whatever else runs (a host-side velocity loop on the other core came late). Where nothing
+    # real-time can suffer, two halve the evaluation (update p50 33 -> 23 ms, p95 55 -> 37 ms on
+    # a 2-core machine): a live session whose acquisition runs at real-time priority, and replay
+    threads: int = 1
     bridge_s: float = 0.01  # lost samples up to this long are bridged (their command estimated)
     max_bridged: int = 100  # bridged gaps per window at most (each adds an unknown); more start new pieces
     cluster_s: float = 1.0  # residuals may be correlated within about this long (the robust std)
