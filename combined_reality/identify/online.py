@@ -158,22 +158,11 @@ class _PaddedProblem:
 
     def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
         """(E, D, X, Sens) of the window, as ShootingProblem.evaluate gives them."""
-        prob, Kw = self.prob, self.Kw
-        S_all = self._pad(S)
-        if prob.possible is not None and not np.all((S_all >= prob.possible[0]) & (S_all <= prob.possible[1])):
+        sim = self.prob.simulate(self._pad(S)[:, self.interval_at], p, with_sens)
+        if sim is None:
             return None
-        nx, K, M = prob.nx, self.capacity, self.M
-        S_slots = S_all[:, self.interval_at]
-        if with_sens:
-            Xr, Sr = prob.f_sens(S_slots, prob.W, p, prob.H)
-            X = Xr.reshape(nx, K, M)[:, self.slot]
-            Sens = Sr.reshape(nx, K, M, nx + prob.nth)[:, self.slot[:Kw]]
-        else:
-            X = prob.f_sim(S_slots, prob.W, p, prob.H)[0].reshape(nx, K, M)[:, self.slot]
-            Sens = None
-        if not np.all(np.isfinite(X)):
-            return None
-        X = X[:, :Kw]
+        mine = self.slot[:self.Kw]  # back to the window's order
+        X, Sens = sim[0][:, mine], None if sim[1] is None else sim[1][:, mine]
         E, D = self.residuals(S, X)
         return E, D, X, Sens
 

@@ -138,7 +138,16 @@ class ShootingProblem:
         self.out_idx = [plant.state_names.index(n) for n in plant.output_names]
 
     def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
-        """(E, D, X, Sens) or None when the simulation is not finite or a node state impossible.
+        """(E, D, X, Sens) or None when the simulation is not finite or a node state impossible."""
+        sim = self.simulate(S, p, with_sens)
+        if sim is None:
+            return None
+        E, D = self.residuals(S, sim[0])
+        return E, D, *sim
+
+    def simulate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
+        """(X, Sens) of the intervals from node states S, or None when the simulation is not
+        finite or a node state impossible.
 
         A step from a far-off linearisation can put node states at 1e20 Pa: simulating from
         there refines every sample and costs ten normal evaluations (a strong dead zone's
@@ -155,8 +164,7 @@ class ShootingProblem:
             Sens = None
         if not np.all(np.isfinite(X)):
             return None
-        E, D = self.residuals(S, X)
-        return E, D, X, Sens
+        return X, Sens
 
     def residuals(self, S: np.ndarray, X: np.ndarray):
         return shooting_residuals(S, X, self.Y, self.mask, self.wts, self.sscale, self.nxt, self.out_idx)
