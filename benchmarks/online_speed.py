@@ -4,14 +4,15 @@
 
 (a) moving-horizon update over a 2 s window at 1 kHz, streamed in 0.1 s chunks of a 30 s
     virtual-rig run (warm-started as in a live session, one BLAS thread as in the estimator
-    process; the model on one thread, and on two as a live session runs it where acquisition
-    is real-time, on the machine as it is and at the raised priority): p50 and p95 wall time per update, against the 50 ms budget that lets updates
+    process): p50 and p95 wall time per update, against the 50 ms budget that lets updates
     run at >= 10 Hz beside a 1 kHz stream, on the machine as it is and with two busy
     processes beside (python -c "while True: pass", twice), each without and with 1 % of the
     samples lost on the link, at nice 0 and at the raised priority a live session gives its
-    estimator where acquisition runs in real time (where the OS grants it); and as a ratio to the baseline measured in the same run: the
-    offline identifier solving the same 2 s window from the same start (what a user would
-    do without the estimator);
+    estimator where acquisition runs in real time (where the OS grants it). The model runs on
+    one thread, and on two where a live session runs it so (acquisition real-time: the raised
+    priority, and one row on the machine as it is). As a ratio to the baseline measured in the
+    same run: the offline identifier solving the same 2 s window from the same start (what a
+    user would do without the estimator);
 (b) `combined-reality replay --speed max` of a 20 s run as a separate process: real
     time / wall time (target >= 10; median of 3 starts with the bytecode cached, as on an
     installed copy), the estimator's final Fc, Fv against the truth.

@@ -97,7 +97,7 @@ def run_50(cyl_50):
 
 
 class BusyProcesses:
-    """Two busy processes (python -c "while True: pass") until stop()."""
+    """`n` busy processes (python -c "while True: pass") until stop()."""
 
     def __init__(self, n: int = 2):
         import subprocess

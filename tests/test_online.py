@@ -103,7 +103,6 @@ def test_lost_samples_are_bridged_and_the_commands_held_meanwhile_estimated(cyl_
     assert abs(est[-1].values["Fv"] - cyl_a.value("Fv")) < 0.01 * cyl_a.value("Fv")
 
 
-
 def test_threads_share_the_window_and_change_no_estimate(cyl_a, lossy_a):
     """The compiled map gives each thread a contiguous block of slots: the window's intervals
     are dealt to the blocks in turn, so each thread gets its share of the real ones (a padded
@@ -123,6 +122,7 @@ def test_threads_share_the_window_and_change_no_estimate(cyl_a, lossy_a):
     assert len(one) == len(two) > 15 and sum(e.gaps for e in one) > 100
     for a, b in zip(one, two):
         assert a.values == b.values and a.std == b.std and a.sigma == b.sigma
+
 
 def test_holding_the_last_command_across_a_gap_would_not_fit(cyl_a, lossy_a):
     """Why the command over a gap is estimated: held from the sample before, the windows do

@@ -53,7 +53,6 @@ def test_replay_as_fast_as_possible_records_every_sample_and_estimates(cyl_a, ru
     assert abs(res.final.values["Fc"] - cyl_a.friction.Fc) < 0.01 * cyl_a.friction.Fc
 
 
-
 def _feed(est, run, block=20):
     """Rows in blocks as a session sends them; [(rows sent when handed out, estimate)]."""
     rows = np.vstack([run.t, run.u, run.x, run.p1, run.p2, np.zeros(run.n)])
@@ -102,6 +101,7 @@ def test_a_failing_pipelined_estimator_is_reported_and_never_blocks_the_session(
                       estimator=PipelinedEstimator(cyl_a, run.sample_period, OnlineOptions()))
     assert res.stop_reason == "end of the recorded run" and res.run.n == run.n and res.final is None
     assert any("online estimator failed: LinAlgError: singular matrix" in e for e in res.events)
+
 
 def _cli(*args, env=None, **kw):
     env = dict(env or os.environ, PYTHONUNBUFFERED="1")
