@@ -396,6 +396,7 @@ def test_sweep_end_to_end_over_the_serial_link(serial_rig, cyl, tmp_path, monkey
     code = main(["procedure", "sweep", "--serial", path, "--config", str(cfg), "--speeds", "2", "--vmin", "0.05",
                  "--vmax", "0.15", "--out", str(out), "--json", str(js), "-q"], monkeypatch)
     err = capsys.readouterr().err
+    assert out.exists() and js.exists(), (code, err)  # a failing sweep still writes both, saying why
     rows, res = read_points(out), json.loads(js.read_text())
     print(f"serial sweep: {rows.tolist()}; skipped {res['skipped']}; retried {res['retried']}; "
           f"session {res['session']}")
