@@ -11,7 +11,12 @@ from __future__ import annotations
 import os
 import threading
 
-__all__ = ["make_realtime", "make_normal", "realtime_available"]
+__all__ = ["make_realtime", "make_normal", "realtime_available", "HOST_PRIORITY"]
+
+# SCHED_FIFO priority of a host loop that answers a rig's samples (a live session's
+# acquisition, a friction procedure): below the virtual rig's loop (10) and its reader (9),
+# which may run on the same machine
+HOST_PRIORITY = 5
 
 
 def _tid(thread: threading.Thread | None) -> int | None:

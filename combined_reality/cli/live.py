@@ -13,11 +13,6 @@ from .common import (EFFECT_HELP, UsageError, estimate_list, load_config, open_r
                      rerun_mode)
 
 
-# SCHED_FIFO priority of a live session's acquisition: below the virtual rig's loop (10) and
-# its reader (9), which may run on the same machine
-_ACQUISITION_PRIORITY = 5
-
-
 def _add_online_arguments(a) -> None:
     a.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
     a.add_argument("--json", help="write the final online estimate (identify format, plus its history)")
@@ -188,7 +183,7 @@ class _Signals:
 
 def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, pipelined: bool,
                  console, link_events: list[str] | None = None) -> int:
-    from hw.realtime import realtime_available
+    from hw.realtime import HOST_PRIORITY, realtime_available
 
     from ..files import clean_json, cylinder_tag, write_json_atomic
     from ..live import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, LockstepSimulator,
@@ -224,7 +219,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         simulator = LockstepSimulator(cyl, resync_s=max(2.0, lag + 0.5), history_s=max(10.0, lag + 2.0))
         # a live rig is acquired at real-time priority where the OS grants it; the estimator
         # then runs ahead of ordinary work (below acquisition), else behind acquisition
-        realtime = None if args.command == "replay" else _ACQUISITION_PRIORITY
+        realtime = None if args.command == "replay" else HOST_PRIORITY
         # two threads for the estimator's model where nothing real-time can suffer from them
         two = dataclasses.replace(options, threads=min(2, os.cpu_count() or 1))
         if pipelined:

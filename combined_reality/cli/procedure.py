@@ -74,6 +74,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from hw.realtime import HOST_PRIORITY
     from hw.rig import RigError
 
     from ..files import cylinder_tag
@@ -94,13 +95,20 @@ def run(args) -> int:
     progress = None if args.quiet else eprint
     t_wall = time.perf_counter()
     try:
-        result = _with_sigterm(lambda: _run_procedure(args.kind, rig, cyl, opts, args.record, comments, progress))
+        # a rig at its own clock is answered at real-time priority where the OS grants it (an
+        # unpaced virtual rig waits for the host: that loop would never let go of the CPU)
+        realtime = HOST_PRIORITY if not args.virtual or args.realtime else None
+        result = _with_sigterm(lambda: _run_procedure(args.kind, rig, cyl, opts, args.record, comments, progress,
+                                                      realtime))
     except (ProcedureError, RigError) as e:  # the procedure has centred the valve already
-        eprint(f"combined-reality procedure: {e}" + (f" (recorded so far: {args.record})" if args.record else ""))
+        _write_partial(args, cyl, e, comments, where, time.perf_counter() - t_wall, str(e))
+        eprint(f"combined-reality procedure: {e}" + (f" (recorded so far: {args.record})" if args.record else "")
+               + _partial_said(args, e))
         return 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
+        _write_partial(args, cyl, e, comments, where, time.perf_counter() - t_wall, "interrupted")
         eprint("combined-reality procedure: interrupted: valve centred"
-                    + (f", recording {args.record} closed." if args.record else "."))
+               + (f", recording {args.record} closed" if args.record else "") + _partial_said(args, e) + ".")
         return 130
     wall = time.perf_counter() - t_wall
     _write_outputs(args, cyl, result, comments, where, wall)
@@ -178,17 +186,34 @@ def _with_sigterm(fn):
         signal.signal(signal.SIGTERM, previous)
 
 
-def _run_procedure(kind, rig, cyl, opts, record, comments, progress):
+def _run_procedure(kind, rig, cyl, opts, record, comments, progress, realtime):
     from ..friction.procedures import breakaway_test, speed_sweep
 
     fn = breakaway_test if kind == "breakaway" else speed_sweep
     try:
-        return fn(rig, cyl, opts, record_to=record, record_comments=comments, progress=progress)
+        return fn(rig, cyl, opts, record_to=record, record_comments=comments, progress=progress, realtime=realtime)
     finally:
         rig.stop()  # the procedure stops the rig itself; this covers a failure before it started (idempotent)
 
 
-def _write_outputs(args, cyl, result, comments, where: str, wall: float) -> None:
+def _write_partial(args, cyl, e: BaseException, comments, where: str, wall: float, why: str) -> None:
+    """The points measured before the procedure ended early, marked so in both files."""
+    partial = getattr(e, "partial", None)
+    if partial is not None:
+        _write_outputs(args, cyl, partial, comments + [f"ended early, these are the points before: {why}"], where,
+                       wall, error=why)
+
+
+def _partial_said(args, e: BaseException) -> str:
+    partial = getattr(e, "partial", None)
+    if partial is None:
+        return ""
+    n = len(partial.table())
+    return f"; the {n} point{'' if n == 1 else 's'} measured before are in {args.out}" + \
+        (f" and {args.json}" if args.json else "")
+
+
+def _write_outputs(args, cyl, result, comments, where: str, wall: float, error: str | None = None) -> None:
     from ..files import clean_json, write_json_atomic
     from ..friction.procedures import write_points
 
@@ -210,6 +235,8 @@ def _write_outputs(args, cyl, result, comments, where: str, wall: float) -> None
     write_points(args.out, result.table(), comments + what + [details])
     out = {**result.to_json(), "config": str(cyl.source), "rig": where, "record": args.record, "out": args.out,
            "wall_s": round(wall, 3)}
+    if error is not None:
+        out["error"] = error
     if args.json:
         write_json_atomic(args.json, clean_json(out))
     if not args.quiet:

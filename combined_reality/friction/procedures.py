@@ -31,7 +31,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from hw.rig import Rig, Sample, Status
+from hw.realtime import make_normal, make_realtime
+from hw.rig import Rig, RigError, Sample, Status
 from sim.cylinder import Cylinder
 from sim.flow import G, KAPPA, R_AIR, RHO0, T0
 from sim.plant import build_plant
@@ -42,8 +43,8 @@ from ..live import ProgramOptions, guarded
 
 __all__ = ["ProcedureError", "SafetyOptions", "BreakawayOptions", "SweepOptions", "BreakawayTrial",
            "DirectionSummary", "BreakawayResult", "SweepPoint", "SweepResult", "breakaway_test", "speed_sweep",
-           "target_speeds", "default_speed_range", "net_force", "force_limits", "write_points", "DIRECTION_NAMES",
-           "TABLE_COLUMNS"]
+           "target_speeds", "default_speed_range", "steady_speed", "fast_velocity", "net_force", "force_limits",
+           "write_points", "DIRECTION_NAMES", "TABLE_COLUMNS"]
 
 Progress = Callable[[str], None]
 DIRECTION_NAMES = {1: "extension", -1: "retraction"}
@@ -56,6 +57,12 @@ _HALF = 15  # half-window of friction_from_newton's Savitzky-Golay derivatives (
 
 class ProcedureError(RuntimeError):
     """The procedure cannot go on (the rig does not move, does not answer, leaves the stroke); one sentence."""
+
+
+def _keep_partial(e: BaseException, result: "SweepResult | BreakawayResult") -> None:
+    """What a procedure measured before it failed or was interrupted rides on the exception
+    (`partial`), for the caller to write out: nothing measured is lost."""
+    e.partial = result  # type: ignore[attr-defined]
 
 
 # ------------------------------------------------------------------ options
@@ -360,8 +367,9 @@ class _Driver:
 
     def __init__(self, rig: Rig, cyl: Cylinder, safety: SafetyOptions, record_to, comments: Sequence[str],
                  progress: Progress | None, velocity_window: int = 15, force_window: int = 20,
-                 fast_force_window: int = 4):
-        self.rig, self.cyl, self.safety = rig, cyl, safety
+                 fast_force_window: int = 4, realtime: int | None = None):
+        self.rig, self.cyl, self.safety, self.realtime = rig, cyl, safety, realtime
+        self._made_realtime = False
         self.L = cyl.geometry.stroke
         self.lo, self.hi = safety.margin * self.L, (1 - safety.margin) * self.L  # the working range
         self._guard = ProgramOptions(u_max=safety.u_max, margin=safety.margin)
@@ -391,6 +399,13 @@ class _Driver:
         gc.freeze()
         try:
             self.rig.start()
+            if self.realtime is not None:  # the loop answers every sample: late answers make strokes ring
+                why = make_realtime(self.realtime)
+                self._made_realtime = why is None
+                why = why or getattr(self.rig, "realtime", lambda _p: None)(self.realtime)
+                if why is not None:
+                    self.say(f"the loop runs without real-time priority ({why}): on a busy machine its commands "
+                             "reach the rig late more often")
             self._take(self._read())
         except BaseException:
             self._close()
@@ -404,6 +419,8 @@ class _Driver:
         try:
             self.rig.stop()  # centres the valve
         finally:
+            if self._made_realtime:
+                make_normal()
             gc.unfreeze()
             if self.recorder is not None:
                 self.recorder.close()
@@ -554,33 +571,47 @@ class _Driver:
 # ------------------------------------------------------------------ breakaway
 
 def breakaway_test(rig: Rig, cyl: Cylinder, options: BreakawayOptions = BreakawayOptions(), *,
-                   record_to=None, record_comments: Sequence[str] = (),
-                   progress: Progress | None = None) -> BreakawayResult:
-    """The breakaway force per direction: `trials` ramps of the net force from rest until the piston moves."""
+                   record_to=None, record_comments: Sequence[str] = (), progress: Progress | None = None,
+                   realtime: int | None = None) -> BreakawayResult:
+    """The breakaway force per direction: `trials` ramps of the net force from rest until the piston moves.
+    `realtime`: the SCHED_FIFO priority of the loop (hw.realtime) for a rig at its own clock; None
+    for one that waits for the host (it would never let go of the CPU)."""
     opts = options
     limits = force_limits(cyl)
     x0 = opts.start * cyl.geometry.stroke
     trials: list[BreakawayTrial] = []
-    with _Driver(rig, cyl, opts.safety, record_to, record_comments, progress) as d:
-        for k in range(opts.trials):
-            for direction in opts.directions:
-                d.reposition(x0)
-                d.hold(opts.rest_s)
-                supply = limits[0] if direction > 0 else limits[1]
-                limit = opts.force_limit if opts.force_limit is not None else 0.9 * abs(supply)
-                i0, i_det = _force_ramp(d, direction, limit, opts)
-                d.hold(0.1)  # valve centred: the closed chambers brake the piston
-                trial = _breakaway_trial(d, direction, k + 1, i0, i_det, opts)
-                trials.append(trial)
-                d.say(f"breakaway {DIRECTION_NAMES[direction]:10s} {k + 1}/{opts.trials}: {trial.F:+8.3f} N "
-                      f"(at detection {trial.F_detect:+.3f} N, {1e3 * (trial.t_detect - trial.t_break):.0f} ms "
-                      f"later; ramp {trial.rate:+.3g} N/s, creep {trial.creep * 1e3:+.2f} mm)")
-        d.reposition(x0)
+    with _Driver(rig, cyl, opts.safety, record_to, record_comments, progress, realtime=realtime) as d:
+        try:
+            for k in range(opts.trials):
+                for direction in opts.directions:
+                    d.reposition(x0)
+                    d.hold(opts.rest_s)
+                    supply = limits[0] if direction > 0 else limits[1]
+                    limit = opts.force_limit if opts.force_limit is not None else 0.9 * abs(supply)
+                    i0, i_det = _force_ramp(d, direction, limit, opts)
+                    d.hold(0.1)  # valve centred: the closed chambers brake the piston
+                    trial = _breakaway_trial(d, direction, k + 1, i0, i_det, opts)
+                    trials.append(trial)
+                    d.say(f"breakaway {DIRECTION_NAMES[direction]:10s} {k + 1}/{opts.trials}: {trial.F:+8.3f} N "
+                          f"(at detection {trial.F_detect:+.3f} N, {1e3 * (trial.t_detect - trial.t_break):.0f} ms "
+                          f"later; ramp {trial.rate:+.3g} N/s, creep {trial.creep * 1e3:+.2f} mm)")
+            d.reposition(x0)
+        except (ProcedureError, RigError, KeyboardInterrupt) as e:
+            _keep_partial(e, _breakaway_result(trials, d.run(), d.counters(), opts))
+            raise
         d.warn_if_unhealthy("trials")
         run, counters = d.run(), d.counters()
+    return _breakaway_result(trials, run, counters, opts)
+
+
+def _breakaway_result(trials: list[BreakawayTrial], run: Run, counters: dict,
+                      opts: BreakawayOptions) -> BreakawayResult:
+    """The trials and, for each direction that has any, their summary."""
     summary = []
     for direction in opts.directions:
         mine = [t for t in trials if t.direction == direction]
+        if not mine:
+            continue
         vals = np.array([t.F for t in mine])
         # the speed at the peak: creep or pre-sliding, near zero; signed by the direction (a noisy
         # estimate of a near-zero speed may come out with the other sign) and never exactly 0,
@@ -671,42 +702,48 @@ def _breakaway_trial(d: _Driver, direction: int, trial: int, i0: int, i_det: int
 # ------------------------------------------------------------------ constant-speed sweep
 
 def speed_sweep(rig: Rig, cyl: Cylinder, options: SweepOptions = SweepOptions(), *, record_to=None,
-                record_comments: Sequence[str] = (), progress: Progress | None = None) -> SweepResult:
-    """One friction point per target speed and direction, from strokes at constant speed."""
+                record_comments: Sequence[str] = (), progress: Progress | None = None,
+                realtime: int | None = None) -> SweepResult:
+    """One friction point per target speed and direction, from strokes at constant speed
+    (`realtime` as for `breakaway_test`)."""
     opts = options
     speeds = target_speeds(cyl, opts)
     points: list[SweepPoint] = []
     skipped: list[dict] = []
     retried: list[dict] = []  # attempts run again, with why
-    with _Driver(rig, cyl, opts.safety, record_to, record_comments, progress) as d:
+    with _Driver(rig, cyl, opts.safety, record_to, record_comments, progress, realtime=realtime) as d:
         start_end = {1: d.lo, -1: d.hi}
-        d.reposition(start_end[opts.directions[0]])
-        d.hold(opts.rest_s)
-        for k, v_target in enumerate(speeds.tolist()):
-            for direction in opts.directions:
-                head = f"sweep {DIRECTION_NAMES[direction]:10s} {v_target:.4g} m/s ({k + 1}/{len(speeds)}):"
-                for attempt in range(1, opts.attempts + 1):
-                    if len(opts.directions) == 1 or attempt > 1:  # back to this direction's start
-                        d.reposition(start_end[direction])
-                        d.hold(opts.rest_s)
-                    point, why, repeatable = _sweep_attempt(d, direction, v_target, points, opts)
-                    last = attempt == opts.attempts or not repeatable or (point is not None and point.steady)
-                    if not last:
-                        why = why or "unsteady (stick-slip or ringing)"
-                        retried.append({"direction": direction, "target": direction * v_target, "attempt": attempt,
-                                        "reason": why})
-                        d.say(f"{head} attempt {attempt} gave no steady point ({why}): once more")
-                        continue
-                    if point is None:
-                        skipped.append({"direction": direction, "target": direction * v_target, "reason": why})
-                        d.say(f"{head} no point, {why}")
-                    else:
-                        points.append(point)
-                        d.say(f"{head} v = {point.v:+.4g} ± {point.v_std:.2g} m/s, F = {point.F:+.4g} ± "
-                              f"{point.F_sem:.2g} N ({point.n} samples)"
-                              + ("" if point.steady else "; unsteady (stick-slip or ringing): left out of the points "
-                                                         "table"))
-                    break
+        try:
+            d.reposition(start_end[opts.directions[0]])
+            d.hold(opts.rest_s)
+            for k, v_target in enumerate(speeds.tolist()):
+                for direction in opts.directions:
+                    head = f"sweep {DIRECTION_NAMES[direction]:10s} {v_target:.4g} m/s ({k + 1}/{len(speeds)}):"
+                    for attempt in range(1, opts.attempts + 1):
+                        if len(opts.directions) == 1 or attempt > 1:  # back to this direction's start
+                            d.reposition(start_end[direction])
+                            d.hold(opts.rest_s)
+                        point, why, repeatable = _sweep_attempt(d, direction, v_target, points, opts)
+                        last = attempt == opts.attempts or not repeatable or (point is not None and point.steady)
+                        if not last:
+                            why = why or "unsteady (stick-slip or ringing)"
+                            retried.append({"direction": direction, "target": direction * v_target,
+                                            "attempt": attempt, "reason": why})
+                            d.say(f"{head} attempt {attempt} gave no steady point ({why}): once more")
+                            continue
+                        if point is None:
+                            skipped.append({"direction": direction, "target": direction * v_target, "reason": why})
+                            d.say(f"{head} no point, {why}")
+                        else:
+                            points.append(point)
+                            d.say(f"{head} v = {point.v:+.4g} ± {point.v_std:.2g} m/s, F = {point.F:+.4g} ± "
+                                  f"{point.F_sem:.2g} N ({point.n} samples)"
+                                  + ("" if point.steady else "; unsteady (stick-slip or ringing): left out of the "
+                                                             "points table"))
+                        break
+        except (ProcedureError, RigError, KeyboardInterrupt) as e:
+            _keep_partial(e, SweepResult(tuple(points), tuple(skipped), d.run(), d.counters(), opts, tuple(retried)))
+            raise
         d.warn_if_unhealthy("strokes")
         run, counters = d.run(), d.counters()
     return SweepResult(tuple(points), tuple(skipped), run, counters, opts, tuple(retried))
@@ -734,6 +771,7 @@ class _Stroke:
     i_brake: int  # first sample of the deceleration
     i_end: int
     cruised: bool  # the speed reference reached the target before braking
+    i_cruise: int = -1  # first sample at the target speed (-1: never reached)
 
 
 def _stroke(d: _Driver, direction: int, v_target: float, F_ff: float, opts: SweepOptions) -> _Stroke:
@@ -760,7 +798,7 @@ def _stroke(d: _Driver, direction: int, v_target: float, F_ff: float, opts: Swee
     v_ref = integ = 0.0
     F_cmd = d.F_fast
     phase = "accel"
-    i_steady = i_brake = -1
+    i_steady = i_brake = i_cruise = -1
     cruised, stuck, released = False, True, False
     t0 = t_last = t_cruise = t_moving = d.t
     x0 = d.x
@@ -777,7 +815,7 @@ def _stroke(d: _Driver, direction: int, v_target: float, F_ff: float, opts: Swee
             v_ref = min(v_ref + opts.accel * dt, v_target)
             a_ref = opts.accel
             if v_ref >= v_target:
-                phase, t_cruise, cruised = "cruise", d.t, True
+                phase, t_cruise, cruised, i_cruise = "cruise", d.t, True, d.n - 1
         elif phase == "cruise":
             if i_steady < 0 and not stuck and d.t - max(t_cruise, t_moving) >= opts.settle_s:
                 i_steady = d.n - 1
@@ -810,7 +848,7 @@ def _stroke(d: _Driver, direction: int, v_target: float, F_ff: float, opts: Swee
         # loose before the loop is in control
         F_cmd += min(max(min(max(F_ref, F_lo), F_hi) - F_cmd, -slew * dt), slew * dt)
         d.step(d.force_command(F_cmd, k_F, v_ff=direction * v_ref))
-    return _Stroke(i_start, i_steady, i_brake if i_brake >= 0 else d.n - 1, d.n - 1, cruised)
+    return _Stroke(i_start, i_steady, i_brake if i_brake >= 0 else d.n - 1, d.n - 1, cruised, i_cruise)
 
 
 def _standard_error(y: np.ndarray, block: int) -> float:
@@ -824,12 +862,27 @@ def _standard_error(y: np.ndarray, block: int) -> float:
     return max(white, float(means.std(ddof=1) / math.sqrt(nb)))
 
 
-def steady_speed(v: np.ndarray, direction: int, opts: SweepOptions) -> bool:
+def steady_speed(v: np.ndarray, direction: int, opts: SweepOptions, v_fast: np.ndarray | None = None) -> bool:
     """Whether a stroke's velocity samples slid steadily: spread within max_speed_spread of the mean
-    speed, and never below min_speed_ratio of it (a near stop is stick-slip)."""
+    speed, and never below min_speed_ratio of it (a near stop is stick-slip). `v_fast`, a velocity
+    with less lag and smoothing than `v` (`fast_velocity`), is where a near stop is looked for: a
+    stick-slip at the air-spring resonance hides in the friction's 31-sample derivative."""
     speed = abs(float(np.mean(v)))
-    return bool(speed > 0 and np.std(v) <= opts.max_speed_spread * speed
-                and np.min(direction * v) >= opts.min_speed_ratio * speed)
+    low = np.min(direction * (v if v_fast is None or not len(v_fast) else v_fast))
+    return bool(speed > 0 and np.std(v) <= opts.max_speed_spread * speed and low >= opts.min_speed_ratio * speed)
+
+
+def fast_velocity(x: np.ndarray, dt: float, noise: float, speed: float) -> np.ndarray:
+    """Least-squares slope of the positions `x` (m, evenly sampled every `dt` s) over the shortest
+    odd window, 5 samples at least, whose noise (position noise `noise`, m) stays within 5 % of
+    `speed`; at most the friction's own derivative window. One value per whole window."""
+    n = 5
+    while n < 2 * _HALF + 1 and noise * math.sqrt(12.0 / (n * (n * n - 1))) / dt > 0.05 * speed:
+        n += 2
+    if len(x) < n:
+        return np.empty(0)
+    j = np.arange(n) - n // 2
+    return np.convolve(x, (j / (j @ j))[::-1], mode="valid") / dt
 
 
 def _sweep_point(d: _Driver, direction: int, v_target: float, seg: _Stroke,
@@ -845,8 +898,13 @@ def _sweep_point(d: _Driver, direction: int, v_target: float, seg: _Stroke,
     # the steady part and bias the mean friction by M times a share of it
     i_end = seg.i_brake - _HALF - 5
     if i_end - seg.i_steady < opts.min_samples:
-        return None, (f"the steady part is too short ({max(i_end - seg.i_steady, 0)} samples < "
-                      f"{opts.min_samples}): lower --vmax"), False
+        short = f"the steady part is too short ({max(i_end - seg.i_steady, 0)} samples < {opts.min_samples})"
+        # had the piston slid from the moment the reference reached the target, would it have
+        # been long enough? Then it stuck or rang first (a busy host), and another stroke may do
+        settle = int(round(opts.settle_s / float(np.median(np.diff(d.cols[0][seg.i_start:seg.i_end + 1])))))
+        if seg.i_cruise >= 0 and i_end - (seg.i_cruise + settle) >= opts.min_samples:
+            return None, f"{short}: the piston stuck or rang after reaching the target speed", True
+        return None, f"{short}: lower --vmax", False
     a, b = max(seg.i_start - _HALF, 0), min(seg.i_end + _HALF, d.n)
     run = d.run(a, b)
     idx, v, F = friction_from_newton(d.cyl, run, _HALF, plant=d.plant)
@@ -855,10 +913,14 @@ def _sweep_point(d: _Driver, direction: int, v_target: float, seg: _Stroke,
     if len(v) < opts.min_samples or np.median(v) * direction <= 0:
         return None, "the piston did not move in the commanded direction", True
     v_mean = float(v.mean())
+    # the fast velocity over the steady part, piece by piece between lost samples
+    pieces = np.split(sel, np.flatnonzero(np.diff(run.t[sel]) > 1.5 * run.sample_period) + 1)
+    v_fast = np.concatenate([fast_velocity(run.x[q[0]:q[-1] + 1], run.sample_period, d.cyl.sensors.position_noise,
+                                           abs(v_mean)) for q in pieces])
     return SweepPoint(direction=direction, target=direction * v_target, v=v_mean, F=float(F.mean()),
                       v_std=float(v.std()), F_std=float(F.std()), F_sem=_standard_error(F, 4 * _HALF + 2),
                       n=int(len(v)), t_start=float(run.t[sel[0]]), t_end=float(run.t[sel[-1]]),
                       x_start=float(run.x[sel[0]]), x_end=float(run.x[sel[-1]]), u_mean=float(run.u[sel].mean()),
                       dp=float(np.abs(run.p1[sel] - run.p2[sel]).mean()),
                       pc=float(((run.p2[sel] if direction > 0 else run.p1[sel]) - d.cyl.supply.atmosphere).mean()),
-                      steady=steady_speed(v, direction, opts)), "", True
+                      steady=steady_speed(v, direction, opts, v_fast)), "", True
