@@ -113,6 +113,30 @@ def test_numpy_call_gives_the_dm_call_numbers_and_refuses_wrong_shapes():
         call(X)
 
 
+def test_vector_call_gives_the_dm_call_numbers_and_refuses_what_it_cannot_hold():
+    import casadi as ca
+    import pytest
+
+    from sim.compiled import VectorCall
+
+    x, u, p = ca.SX.sym("x", 3), ca.SX.sym("u"), ca.SX.sym("p", 2)
+    f = ca.Function("f", [x, u, p], [ca.sin(x) * p[0] + u * p[1]])
+    call = VectorCall(f)
+    xs, P = np.array([0.1, -2.0, 3.0]), np.array([1.5, -0.25])
+    out = call(xs, 0.7, P)
+    np.testing.assert_array_equal(out, np.asarray(f(xs, 0.7, P)).ravel())
+    again = call(2 * xs, 0.7, P)
+    assert not np.array_equal(again, out)  # a fresh array each time: an earlier result stays
+    np.testing.assert_array_equal(out, np.asarray(f(xs, 0.7, P)).ravel())
+    with pytest.raises(TypeError, match="takes 3 inputs, got 2"):
+        call(xs, 0.7)
+    with pytest.raises(ValueError, match="one dense output"):
+        VectorCall(ca.Function("g", [x], [x, 2 * x]))
+    diag = ca.SX.sym("s", ca.Sparsity.diag(2))
+    with pytest.raises(ValueError, match="dense inputs"):
+        VectorCall(ca.Function("h", [diag], [ca.sum1(ca.sum2(diag))]))
+
+
 def test_processes_that_start_cold_together_build_once(tmp_path, monkeypatch):
     """The workers of a batch start at once on an empty cache: one builds and compiles, the
     others wait for it and load its library (each compiling it too cost the suite minutes)."""
