@@ -237,9 +237,10 @@ def test_a_sweep_on_a_rig_that_never_moves_stops_with_one_clear_sentence(cyl):
 
 def test_ctrl_c_and_a_silent_rig_centre_the_valve_and_leave_a_valid_recording(cyl, tmp_path):
     rig = StuckRig(cyl, fail_after=700)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt) as e:
         breakaway_test(rig, cyl, record_to=tmp_path / "a.csv")
     assert rig.stopped and read_run(tmp_path / "a.csv").n == 700
+    assert e.value.partial.run.n == 700 and not e.value.partial.trials and not e.value.partial.table()
     rig = StuckRig(cyl, silent_after=300)
     with pytest.raises(ProcedureError, match="no sample from the rig for 1 s"):
         speed_sweep(rig, cyl, record_to=tmp_path / "b.csv")
