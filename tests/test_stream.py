@@ -175,6 +175,30 @@ def test_a_session_ends_within_a_second_of_a_signal_whatever_the_viewer_does(tmp
         assert "/position/measured" in paths
 
 
+def test_the_lock_step_model_runs_for_a_viewer_only_and_changes_no_estimate(cyl_a, run_a, tmp_path, monkeypatch):
+    """Its traces go to Rerun alone: a replay without a viewer skips it (a third of its time)."""
+    import combined_reality.live as live
+
+    built = []
+
+    class Counted(live.LockstepSimulator):
+        def __init__(self, *a, **kw):
+            built.append(1)
+            super().__init__(*a, **kw)
+
+    monkeypatch.setattr(live, "LockstepSimulator", Counted)
+    path = tmp_path / "run.csv"
+    write_run(path, run_a.slice(0, 6000))
+    outs = []
+    for extra in ([], ["--rerun", "save", str(tmp_path / "s.rrd")]):
+        js = tmp_path / f"o{len(outs)}.json"
+        assert main(["replay", str(path), "--config", str(cyl_a.source), "--speed", "max", "--json", str(js), "-q",
+                     *extra]) == 0
+        outs.append(json.loads(js.read_text())["params"])
+        assert len(built) == len(outs) - 1  # none without the viewer, one with it
+    assert outs[0] == outs[1]
+
+
 def test_replay_cli_writes_identify_format_and_a_rerun_recording(cyl_a, run_a, tmp_path, capsys):
     from rerun.chunk import RrdReader
 
