@@ -176,7 +176,7 @@ def test_a_session_ends_within_a_second_of_a_signal_whatever_the_viewer_does(tmp
 
 
 def test_the_lock_step_model_runs_for_a_viewer_only_and_changes_no_estimate(cyl_a, run_a, tmp_path, monkeypatch):
-    """Its traces go to Rerun alone: a replay without a viewer skips it (a third of its time)."""
+    """Its traces go to Rerun alone: a replay without a viewer skips it (about a fifth of its time)."""
     import combined_reality.live as live
 
     built = []

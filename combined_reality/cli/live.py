@@ -214,7 +214,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         if not args.quiet:
             console.say("preparing the model (compiled once, then cached) ...")
         # the lock-step model's traces are for the viewer: without one nothing reads them, and
-        # they cost a replay a third of its time. Replayed as fast as possible, the estimates
+        # they cost a replay about a fifth of its time. Replayed as fast as possible, the estimates
         # reach the model a window after their data (PipelinedEstimator): it runs on from each
         # for up to two windows before it restarts
         lag = 2 * options.window_s if pipelined else 0.0
