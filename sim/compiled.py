@@ -276,6 +276,49 @@ class ShootingFunctions:
         return X[:, :n + 1]
 
 
+# columns per call of a plant function's compiled map (ColumnCall): the last chunk is padded
+COLUMN_CHUNK = 1024
+
+
+class ColumnCall:
+    """A plant function (state, input, params) -> out over many columns of states and inputs
+    with one parameter vector, through one compiled map of COLUMN_CHUNK columns (the last
+    chunk padded with copies of its last column). A fresh CasADi map of the symbolic function
+    per call cost 0.2 s to build and 0.3 s to evaluate on the 20 000 samples of a 20 s run."""
+
+    def __init__(self, call: NumpyCall, chunk: int, n_out: int):
+        self._call, self.chunk, self.n_out = call, chunk, n_out
+
+    def __call__(self, X, U, p) -> np.ndarray:
+        X, U = np.atleast_2d(np.asarray(X, float)), np.atleast_2d(np.asarray(U, float))
+        n = X.shape[1]
+        if U.shape[1] != n:
+            raise ValueError(f"{n} state columns but {U.shape[1]} input columns")
+        out = np.empty((self.n_out, n))
+        for a in range(0, n, self.chunk):
+            b = min(a + self.chunk, n)
+            Xc, Uc = X[:, a:b], U[:, a:b]
+            if b - a < self.chunk:
+                Xc = np.pad(Xc, ((0, 0), (0, self.chunk - (b - a))), mode="edge")
+                Uc = np.pad(Uc, ((0, 0), (0, self.chunk - (b - a))), mode="edge")
+            out[:, a:b] = self._call(Xc, Uc, p)[0][:, :b - a]
+        return out
+
+
+def plant_columns(plant: Plant, which: str = "rhs", progress=None) -> ColumnCall:
+    """`plant.<which>` ("rhs" or "friction") evaluated column-wise, compiled once per plant
+    structure and cached on disk like the shooting functions."""
+    f: ca.Function = getattr(plant, which)
+    name = f"{which}_cols_{plant.drive}_{plant.structure_key}_{COLUMN_CHUNK}"
+
+    def build() -> list[ca.Function]:
+        return [f.map(name, "serial", COLUMN_CHUNK, [2], [])]  # the parameters: one column for all
+
+    fns, _ = load_or_build(("columns", plant.structure_key, plant.drive, which, COLUMN_CHUNK), build, [name],
+                           progress)
+    return ColumnCall(NumpyCall(fns[name]), COLUMN_CHUNK, f.size1_out(0))
+
+
 def _skipping_zero_steps(f: ca.Function, name: str) -> ca.Function:
     """f(x, w0, w1, p, h, *carried) -> (x_next, *carried_next) with a step of length 0 (the
     padding of a short interval) short-circuited to leave everything unchanged: what the

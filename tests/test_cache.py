@@ -137,6 +137,23 @@ def test_vector_call_gives_the_dm_call_numbers_and_refuses_what_it_cannot_hold()
         VectorCall(ca.Function("h", [diag], [ca.sum1(ca.sum2(diag))]))
 
 
+def test_plant_columns_give_the_symbolic_map_numbers_over_any_number_of_columns(cyl_a):
+    import pytest
+
+    from sim.compiled import COLUMN_CHUNK, plant_columns
+    from sim.plant import build_plant
+
+    plant = build_plant("pressure")
+    p = np.array(plant.parameter_vector(cyl_a))
+    rng = np.random.default_rng(1)
+    for n in (1, COLUMN_CHUNK, 2 * COLUMN_CHUNK + 7):  # one, a whole chunk, a padded last chunk
+        X = np.vstack([rng.uniform(0, 0.1, n), rng.normal(0, 0.2, n)])
+        U = rng.uniform(1e5, 6e5, (2, n))
+        np.testing.assert_array_equal(plant_columns(plant)(X, U, p), np.asarray(plant.rhs.map(n)(X, U, p)))
+    with pytest.raises(ValueError, match="3 state columns but 2 input columns"):
+        plant_columns(plant)(np.zeros((2, 3)), np.zeros((2, 2)), p)
+
+
 def test_processes_that_start_cold_together_build_once(tmp_path, monkeypatch):
     """The workers of a batch start at once on an empty cache: one builds and compiles, the
     others wait for it and load its library (each compiling it too cost the suite minutes)."""

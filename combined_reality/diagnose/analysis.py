@@ -30,6 +30,7 @@ from typing import Callable
 
 import numpy as np
 
+from sim.compiled import plant_columns
 from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
 
@@ -687,7 +688,7 @@ def equation_errors(nominal: Cylinder, run: Run, half: int = 15) -> dict[str, np
     # the command changes every sample: smooth the model's rates with the same filter as the
     # measured derivative, so both see the same bandwidth
     states = np.vstack([full["p1"], full["p2"], full["x"], v_full])
-    rhs_full = np.asarray(plant.rhs.map(run.n)(states, run.u[None, :], p))
+    rhs_full = plant_columns(plant)(states, run.u[None, :], p)
     rhs = np.vstack([np.convolve(rhs_full[i], k0, mode="same")[idx] for i in range(2)])
     out = {"index": idx, "v": v, "force": eF}
     for i, name in enumerate(("p1", "p2")):

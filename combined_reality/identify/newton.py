@@ -8,6 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
+from sim.compiled import plant_columns
 from sim.cylinder import Cylinder
 from sim.plant import Plant, build_plant
 
@@ -42,8 +43,7 @@ def friction_from_newton(cyl: Cylinder, run: Run, half: int = 15,
     idx, v, a = idx[whole], v[whole], a[whole]
     if not len(idx):
         return idx, v, a
-    xdot = np.asarray(plant.rhs.map(len(v))(np.vstack([run.x[idx], v]), np.vstack([run.p1[idx], run.p2[idx]]),
-                                            frictionless))
+    xdot = plant_columns(plant)(np.vstack([run.x[idx], v]), np.vstack([run.p1[idx], run.p2[idx]]), frictionless)
     return idx, v, cyl.mechanics.moving_mass * (xdot[1] - a)
 
 
