@@ -30,7 +30,7 @@ from filelock import FileLock, Timeout
 from .integrator import IntegratorOptions, StepBuilder
 from .plant import Plant
 
-CODE_REVISION = 7  # bump when generated functions change shape or meaning
+CODE_REVISION = 8  # bump when generated functions change shape or meaning
 
 
 def cache_dir() -> Path:
