@@ -129,80 +129,41 @@ class StepBuilder:
         return (ca.SX.sym("x", self.nx), ca.SX.sym("w0", self.nw), ca.SX.sym("w1", self.nw),
                 ca.SX.sym("p", self.npar), ca.SX.sym("h"))
 
-    def _augmented(self, x, w0, w1, p, h):
-        """(z, f): the state the step integrates and its right-hand side. Interpolated inputs
-        join the state as an augmented autonomous system z = (x, w) with dw/dt = (w1 - w0)/h."""
+    def rosenbrock(self, x, w0, w1, p, h) -> tuple[ca.SX, ca.SX]:
+        """One RA34PW2 step over h (SX): (x_next, scaled error estimate)."""
         rhs = self.plant.rhs
-        if not self.interpolate:
-            return x, lambda zz: rhs(zz, w0, p)
-        slope = ca.if_else(h > 0, (w1 - w0) / ca.fmax(h, 1e-300), 0 * w0) * ca.DM(1.0 - self.held)
-        return ca.vertcat(x, w0), lambda zz: ca.vertcat(rhs(zz[: self.nx], zz[self.nx:], p), slope)
+        if self.interpolate:
+            # augmented autonomous system z = (x, w) with dw/dt = (w1 - w0)/h over the step
+            slope = ca.if_else(h > 0, (w1 - w0) / ca.fmax(h, 1e-300), 0 * w0) * ca.DM(1.0 - self.held)
+            z = ca.vertcat(x, w0)
 
-    def rosenbrock(self, x, w0, w1, p, h, S=None, free: Sequence[int] = ()):
-        """One RA34PW2 step over h (SX): (x_next, scaled error estimate), and with S = d x / d
-        (x_start, p[free]) also S_next, (x_next, S_next, error).
+            def f(zz):
+                return ca.vertcat(rhs(zz[: self.nx], zz[self.nx:], p), slope)
+        else:
+            z = x
 
-        S_next is the same W-method applied to the variational equation dS/dt = f_z S + f_p
-        (the stages' Jacobians at their own points, the step's matrix J and factors reused),
-        not the derivative of the discrete step: that one also differentiates J and its
-        factors (second derivatives of the plant), which cost 30 % of a sensitivity
-        evaluation and 40 % of its compile time. A W-method keeps its order with any matrix in
-        place of J, so S_next is a third-order solution of the variational equation; it
-        differs from the exact derivative of the step by the step's own error (on the outputs
-        of closed-loop runs a median of 0.03-0.1 %, up to 17 % in an interval where the piston
-        sticks: tests/test_integrator.py), which moves a Gauss-Newton fit's optimum by nothing the
-        noise could show (the residuals, and with them what the fit minimises, stay exact)."""
-        z, f = self._augmented(x, w0, w1, p, h)
+            def f(zz):
+                return rhs(zz, w0, p)
         nz = z.shape[0]
         J = ca.jacobian(f(z), z)  # z is a vector of pure symbols here
         solve = _lu_solver(ca.SX.eye(nz) - h * _GAMMA[0, 0] * J)
-        carry = S is not None
-        if carry:
-            free = list(free)
-            nS = S.shape[1]
-            zs = ca.SX.sym("zs", nz)
-            fzs = f(zs)
-            pf = ca.vertcat(*[p[i] for i in free])
-            stage_jac = ca.Function("stage_jac", [zs, p, w0, w1, h], [ca.jacobian(fzs, zs), ca.jacobian(fzs, pf)])
-            dz = ca.vertcat(S, ca.SX.zeros(nz - self.nx, nS))  # the inputs depend on neither
-
-            def solve_columns(R):
-                return ca.horzcat(*[solve(R[:, j]) for j in range(nS)])
-
         ks: list[ca.SX] = []
-        dks: list[ca.SX] = []
         for i in range(4):
             zi = z
-            dzi = dz if carry else None
             for j in range(i):
                 if _A[i, j]:
                     zi = zi + _A[i, j] * ks[j]
-                    if carry:
-                        dzi = dzi + _A[i, j] * dks[j]
             r = h * f(zi)
-            if carry:
-                Jz, Jp = stage_jac(zi, p, w0, w1, h)
-                dr = h * (ca.mtimes(Jz, dzi) + ca.horzcat(ca.SX.zeros(nz, nS - len(free)), Jp))
-            corr = dcorr = None
+            corr = None
             for j in range(i):
                 if _GAMMA[i, j]:
                     corr = _GAMMA[i, j] * ks[j] if corr is None else corr + _GAMMA[i, j] * ks[j]
-                    if carry:
-                        dcorr = _GAMMA[i, j] * dks[j] if dcorr is None else dcorr + _GAMMA[i, j] * dks[j]
             if corr is not None:
                 r = r + h * ca.mtimes(J, corr)
-                if carry:
-                    dr = dr + h * ca.mtimes(J, dcorr)
             ks.append(solve(r))
-            if carry:
-                dks.append(solve_columns(dr))
         z_next = z + sum(_B[i] * ks[i] for i in range(4))
         err = sum((_B[i] - _B_EMBEDDED[i]) * ks[i] for i in range(4))[: self.nx]
-        err = ca.mmax(ca.fabs(err * ca.DM(self._inv_tol)))
-        if not carry:
-            return z_next[: self.nx], err
-        S_next = (dz + sum(_B[i] * dks[i] for i in range(4)))[: self.nx, :]
-        return z_next[: self.nx], S_next, err
+        return z_next[: self.nx], ca.mmax(ca.fabs(err * ca.DM(self._inv_tol)))
 
     def step(self) -> ca.Function:
         """The adaptive one-sample step (x, w0, w1, p, h) -> x_next."""
@@ -239,13 +200,17 @@ class StepBuilder:
         return ca.Function(f"{name}_d{depth}", sym, out, coarse.name_in(), names_out)
 
     def sensitivity_step(self, free: Sequence[int]) -> ca.Function:
-        """(x, w0, w1, p, h, S) -> (x_next, S_next), S = d x / d (x_start, p[free]) (see rosenbrock)."""
+        """(x, w0, w1, p, h, S) -> (x_next, S_next), S = d x / d (x_start, p[free])."""
         free = list(free)
         nz = self.nx + len(free)
 
         x, w0, w1, p, h = self._symbols()
         S = ca.SX.sym("S", self.nx, nz)
-        xn, Sn, err = ca.cse(list(self.rosenbrock(x, w0, w1, p, h, S, free)))
+        xn, err = self.rosenbrock(x, w0, w1, p, h)
+        Fx = ca.jacobian(xn, x)
+        Fp = ca.jacobian(xn, ca.vertcat(*[p[i] for i in free]))
+        Sn = ca.mtimes(Fx, S) + ca.horzcat(ca.SX.zeros(self.nx, self.nx), Fp)
+        xn, Sn, err = ca.cse([xn, Sn, err])
         coarse = ca.Function("rb_sens", [x, w0, w1, p, h, S], [xn, Sn, err],
                              ["x", "w0", "w1", "p", "h", "S"], ["xn", "Sn", "err"])
         return self._refine(coarse, self.opts.max_depth, "sens")
