@@ -30,7 +30,7 @@ from filelock import FileLock, Timeout
 from .integrator import IntegratorOptions, StepBuilder
 from .plant import Plant
 
-CODE_REVISION = 8  # bump when generated functions change shape or meaning
+CODE_REVISION = 7  # bump when generated functions change shape or meaning
 
 
 def cache_dir() -> Path:
@@ -281,42 +281,48 @@ COLUMN_CHUNK = 1024
 
 
 class ColumnCall:
-    """A plant function (state, input, params) -> out over many columns of states and inputs
-    with one parameter vector, through one compiled map of COLUMN_CHUNK columns (the last
-    chunk padded with copies of its last column). A fresh CasADi map of the symbolic function
-    per call cost 0.2 s to build and 0.3 s to evaluate on the 20 000 samples of a 20 s run."""
+    """A function whose first `n_columned` inputs are columns (states, inputs, pressures...) and
+    whose other inputs are shared by every column (parameters), over many columns, through one
+    compiled map of COLUMN_CHUNK columns (the last chunk padded with copies of its last
+    column). A fresh CasADi map of the symbolic function per call cost 0.2 s to build and
+    0.3 s to evaluate on the 20 000 samples of a 20 s run."""
 
-    def __init__(self, call: NumpyCall, chunk: int, n_out: int):
-        self._call, self.chunk, self.n_out = call, chunk, n_out
+    def __init__(self, call: NumpyCall, chunk: int, n_out: int, n_columned: int = 2):
+        self._call, self.chunk, self.n_out, self.n_columned = call, chunk, n_out, n_columned
 
-    def __call__(self, X, U, p) -> np.ndarray:
-        X, U = np.atleast_2d(np.asarray(X, float)), np.atleast_2d(np.asarray(U, float))
-        n = X.shape[1]
-        if U.shape[1] != n:
-            raise ValueError(f"{n} state columns but {U.shape[1]} input columns")
+    def __call__(self, *args) -> np.ndarray:
+        cols = [np.atleast_2d(np.asarray(a, float)) for a in args[:self.n_columned]]
+        shared = args[self.n_columned:]
+        n = cols[0].shape[1]
+        if any(c.shape[1] != n for c in cols):
+            raise ValueError(f"columns of unequal length: {[c.shape[1] for c in cols]}")
         out = np.empty((self.n_out, n))
         for a in range(0, n, self.chunk):
             b = min(a + self.chunk, n)
-            Xc, Uc = X[:, a:b], U[:, a:b]
+            part = [c[:, a:b] for c in cols]
             if b - a < self.chunk:
-                Xc = np.pad(Xc, ((0, 0), (0, self.chunk - (b - a))), mode="edge")
-                Uc = np.pad(Uc, ((0, 0), (0, self.chunk - (b - a))), mode="edge")
-            out[:, a:b] = self._call(Xc, Uc, p)[0][:, :b - a]
+                part = [np.pad(c, ((0, 0), (0, self.chunk - (b - a))), mode="edge") for c in part]
+            out[:, a:b] = self._call(*part, *shared)[0][:, :b - a]
         return out
 
 
-def plant_columns(plant: Plant, which: str = "rhs", progress=None) -> ColumnCall:
-    """`plant.<which>` ("rhs" or "friction") evaluated column-wise, compiled once per plant
-    structure and cached on disk like the shooting functions."""
-    f: ca.Function = getattr(plant, which)
-    name = f"{which}_cols_{plant.drive}_{plant.structure_key}_{COLUMN_CHUNK}"
+def compiled_columns(f: ca.Function, name: str, key_parts: Sequence, n_columned: int,
+                     progress=None) -> ColumnCall:
+    """f (first `n_columned` inputs per column, the rest shared; one output) over many columns,
+    compiled once and cached on disk under `key_parts` (what determines f's structure)."""
 
     def build() -> list[ca.Function]:
-        return [f.map(name, "serial", COLUMN_CHUNK, [2], [])]  # the parameters: one column for all
+        return [f.map(name, "serial", COLUMN_CHUNK, list(range(n_columned, f.n_in())), [])]
 
-    fns, _ = load_or_build(("columns", plant.structure_key, plant.drive, which, COLUMN_CHUNK), build, [name],
-                           progress)
-    return ColumnCall(NumpyCall(fns[name]), COLUMN_CHUNK, f.size1_out(0))
+    fns, _ = load_or_build(("columns", *key_parts, COLUMN_CHUNK), build, [name], progress)
+    return ColumnCall(NumpyCall(fns[name]), COLUMN_CHUNK, f.size1_out(0), n_columned)
+
+
+def plant_columns(plant: Plant, which: str = "rhs", progress=None) -> ColumnCall:
+    """`plant.<which>` ("rhs" or "friction") of (state, input) columns with one parameter
+    vector, compiled once per plant structure and cached on disk like the shooting functions."""
+    return compiled_columns(getattr(plant, which), f"{which}_cols_{plant.drive}_{plant.structure_key}_{COLUMN_CHUNK}",
+                            (plant.structure_key, plant.drive, which), 2, progress)
 
 
 def _skipping_zero_steps(f: ca.Function, name: str) -> ca.Function:

@@ -13,6 +13,7 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import lsq_linear
 
+from sim.compiled import compiled_columns
 from sim.cylinder import OPENING_GRID, Cylinder
 from sim.flow import G, KAPPA, R_AIR, mass_flow
 
@@ -100,9 +101,8 @@ def unit_flows(cyl: Cylinder, p_from, p_to, critical_ratio: float) -> np.ndarray
     """Mass flow per unit sonic conductance from p_from to p_to (the valve's law of sim.flow,
     evaluated on arrays)."""
     fn = ca.Function("unit_flow", [_P_FROM, _P_TO, _B, _T], [mass_flow(1.0, _P_FROM, _P_TO, _B, _T)])
-    out = fn.map(len(p_from))(np.asarray(p_from)[None, :], np.asarray(p_to)[None, :], critical_ratio,
-                               cyl.supply.temperature)
-    return np.asarray(out).ravel()
+    flows = compiled_columns(fn, "unit_flow_cols", ("unit_flow",), 2)
+    return flows(np.ravel(p_from), np.ravel(p_to), critical_ratio, cyl.supply.temperature).ravel()
 
 
 def opening_basis(a: np.ndarray, overlap: float) -> np.ndarray:
