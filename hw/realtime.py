@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 import threading
 
-__all__ = ["make_realtime", "make_normal", "realtime_available", "HOST_PRIORITY"]
+__all__ = ["make_realtime", "make_normal", "realtime_available", "take_host_priority", "HOST_PRIORITY"]
 
 # SCHED_FIFO priority of a host loop that answers a rig's samples (a live session's
 # acquisition, a friction procedure): below the virtual rig's loop (10) and its reader (9),
@@ -47,6 +47,16 @@ def make_normal(thread: threading.Thread | None = None) -> None:
         os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
     except (AttributeError, OSError):
         pass
+
+
+def take_host_priority(rig, priority: int) -> tuple[bool, str | None]:
+    """SCHED_FIFO at `priority` for a host loop (the calling thread) and for the rig's own
+    threads (its link reader, through the rig's optional `realtime(priority)`): (whether the
+    calling thread got it, so make_normal() gives it back; why not, one phrase, or None)."""
+    why = make_realtime(priority)
+    taken = why is None
+    why = why or getattr(rig, "realtime", lambda _p: None)(priority)
+    return taken, why
 
 
 def realtime_available() -> bool:

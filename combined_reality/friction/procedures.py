@@ -31,7 +31,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from hw.realtime import make_normal, make_realtime
+from hw.realtime import make_normal, take_host_priority
 from hw.rig import Rig, RigError, Sample, Status
 from sim.cylinder import Cylinder
 from sim.flow import G, KAPPA, R_AIR, RHO0, T0
@@ -400,9 +400,7 @@ class _Driver:
         try:
             self.rig.start()
             if self.realtime is not None:  # the loop answers every sample: late answers make strokes ring
-                why = make_realtime(self.realtime)
-                self._made_realtime = why is None
-                why = why or getattr(self.rig, "realtime", lambda _p: None)(self.realtime)
+                self._made_realtime, why = take_host_priority(self.rig, self.realtime)
                 if why is not None:
                     self.say(f"the loop runs without real-time priority ({why}): on a busy machine its commands "
                              "reach the rig late more often")

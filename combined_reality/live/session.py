@@ -24,7 +24,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from hw.protocol import EventLimiter
-from hw.realtime import make_normal, make_realtime
+from hw.realtime import make_normal, take_host_priority
 from hw.rig import Rig, Sample, Status
 from hw.virtual_rig import VirtualRig
 from sim.compiled import NumpyCall, shooting_functions
@@ -689,7 +689,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     gc.freeze()
     rig.start()
     if realtime is not None:
-        why = make_realtime(realtime) or getattr(rig, "realtime", lambda _p: None)(realtime)
+        _taken, why = take_host_priority(rig, realtime)
         if why is not None:
             event(f"acquisition runs without real-time priority ({why}): on a busy machine the answers to samples "
                   "come late more often (give this user an rtprio limit to change that)")
