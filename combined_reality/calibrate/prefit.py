@@ -16,6 +16,7 @@ from scipy.optimize import lsq_linear
 from sim.compiled import compiled_columns
 from sim.cylinder import OPENING_GRID, Cylinder
 from sim.flow import G, KAPPA, R_AIR, mass_flow
+from sim.plant import MODEL_REVISION
 
 from ..files import Run
 from ..identify import savgol_kernels
@@ -101,7 +102,7 @@ def unit_flows(cyl: Cylinder, p_from, p_to, critical_ratio: float) -> np.ndarray
     """Mass flow per unit sonic conductance from p_from to p_to (the valve's law of sim.flow,
     evaluated on arrays)."""
     fn = ca.Function("unit_flow", [_P_FROM, _P_TO, _B, _T], [mass_flow(1.0, _P_FROM, _P_TO, _B, _T)])
-    flows = compiled_columns(fn, "unit_flow_cols", ("unit_flow",), 2)
+    flows = compiled_columns(fn, "unit_flow_cols", ("unit_flow", MODEL_REVISION), 2)  # the law is the plant's
     return flows(np.ravel(p_from), np.ravel(p_to), critical_ratio, cyl.supply.temperature).ravel()
 
 
