@@ -58,7 +58,9 @@ class CanCodec:
         for sig in m.signals:  # saturate instead of wrapping around: an overrange reads as full scale
             v = values[sig.name]
             clamped[sig.name] = min(max(v, sig.minimum), sig.maximum)
-        return can.Message(arbitration_id=fid, is_extended_id=False, data=m.encode(clamped))
+        # clamped already: cantools' own range checks (strict) cost 17 of the 41 us that encoding
+        # a sample's three messages took in the virtual rig's 1 kHz tick; the bytes are the same
+        return can.Message(arbitration_id=fid, is_extended_id=False, data=m.encode(clamped, strict=False))
 
     def quantise_u(self, u: float) -> float:
         """The command as it arrives after the trip through RigCommand.U."""
