@@ -53,6 +53,29 @@ def test_replay_as_fast_as_possible_records_every_sample_and_estimates(cyl_a, ru
     assert abs(res.final.values["Fc"] - cyl_a.friction.Fc) < 0.01 * cyl_a.friction.Fc
 
 
+def test_a_session_acquires_at_real_time_priority_where_granted_and_gives_it_back(cyl_a, run_a, tmp_path):
+    """With `realtime`, the session loop reads the rig under SCHED_FIFO where the OS grants it
+    (and says so where not); afterwards the thread is back to its own policy."""
+    from hw.realtime import realtime_available
+
+    policies, events = [], []
+
+    class Watched(ReplayRig):
+        def read(self, timeout=None):
+            policies.append(os.sched_getscheduler(0))
+            return super().read(timeout)
+
+    before = os.sched_getscheduler(0)
+    est = InlineEstimator(cyl_a, run_a.sample_period, OnlineOptions())
+    run_session(cyl_a, Watched(run_a.slice(0, 500), math.inf), estimator=est, record_to=tmp_path / "r.csv",
+                realtime=3, on_event=events.append)
+    assert os.sched_getscheduler(0) == before
+    if realtime_available():
+        assert set(policies) == {os.SCHED_FIFO} and not any("real-time" in m for m in events)
+    else:
+        assert set(policies) == {before} and any("without real-time priority" in m for m in events)
+
+
 def _feed(est, run, block=20):
     """Rows in blocks as a session sends them; [(rows sent when handed out, estimate)]."""
     rows = np.vstack([run.t, run.u, run.x, run.p1, run.p2, np.zeros(run.n)])

@@ -688,8 +688,9 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     gc.collect()
     gc.freeze()
     rig.start()
+    taken = False  # whether this thread runs under SCHED_FIFO and gives it back at the end
     if realtime is not None:
-        _taken, why = take_host_priority(rig, realtime)
+        taken, why = take_host_priority(rig, realtime)
         if why is not None:
             event(f"acquisition runs without real-time priority ({why}): on a busy machine the answers to samples "
                   "come late more often (give this user an rtprio limit to change that)")
@@ -731,7 +732,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         finally:
             gc.unfreeze()
             rec.close()
-            if realtime is not None:
+            if taken:
                 make_normal()
     if stopped:
         event(f"{reason}: valve centred, recording closed")
