@@ -287,7 +287,7 @@ class ColumnCall:
     column). A fresh CasADi map of the symbolic function per call cost 0.2 s to build and
     0.3 s to evaluate on the 20 000 samples of a 20 s run."""
 
-    def __init__(self, call: NumpyCall, chunk: int, n_out: int, n_columned: int = 2):
+    def __init__(self, call: NumpyCall, chunk: int, n_out: int, n_columned: int):
         self._call, self.chunk, self.n_out, self.n_columned = call, chunk, n_out, n_columned
 
     def __call__(self, *args) -> np.ndarray:

@@ -218,8 +218,8 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         # reach the model a window after their data (PipelinedEstimator): it runs on from each
         # for up to two windows before it restarts
         lag = 2 * options.window_s if pipelined else 0.0
-        simulator = None if rr_sink is None else \
-            LockstepSimulator(cyl, resync_s=max(2.0, lag + 0.5), history_s=max(10.0, lag + 2.0))
+        simulator = (None if rr_sink is None
+                     else LockstepSimulator(cyl, resync_s=max(2.0, lag + 0.5), history_s=max(10.0, lag + 2.0)))
         # a live rig is acquired at real-time priority where the OS grants it; the estimator
         # then runs ahead of ordinary work (below acquisition), else behind acquisition
         realtime = None if args.command == "replay" else HOST_PRIORITY
