@@ -192,8 +192,10 @@ def report(results: list[dict], effects, title: str = "") -> None:
     print(f"clean runs: {sum(r['verdict'] == 'none' for r in clean)}/{len(clean)} verdict none   "
           f"({', '.join(r['verdict'] for r in clean)})")
     if shrinks:
+        unscored = len(eff_rows) - len(shrinks)  # not validated: screened out, or another closed the gap first
         print(f"median shrink of the true effect on VALID: {np.median(shrinks):.1%}   (target >= 60 %; "
-              f"quartiles {np.percentile(shrinks, 25):.1%} .. {np.percentile(shrinks, 75):.1%})")
+              f"quartiles {np.percentile(shrinks, 25):.1%} .. {np.percentile(shrinks, 75):.1%})"
+              + (f"; {unscored} true effects not scored" if unscored else ""))
     print(f"time per diagnosis (20 s + 20 s unless --duration): median {np.median(t):.1f} s, max {t.max():.1f} s "
           f"(target median <= 30 s, max <= 45 s); {np.median(ratio):.1f}x a nominal identification of TRAIN in the "
           "same process")

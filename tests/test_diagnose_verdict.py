@@ -244,3 +244,92 @@ def test_a_fit_that_stays_above_its_reference_gives_up_after_so_many_iterations(
     assert res.solver["status"] == "above_reference" and res.solver["iterations"] == 2
     free = identify(far, [run], IdentifyOptions(prefit=False))
     assert free.solver["status"] == "converged" and free.solver["iterations"] > 2
+
+
+def _validated_to(levels: dict[str, float], seen: list):
+    """A stub validation: each candidate validates to its level x the noise (measurements are
+    the nominal model's residuals, so that the gain is the level's)."""
+    base = _val(10.0)
+
+    def validate_candidate(args):
+        c = args[0]
+        seen.append(c.effect)
+        out = _cand(c.effect, levels[c.effect], significant=False)
+        out.validation.simulated[:] = base.residual - out.validation.residual
+        out.train_cost, out.status = c.train_cost, c.status
+        return out
+    return base, validate_candidate
+
+
+@pytest.mark.parametrize("closer", [True, False])
+def test_validations_run_in_the_order_of_the_train_fit_and_end_at_the_first_that_closes_the_gap(
+        monkeypatch, closer):
+    """The leakage case: one candidate fits TRAIN ten thousand times better than the others and
+    validates to the noise; validating the rest (40 s of the 67 s) cannot change the verdict.
+    A candidate that gains under a tenth of the best one's TRAIN gain is not validated at all."""
+    seen = []
+    base, stub = _validated_to({"leakage": 1.0 if closer else 3.0, "friction_asymmetry": 6.0, "mass": 9.0,
+                                "valve_delay": 9.9}, seen)
+    monkeypatch.setattr(analysis, "validate_candidate", stub)
+    nominal = NominalFit(None, None, None, 100.0, base)
+    costs = {"mass": 60.0, "leakage": 1e-3, "friction_asymmetry": 40.0, "valve_delay": 95.0, "stiction": 100.0}
+    cands = [Candidate(n, status="converged", train_cost=c) for n, c in costs.items()]
+    cands[-1].status = "no_gain_on_train"
+    out = {c.effect: c for c in analysis.validate_screened(cands, nominal, None, None, 1e-4,
+                                                             DiagnoseOptions(workers=1))}
+    assert list(out) == list(costs)  # the candidates' order is kept
+    assert out["valve_delay"].status == "screened_out" and "under 10% of the best" in out["valve_delay"].error
+    assert out["stiction"].status == "no_gain_on_train"
+    if closer:
+        assert seen == ["leakage"]
+        assert {out[n].status for n in ("friction_asymmetry", "mass")} == {"not_validated"}
+        assert "leakage, which fits TRAIN better, closed the gap" in out["mass"].error
+        assert out["leakage"].significant and math.isnan(out["mass"].shrink)
+    else:
+        assert seen == ["leakage", "friction_asymmetry", "mass"]  # the best TRAIN fit first
+        assert all(out[n].significant for n in seen)
+        assert further_starts(list(out.values()), base, list(costs), {n: 0 for n in costs}, DiagnoseOptions())
+
+
+def test_a_first_fit_that_finds_nothing_tries_the_defaults_in_the_same_job(cyl_a, monkeypatch):
+    """Stiction from no break-away force (its bound) did not move: its defaults ran only in a
+    second round after every other candidate. Now in the same job, where the nested start
+    stalled (no gain within two iterations) and a gap is to be explained."""
+    starts = []
+
+    def fake_identify(cyl, runs, options, effects=(), nodes=None, **kw):
+        starts.append(nodes is None)
+        r = _Res(cost=100.0 if nodes is not None else 10.0)  # the nested start gains nothing
+        r.params = {n: type("E", (), {"value": 1.0, "std": 0.1})() for n in options.estimate}
+        r.solver["iterations"] = moved
+        return r
+
+    moved = 1
+    monkeypatch.setattr(analysis, "identify", fake_identify)
+    nominal = NominalFit(cyl_a, cyl_a, np.ones((4, 2)), 100.0, _val(3.0))
+    out = analysis.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), True))
+    assert [c.start for c in out] == [0, 1] and starts == [False, True]
+    assert out[0].status == "no_gain_on_train" and out[1].status == "converged"
+    assert best_of_starts(out, nominal)[0].start == 1
+    # not where the nominal model leaves no gap (a clean run: nothing to find), nor after a
+    # nested fit that moved and found nothing (its defaults wait for the further starts)
+    assert len(analysis.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), False))) == 1
+    moved = 10
+    assert len(analysis.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), True))) == 1
+    # a first start that gains keeps its job to itself; so does one from the defaults already
+    assert [c.start for c in analysis.fit_first((nominal, None, "heat_transfer", 1, DiagnoseOptions(), True))] == [1]
+
+
+def test_no_pair_is_fitted_where_the_best_candidate_leaves_no_gap(cyl_a, monkeypatch):
+    """A pair can be the verdict only where the best single effect leaves more than 1.2 x the
+    noise (decide); below that its fit (10 s of a 56 s diagnosis) changed nothing."""
+    fits = []
+    monkeypatch.setattr(analysis, "fit_candidate", lambda args: fits.append(args) or _cand("x+y", 1.0))
+    nominal = NominalFit(cyl_a, cyl_a, None, 100.0, _val(5.0))
+    ranking = [_cand("valve_delay", 1.07), _cand("heat_transfer", 3.2)]
+    args = (nominal, None, None, ranking, _val(5.0), 1e-4, None, DiagnoseOptions(), lambda _m: None)
+    assert analysis._best_pair(*args) is None and not fits
+    ranking[0] = _cand("valve_delay", 1.3)
+    ranking[0].effects = (neutral_start("valve_delay"),)
+    analysis._best_pair(nominal, None, None, ranking, *args[4:])
+    assert len(fits) == 1

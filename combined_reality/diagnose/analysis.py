@@ -62,6 +62,9 @@ class DiagnoseOptions:
     # takes less; with 0.5, a stiction fit in a local minimum was named stiction+mass)
     pair_rest: float = 0.8
     min_train_gain: float = 1e-3  # a candidate must cut the TRAIN cost by this share to be validated
+    # ... and by this share of the best candidate's cut (the screen): what imitates a sliver
+    # of the misfit on TRAIN neither wins on VALID nor partners the winner
+    screen_share: float = 0.1
     workers: int = max(1, os.cpu_count() or 1)
 
 
@@ -172,6 +175,7 @@ class Candidate:
     validation: Validation | None = field(default=None, repr=False)
     effects: tuple[Effect, ...] = field(default=(), repr=False)
     nodes: np.ndarray | None = field(default=None, repr=False)  # TRAIN node states of the fit
+    cylinder: Cylinder | None = field(default=None, repr=False)  # the fitted model, for its validation
 
     @property
     def n_params(self) -> int:
@@ -232,23 +236,73 @@ class NominalFit:
     validation: Validation
 
 
+# a first fit that found nothing on TRAIN: no validation; its defaults are tried as well
+_NO_GAIN = ("no_gain_on_train", "worse_than_nominal", "failed")
+
+
 def fit_candidate(args) -> Candidate:
-    """Re-identify on TRAIN with the effects added from one start, then score on VALID.
-    args: (NominalFit, TRAIN, VALID, effects, start index of candidate_starts, DiagnoseOptions,
-    validation segments)."""
+    """Re-identify on TRAIN with the effects added from one start, then score on VALID when it
+    fits TRAIN better than the nominal model. args: (NominalFit, TRAIN, VALID, effects, start
+    index of candidate_starts, DiagnoseOptions, validation segments)."""
     nominal, train, valid, effects, start, opts, segments = args
+    c = _fit(nominal, train, effects, start, opts)
+    return c if c.status in _NO_GAIN else validate_candidate((c, nominal, valid, opts, segments))
+
+
+def fit_first(args) -> list[Candidate]:
+    """The first pass of one candidate, on TRAIN only: its first start and, where a gap is to be
+    explained and the nested start stalled (no gain on TRAIN, converged within
+    `_STALLED_ITERATIONS`), its defaults too, in the same job. From the neutral value at a
+    bound some effects never move (stiction without a break-away force); their defaults must
+    not wait for a second round. A nested fit that moved and found nothing gets them there,
+    if the gap is still open. args: (NominalFit, TRAIN, effect, start index, DiagnoseOptions,
+    whether the nominal model leaves a gap on VALID)."""
+    nominal, train, effect, start, opts, gap = args
+    out = [_fit(nominal, train, (candidate_starts(effect)[start],), start, opts)]
+    first = out[0]
+    if gap and start == NESTED_START and first.status == "no_gain_on_train" \
+            and first.iterations <= _STALLED_ITERATIONS:
+        out.append(_fit(nominal, train, (candidate_starts(effect)[1],), 1, opts))
+    return out
+
+
+# a nested fit that converges within this many iterations without a gain did not move: stiction
+# from no break-away force, 1 iteration on cylinder A's stiction run; found from its defaults
+_STALLED_ITERATIONS = 2
+
+
+def _fit(nominal: NominalFit, train: Run, effects: tuple[Effect, ...], start: int, opts: DiagnoseOptions) -> Candidate:
     t0 = time.perf_counter()
     label = "+".join(e.name for e in effects)
     try:
         with np.errstate(all="ignore"):  # a diverging candidate is caught by its costs, not by warnings
-            return _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0, label)
+            c = _fit_on_train(nominal, train, effects, start, opts, label)
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         # one candidate failing must not end the diagnosis
-        return Candidate(effect=label, status="failed", start=start, wall_s=time.perf_counter() - t0,
-                         error=f"the fit could not be computed ({type(e).__name__}: {e})")
+        c = Candidate(effect=label, status="failed", start=start,
+                      error=f"the fit could not be computed ({type(e).__name__}: {e})")
+    c.wall_s = time.perf_counter() - t0
+    return c
 
 
-def _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0, label) -> Candidate:
+def validate_candidate(args) -> Candidate:
+    """A fitted candidate with its validation on VALID (the nominal model's validation as the
+    segments' fallback start). args: (Candidate, NominalFit, VALID, DiagnoseOptions, segments)."""
+    c, nominal, valid, opts, segments = args
+    t0 = time.perf_counter()
+    c = copy.copy(c)
+    try:
+        with np.errstate(all="ignore"):
+            c.validation = validate(c.cylinder, c.effects, valid, opts.horizon_s, segments=segments,
+                                    fallback=nominal.validation)
+        c.rmse_x_validation = c.validation.rmse("x")
+    except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
+        c.status, c.error = "failed", f"the validation could not be computed ({type(e).__name__}: {e})"
+    c.wall_s += time.perf_counter() - t0
+    return c
+
+
+def _fit_on_train(nominal, train, effects, start, opts, label) -> Candidate:
     names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
     # candidates have further starts of their own (further_starts); the nominal model was fitted
     # without a restart too, so that every candidate is measured against the same baseline
@@ -272,7 +326,7 @@ def _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0,
                   std={pname(n): res.params[n].std for n in keyed},
                   status=res.solver["status"], friction={n: res.params[n].value for n in ("Fc", "Fv", "kp")},
                   train_cost=res.solver["cost"], iterations=res.solver["iterations"], start=start,
-                  effects=res.effects, nodes=res.nodes)
+                  effects=res.effects, nodes=res.nodes, cylinder=res.cylinder)
     gain = 1.0 - c.train_cost / nominal.train_cost
     if gain < -1e-3:
         # kept only if no start does better (_best_starts); then _nested_floor replaces it
@@ -284,11 +338,6 @@ def _fit_and_validate(nominal, train, valid, effects, start, opts, segments, t0,
         # the fast screen: what does not fit TRAIN better cannot explain the gap
         c.status = "no_gain_on_train"
         c.error = f"fits TRAIN no better than the nominal model ({gain:+.2%} of its cost): not validated"
-    else:
-        c.validation = validate(res.cylinder, res.effects, valid, opts.horizon_s, segments=segments,
-                                fallback=nominal.validation)
-        c.rmse_x_validation = c.validation.rmse("x")
-    c.wall_s = time.perf_counter() - t0
     return c
 
 
@@ -307,15 +356,17 @@ def _nested_floor(c: Candidate, nominal: NominalFit) -> Candidate:
                            "is reported at its neutral value, i.e. the nominal model: not validated")
 
 
-def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | None = None) -> list[Candidate]:
-    """The fits of `jobs`, in job order. With `enough`, the results end at the first job (in job
-    order, whatever finished first) for which it holds: the same fits count on any machine and
-    any number of workers; the later jobs still running are stopped."""
+def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | None = None,
+              work: Callable | None = None) -> list:
+    """`work` (fit_candidate) of each of `jobs`, in job order. With `enough`, the results end at
+    the first job (in job order, whatever finished first) for which it holds: the same fits
+    count on any machine and any number of workers; the later jobs still running are stopped."""
     parallel = workers > 1 and len(jobs) > 1 and not mp.current_process().daemon
     pool = mp.get_context("fork").Pool(min(workers, len(jobs))) if parallel else None
-    results: list[Candidate] = []
+    work = work or fit_candidate
+    results: list = []
     try:
-        for c in pool.imap(fit_candidate, jobs) if pool is not None else map(fit_candidate, jobs):
+        for c in pool.imap(work, jobs) if pool is not None else map(work, jobs):
             results.append(c)
             if enough is not None and enough(c):
                 break
@@ -345,6 +396,40 @@ def _best_starts(results: list[Candidate]) -> list[Candidate]:
         else:
             old.wall_s += c.wall_s
     return list(best.values())
+
+
+def validate_screened(cands: list[Candidate], nominal: NominalFit, valid: Run, segments, base_rmse_x: float,
+                      opts: DiagnoseOptions, say: Callable[[str], None] = lambda _m: None) -> list[Candidate]:
+    """The first pass's candidates scored on VALID, in the order of their TRAIN cost, the best
+    fit first; in that order the validations end at the first candidate that closes the gap
+    (closes_gap: whatever fits TRAIN less well can at best tie with it). Not validated either:
+    a candidate whose TRAIN gain is under `screen_share` of the best one's (the screen). Those
+    rows say why in words."""
+    base = nominal.validation
+    gain = {id(c): 1.0 - c.train_cost / nominal.train_cost for c in cands if c.status not in _NO_GAIN}
+    top = max(gain.values(), default=0.0)
+    leader = next((c.effect for c in cands if gain.get(id(c)) == top), "")
+    keep = sorted((c for c in cands if id(c) in gain and gain[id(c)] >= opts.screen_share * top),
+                  key=lambda c: c.train_cost)
+    for c in cands:
+        if id(c) in gain and gain[id(c)] < opts.screen_share * top:
+            c.status = "screened_out"
+            c.error = (f"fits TRAIN {gain[id(c)]:.2%} better than the nominal model, under {opts.screen_share:.0%} of "
+                       f"the best candidate's gain ({leader}: {top:.2%}): not validated (the screen)")
+    if keep:
+        say(f"  validating {len(keep)} of them on VALID, the best fit on TRAIN first ...")
+    done = _run_jobs([(c, nominal, valid, opts, segments) for c in keep], opts.workers,
+                     lambda c: closes_gap(c, base, base_rmse_x, opts), work=validate_candidate)
+    closer = done[-1] if len(done) < len(keep) else None
+    for c in keep[len(done):]:
+        c.status = "not_validated"
+        c.error = (f"not validated: {closer.effect}, which fits TRAIN better, closed the gap on VALID to near the "
+                   "noise first")
+    scored = {id(k): d for k, d in zip(keep, done)}
+    out = [scored.get(id(c), c) for c in cands]
+    for c in out:
+        _score(c, base, base_rmse_x, opts)
+    return out
 
 
 def _score(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOptions) -> None:
@@ -487,24 +572,23 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     order = sorted(opts.candidates, key=lambda n: (-len(EFFECTS[n].STATES), -len(EFFECTS[n].PARAMS)))
     # first from the nominal optimum (the defaults where the neutral value is out of range)
     first_start = {n: NESTED_START if has_nested_start(n) else 1 for n in order}
-    first = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments) for n, k in first_start.items()]
+    gap = base_val.normalized_rms() > opts.closed_gap
+    first = [(start, train, n, k, opts, gap) for n, k in first_start.items()]
     say(f"re-identifying {len(order)} candidate effects on TRAIN from the nominal optimum "
         f"({min(opts.workers, len(first))} processes) ...")
-    results = _run_jobs(first, opts.workers)
-    cands = best_of_starts(results, start)
-    for c in cands:
-        _score(c, base_val, base_rmse, opts)
+    fitted = [c for cs in _run_jobs(first, opts.workers, work=fit_first) for c in cs]
+    tried = {(c.effect, c.start) for c in fitted}
+    cands = validate_screened(best_of_starts(fitted, start), start, valid, segments, base_rmse, opts, say)
     # the cheapest first: they end at the first start that closes the gap (closes_gap)
     more = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments)
-            for n, k in further_starts(cands, base_val, order[::-1], first_start, opts)]
+            for n, k in further_starts(cands, base_val, order[::-1], first_start, opts) if (n, k) not in tried]
     if more:
         say(f"  trying {len(more)} further starts (the effects' defaults and alternatives) ...")
         done = _run_jobs(more, opts.workers, lambda c: closes_gap(c, base_val, base_rmse, opts))
         if len(done) < len(more):
             say(f"  {done[-1].effect} (start {done[-1].start}) closed the gap: the {len(more) - len(done)} "
                 "further starts after it were not needed")
-        results += done
-        cands = best_of_starts(results, start)
+        cands = best_of_starts(cands + done, start)
         for c in cands:
             _score(c, base_val, base_rmse, opts)
     for c in cands:
@@ -553,7 +637,8 @@ def further_starts(cands: list[Candidate], base: Validation, order: list[str], f
         return []
     ranked = sorted((c for c in cands if c.significant), key=lambda c: -c.score)
     leaders = {c.effect for c in ranked[:opts.leaders]}
-    retry = leaders | {c.effect for c in cands if not math.isfinite(c.shrink)}
+    retry = leaders | {c.effect for c in cands if not math.isfinite(c.shrink)
+                       and c.status not in ("screened_out", "not_validated")}
     if ranked and explained_share(base, ranked[0].validation) >= opts.dominant:
         leaders = retry = {ranked[0].effect}
     return [(n, k) for n in order for k in range(1, len(candidate_starts(n)))
@@ -631,8 +716,8 @@ def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, 
     second = next((c for c in ranking[1:] if c.significant), None)
     if second is None or best.validation is None:
         return None
-    # the remaining gap: is the best candidate itself still clearly worse than noise?
-    if best.validation.normalized_rms() < 1.05:
+    # a pair can be the verdict only where the best candidate leaves a gap (decide)
+    if best.validation.normalized_rms() <= opts.closed_gap:
         return None
     say(f"trying the pair {best.effect} + {second.effect} ...")
     inner = NominalFit(nominal.config, nominal.config.with_values(best.friction), best.nodes, best.train_cost,

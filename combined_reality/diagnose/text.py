@@ -164,6 +164,10 @@ def _verdict_sentences(d, strong, esc) -> list[str]:
     elif screened:
         out.append(esc("Not validated, as they fit TRAIN no better than the nominal model (the fast screen): "
                        + ", ".join(screened) + "."))
+    slight = [c.effect for c in d.ranking if c.status == "screened_out"]
+    if slight:
+        out.append(esc(f"Not validated either, as they gain under {d.options.screen_share:.0%} of the best "
+                       "candidate's gain on TRAIN (the screen): " + ", ".join(slight) + "."))
     return out
 
 
