@@ -35,7 +35,6 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from combined_reality.calibrate import calibrate, validation_figures  # noqa: E402
-from combined_reality.files import read_run, write_run  # noqa: E402
 from combined_reality.identify import IdentifyOptions, identify  # noqa: E402
 from sim.cylinder import load_cylinder  # noqa: E402
 
@@ -77,17 +76,6 @@ def make_cases(per_cylinder: int, seed: int, train_s: float = DURATION,
             out.append((ref.Case(cyl=cyl, duration=train_s, seed=s, calibration=cal, program="calibration"),
                         ref.Case(cyl=cyl, duration=DURATION, seed=s + 1, calibration=cal, program="mixed")))
     return out
-
-
-def runs_for(cases: list[ref.Case], cache: Path) -> list:
-    """The cases' runs, from the on-disk cache where they were simulated before."""
-    cache.mkdir(parents=True, exist_ok=True)
-    todo = [c for c in cases if not (cache / f"{c.key()}.csv").exists()]
-    if todo:
-        print(f"simulating {len(todo)} runs on the reference plant ...", file=sys.stderr, flush=True)
-        for case, run in zip(todo, ref.simulate(todo)):
-            write_run(cache / f"{case.key()}.csv", run, comments=list(run.comments))
-    return [read_run(cache / f"{c.key()}.csv") for c in cases]
 
 
 def truth_values(case: ref.Case) -> dict[str, float]:
@@ -141,7 +129,7 @@ def main() -> int:
     ap.add_argument("--cylinder", action="append", choices=CYLINDERS, help="only these cylinders (repeatable)")
     args = ap.parse_args()
     pairs = make_cases(args.cases_per_cylinder, args.seed, args.train_duration, tuple(args.cylinder or CYLINDERS))
-    runs = runs_for([c for pair in pairs for c in pair], args.out / "runs")
+    runs = ref.cached_runs([c for pair in pairs for c in pair], args.out / "runs")
     jobs = [(tr, va, runs[2 * i], runs[2 * i + 1]) for i, (tr, va) in enumerate(pairs)]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as pool:

@@ -98,8 +98,9 @@ def case_id(c: dict) -> str:
     return "__".join(parts + [str(c["draw"])])
 
 
-def case_runs(c: dict, cyl, duration: float, seed: int):
-    """TRAIN and VALID of a case and the truth (as a plain dict)."""
+def case_runs(c: dict, cyl, duration: float, seed: int, cache: Path | None = None):
+    """TRAIN and VALID of a case and the truth (as a plain dict); the reference plant's runs
+    kept in `cache` (its simulation takes minutes per case, the project plant's a second)."""
     rng = np.random.default_rng(seed)
     if c.get("plant", "project") == "project":
         effects = [] if c["effect"] == "none" else [EFFECTS[c["effect"]].random(rng, cyl)]
@@ -115,19 +116,19 @@ def case_runs(c: dict, cyl, duration: float, seed: int):
             sensors = ref.SensorDepartures(pressure_lag=float(rng.uniform(2e-3, 8e-3)))
     elif c["effect"] != "none":
         effects = [ref.random_effect(rng, cyl, w, c.get("form")) for w in c["effect"].split("+")]
-    train, valid = ref.simulate([ref.Case(cyl=cyl, duration=duration, seed=s_, effects=tuple(effects), sensors=sensors)
-                                 for s_ in (seed, seed + 1)])
+    train, valid = ref.cached_runs([ref.Case(cyl=cyl, duration=duration, seed=s_, effects=tuple(effects),
+                                             sensors=sensors) for s_ in (seed, seed + 1)], cache)
     truth = {f"{e.WORD}:{e.FORM}": e.values() for e in effects}
     truth.update({k: v for k, v in sensors.to_json().items() if v})
     return train, valid, truth
 
 
-def run_case(c: dict, duration: float, workers: int, reports: Path | None = None) -> dict:
+def run_case(c: dict, duration: float, workers: int, reports: Path | None = None, cache: Path | None = None) -> dict:
     cyl = load_cylinder(ROOT / "configs" / f"{c['cylinder']}.toml")
     # the project plant's seeds as before (its ids had no plant prefix)
     legacy = f"{c['cylinder']}__{c['effect']}__{c['draw']}"
     seed = zlib.crc32((legacy if c.get("plant", "project") == "project" else case_id(c)).encode()) % 100_000
-    train, valid, truth = case_runs(c, cyl, duration, seed)
+    train, valid, truth = case_runs(c, cyl, duration, seed, cache)
     t0 = time.perf_counter()
     identify(cyl, [train], IdentifyOptions())
     t_ident = time.perf_counter() - t0
@@ -243,7 +244,8 @@ def main() -> int:
     ap.add_argument("--clean", type=int, default=2, help="clean runs per cylinder")
     ap.add_argument("--duration", type=float, default=20.0, help="seconds of TRAIN and of VALID")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
-    ap.add_argument("--out", help="folder for per-case results (re-running skips cases already there)")
+    ap.add_argument("--out", help="folder for per-case results (re-running skips cases already there) and "
+                                  "the reference plant's runs (runs/: simulated once)")
     ap.add_argument("--reports", help="folder for the HTML report (and its plots as PNG) of every case")
     args = ap.parse_args()
     effects = tuple(n for n in args.effects.split(",") if n)
@@ -265,7 +267,8 @@ def main() -> int:
         if path and path.exists():
             results.append(json.loads(path.read_text()))
             continue
-        r = run_case(c, args.duration, args.workers, Path(args.reports) if args.reports else None)
+        r = run_case(c, args.duration, args.workers, Path(args.reports) if args.reports else None,
+                     out / "runs" if out else None)
         results.append(r)
         if path:
             tmp = path.with_suffix(".tmp")

@@ -55,7 +55,7 @@ from scipy.linalg import expm
 if __name__ == "__main__":  # run as a script: make the project's packages importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from combined_reality.files import Run, cylinder_tag, write_run  # noqa: E402
+from combined_reality.files import Run, cylinder_tag, read_run, write_run  # noqa: E402
 from sim.cylinder import Cylinder, cylinder_to_toml, load_cylinder, parse_cylinder  # noqa: E402
 
 __all__ = ["Case", "Calibration", "SensorDepartures", "Effect", "Param", "EFFECT_FORMS", "WORDS", "make_effect",
@@ -1880,6 +1880,21 @@ def simulate(cases: Sequence[Case], substeps: int | Sequence[int | None] | None 
              progress: Callable[[str], None] | None = None) -> list[Run]:
     """The runs of `cases` (see Case), each with comment lines that describe the truth."""
     return [r.run for r in simulate_detailed(cases, substeps, progress)]
+
+
+def cached_runs(cases: Sequence[Case], cache: Path | None) -> list[Run]:
+    """The runs of `cases`, each simulated once and kept in `cache` as a run file named by the
+    case's content hash (Case.key): a benchmark rerun on changed code skips the simulation
+    (minutes per case). Without a cache, simulated."""
+    if cache is None:
+        return simulate(cases)
+    cache.mkdir(parents=True, exist_ok=True)
+    todo = [c for c in cases if not (cache / f"{c.key()}.csv").exists()]
+    if todo:
+        print(f"simulating {len(todo)} runs on the reference plant ...", file=sys.stderr, flush=True)
+        for case, run in zip(todo, simulate(todo)):
+            write_run(cache / f"{case.key()}.csv", run, comments=list(run.comments))
+    return [read_run(cache / f"{c.key()}.csv") for c in cases]
 
 
 def _simulate_batch(cases: list[Case], substeps: int | None, progress) -> list[Result]:

@@ -433,3 +433,21 @@ def test_cases_refuse_what_makes_no_physical_sense(cyl):
     with pytest.raises(ValueError, match="non-negative integer"):
         rp.Case(cyl, 1.0, 1.5)
     assert rp.Case(cyl, 1.0, np.int64(3)).seed == 3
+
+
+def test_cached_runs_are_simulated_once_and_read_back_as_simulated(cyl, tmp_path, monkeypatch):
+    """The benchmarks keep the reference plant's runs (minutes per case) by the case's content
+    hash: a second call reads them back, to the run file's precision, without simulating."""
+    cases = [rp.Case(cyl, 0.1, SEED), rp.Case(cyl, 0.1, SEED + 1)]
+    first = rp.cached_runs(cases, tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"{c.key()}.csv" for c in cases)
+
+    def no_simulation(*_a, **_k):
+        raise AssertionError("simulated again")
+
+    monkeypatch.setattr(rp, "simulate", no_simulation)
+    again = rp.cached_runs(cases, tmp_path)
+    for a, b in zip(first, again):
+        for ch in ("t", "u", "x", "p1", "p2"):
+            np.testing.assert_allclose(getattr(b, ch), getattr(a, ch), rtol=1e-9, atol=1e-12)
+    assert first[0].x[-1] != first[1].x[-1] or first[0].p1[-1] != first[1].p1[-1]  # two cases, two runs
