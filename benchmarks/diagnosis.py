@@ -144,7 +144,8 @@ def run_case(c: dict, duration: float, workers: int, reports: Path | None = None
     verdict_row = next((r for r in res["ranking"] if r["effect"] == res["verdict"]), None)
     return {**c, "seed": seed, "truth": truth,
             "verdict": res["verdict"], "verdict_note": res.get("verdict_note", ""),
-            "ranking": [(r["effect"], r["shrink"], r["shrink_all"], r["z"], r["significant"]) for r in res["ranking"]],
+            "ranking": [(r["effect"], r["shrink"], r["shrink_all"], r["z"], r["significant"], r["status"])
+                        for r in res["ranking"]],
             "true_shrink": true["shrink"] if true else None,
             "true_params": true["params"] if true else None,
             "verdict_shrink": verdict_row["shrink"] if verdict_row else None,
@@ -223,9 +224,9 @@ def _truth_text(r: dict) -> str:
 
 
 def _top_text(r: dict) -> str:
-    def row(e, s, sa, t_, sig):
+    def row(e, s, sa, t_, sig, status="not scored"):  # results of older runs have no status
         if not (math.isfinite(s) and math.isfinite(t_)):
-            return f"{e} not scored"  # no start beat the nominal model (the report says why)
+            return f"{e} {status}"  # not scored on VALID (the report says why)
         return f"{e} {s:.0%}/{sa:.0%} z={t_:.1f}{'*' if sig else ''}"
 
     return ", ".join(row(*x) for x in r["ranking"][:3])
