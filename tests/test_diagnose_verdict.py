@@ -265,7 +265,7 @@ def _validated_to(levels: dict[str, float], seen: list):
 def test_validations_run_in_the_order_of_the_train_fit_and_end_at_the_first_that_closes_the_gap(
         monkeypatch, closer):
     """The leakage case: one candidate fits TRAIN ten thousand times better than the others and
-    validates to the noise; validating the rest (40 s of the 67 s) cannot change the verdict.
+    validates to the noise; validating the rest (43 s of CPU in a 67 s diagnosis) cannot change the verdict.
     A candidate that gains under a tenth of the best one's TRAIN gain is not validated at all."""
     seen = []
     base, stub = _validated_to({"leakage": 1.0 if closer else 3.0, "friction_asymmetry": 6.0, "mass": 9.0,
