@@ -57,8 +57,8 @@ def _first_pass(shares: dict[str, float], base: float = 10.0) -> list[Candidate]
 
 def _starts_of(cands, base=10.0, **opts):
     order = list(EFFECTS)
-    first = {n: 0 if has_nested_start(n) else 1 for n in order}
-    return further_starts(cands, _val(base), order, first, DiagnoseOptions(**opts))
+    tried = {(n, 0 if has_nested_start(n) else 1) for n in order}
+    return further_starts(cands, _val(base), order, tried, DiagnoseOptions(**opts))
 
 
 def test_further_starts_only_where_a_gap_is_left():
@@ -288,7 +288,7 @@ def test_validations_run_in_the_order_of_the_train_fit_and_end_at_the_first_that
     else:
         assert seen == ["leakage", "friction_asymmetry", "mass"]  # the best TRAIN fit first
         assert all(out[n].significant for n in seen)
-        assert further_starts(list(out.values()), base, list(costs), {n: 0 for n in costs}, DiagnoseOptions())
+        assert further_starts(list(out.values()), base, list(costs), {(n, 0) for n in costs}, DiagnoseOptions())
 
 
 def test_a_first_fit_that_finds_nothing_tries_the_defaults_in_the_same_job(cyl_a, monkeypatch):

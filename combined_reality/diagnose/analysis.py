@@ -581,7 +581,7 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     cands = validate_screened(best_of_starts(fitted, start), start, valid, segments, base_rmse, opts, say)
     # the cheapest first: they end at the first start that closes the gap (closes_gap)
     more = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments)
-            for n, k in further_starts(cands, base_val, order[::-1], first_start, opts) if (n, k) not in tried]
+            for n, k in further_starts(cands, base_val, order[::-1], tried, opts)]
     if more:
         say(f"  trying {len(more)} further starts (the effects' defaults and alternatives) ...")
         done = _run_jobs(more, opts.workers, lambda c: closes_gap(c, base_val, base_rmse, opts))
@@ -622,9 +622,10 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
         correlations=correlations, base_validation=base_val, wall_s=time.perf_counter() - t_start)
 
 
-def further_starts(cands: list[Candidate], base: Validation, order: list[str], first_start: dict[str, int],
+def further_starts(cands: list[Candidate], base: Validation, order: list[str], tried: set[tuple[str, int]],
                    opts: DiagnoseOptions) -> list[tuple[str, int]]:
-    """The (effect, start index into candidate_starts) fits to run after the first pass.
+    """The (effect, start index into candidate_starts) fits to run after the first pass, none of
+    those it `tried` already.
 
     None where no gap is left to explain: the nominal model already fits VALID or a candidate
     closed the gap (to near the noise). Otherwise the defaults of the candidates whose first
@@ -642,7 +643,7 @@ def further_starts(cands: list[Candidate], base: Validation, order: list[str], f
     if ranked and explained_share(base, ranked[0].validation) >= opts.dominant:
         leaders = retry = {ranked[0].effect}
     return [(n, k) for n in order for k in range(1, len(candidate_starts(n)))
-            if (k == 1 and n in retry and first_start[n] != 1) or (k > 1 and (not leaders or n in leaders))]
+            if (n, k) not in tried and ((k == 1 and n in retry) or (k > 1 and (not leaders or n in leaders)))]
 
 
 def closes_gap(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOptions) -> bool:
