@@ -1,5 +1,6 @@
 """Diagnosis: a withheld effect is named, a clean rig gets `none`, bad pairs of runs are refused."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -44,6 +45,15 @@ def test_diagnose_names_the_withheld_effect_or_none(cyl_a, tmp_path, capsys, spe
         assert all(c["shrink"] < 0.05 for c in d["ranking"] if c["shrink"] is not None)
         assert any(c["status"] == "no_gain_on_train" for c in d["ranking"])
     assert abs(sum(r["share_of_error"] for r in d["regions"] if r["where"].startswith("time:")) - 1) < 1e-9
+    # the subsystem split (computed in a process beside the candidate fits): a leak between the
+    # chambers lies in the chamber pressures, not in the piston's force balance
+    split = {r["subsystem"].split(",")[0]: r for r in d["subsystems"]}
+    assert set(split) == {"piston force balance (friction", "chamber pressures"} and len(d["subsystems"]) == 3
+    assert all(math.isfinite(r["rmse"]) and r["floor"] > 0 for r in d["subsystems"])
+    if spec:
+        assert max(d["subsystems"], key=lambda r: r["share_of_error"])["subsystem"].startswith("chamber pressures")
+    else:
+        assert all(r["excess"] < 0.5 for r in d["subsystems"])
 
 
 def test_validation_run_of_another_rate_is_refused(cyl_a, tmp_path, capsys):

@@ -249,6 +249,12 @@ def fit_candidate(args) -> Candidate:
     return c if c.status in _NO_GAIN else validate_candidate((c, nominal, valid, opts, segments))
 
 
+def _call(job):
+    """A job of a process pool: (function, its arguments)."""
+    fn, args = job
+    return fn(*args)
+
+
 def fit_first(args) -> list[Candidate]:
     """The first pass of one candidate, on TRAIN only: its first start and, where a gap is to be
     explained and the nested start stalled (no gain on TRAIN, converged within
@@ -406,16 +412,17 @@ def validate_screened(cands: list[Candidate], nominal: NominalFit, valid: Run, s
     a candidate whose TRAIN gain is under `screen_share` of the best one's (the screen). Those
     rows say why in words."""
     base = nominal.validation
-    gain = {id(c): 1.0 - c.train_cost / nominal.train_cost for c in cands if c.status not in _NO_GAIN}
+    # one candidate per effect (best_of_starts)
+    gain = {c.effect: 1.0 - c.train_cost / nominal.train_cost for c in cands if c.status not in _NO_GAIN}
     top = max(gain.values(), default=0.0)
-    leader = next((c.effect for c in cands if gain.get(id(c)) == top), "")
-    keep = sorted((c for c in cands if id(c) in gain and gain[id(c)] >= opts.screen_share * top),
+    leader = next((n for n, g in gain.items() if g == top), "")
+    keep = sorted((c for c in cands if gain.get(c.effect, -math.inf) >= opts.screen_share * top),
                   key=lambda c: c.train_cost)
     for c in cands:
-        if id(c) in gain and gain[id(c)] < opts.screen_share * top:
+        if c.effect in gain and gain[c.effect] < opts.screen_share * top:
             c.status = "screened_out"
-            c.error = (f"fits TRAIN {gain[id(c)]:.2%} better than the nominal model, under {opts.screen_share:.0%} of "
-                       f"the best candidate's gain ({leader}: {top:.2%}): not validated (the screen)")
+            c.error = (f"fits TRAIN {gain[c.effect]:.2%} better than the nominal model, under {opts.screen_share:.0%} "
+                       f"of the best candidate's gain ({leader}: {top:.2%}): not validated (the screen)")
     if keep:
         say(f"  validating {len(keep)} of them on VALID, the best fit on TRAIN first ...")
     done = _run_jobs([(c, nominal, valid, opts, segments) for c in keep], opts.workers,
@@ -425,8 +432,8 @@ def validate_screened(cands: list[Candidate], nominal: NominalFit, valid: Run, s
         c.status = "not_validated"
         c.error = (f"not validated: {closer.effect}, which fits TRAIN better, closed the gap on VALID to near the "
                    "noise first")
-    scored = {id(k): d for k, d in zip(keep, done)}
-    out = [scored.get(id(c), c) for c in cands]
+    scored = {d.effect: d for d in done}
+    out = [scored.get(c.effect, c) for c in cands]
     for c in out:
         _score(c, base, base_rmse_x, opts)
     return out
@@ -573,10 +580,14 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     # first from the nominal optimum (the defaults where the neutral value is out of range)
     first_start = {n: NESTED_START if has_nested_start(n) else 1 for n in order}
     gap = base_val.normalized_rms() > opts.closed_gap
-    first = [(start, train, n, k, opts, gap) for n, k in first_start.items()]
+    first = [(fit_first, ((start, train, n, k, opts, gap),)) for n, k in first_start.items()]
+    # the subsystem split needs no candidate: last, it fills the process that finishes first
+    first.append((subsystem_split, (cyl, nominal, train, valid, base_val, opts, segments)))
     say(f"re-identifying {len(order)} candidate effects on TRAIN from the nominal optimum "
         f"({min(opts.workers, len(first))} processes) ...")
-    fitted = [c for cs in _run_jobs(first, opts.workers, work=fit_first) for c in cs]
+    done_first = _run_jobs(first, opts.workers, work=_call)
+    subsystems = done_first.pop()
+    fitted = [c for cs in done_first for c in cs]
     tried = {(c.effect, c.start) for c in fitted}
     cands = validate_screened(best_of_starts(fitted, start), start, valid, segments, base_rmse, opts, say)
     # the cheapest first: they end at the first start that closes the gap (closes_gap)
@@ -605,7 +616,6 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
         say(f"  verdict {verdict}: {verdict_note}")
     shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None
 
-    subsystems = subsystem_split(cyl, nominal, train, valid, base_val, opts, segments)
     x_idx = base_val.outputs.index("x")
     return Diagnosis(
         cylinder=nominal, train=train, valid=valid, options=opts,
@@ -799,7 +809,8 @@ def subsystem_split(cyl: Cylinder, nominal: Cylinder, train: Run, valid: Run, ba
     rows = []
     label = "piston force balance (friction, mass), driven by the measured pressures"
     try:
-        mech = identify(cyl, [train], IdentifyOptions(drive="pressure", threads=opts.workers, restart_misfit=False))
+        # one thread: diagnose runs it in a process beside the candidate fits
+        mech = identify(cyl, [train], IdentifyOptions(drive="pressure", threads=1, restart_misfit=False))
         mval = validate(mech.cylinder, (), valid, opts.horizon_s, drive="pressure", segments=segments)
         rng = np.random.default_rng(seed)
         sen, sim = cyl.sensors, base_val.simulated
