@@ -247,3 +247,21 @@ def test_the_friction_std_holds_the_disagreement_of_force_balance_and_whole_mode
     out = with_model_error(final, balance)
     assert set(out) == {"Fc"}  # only what both estimated; the valve's parameters keep their std
     assert out["Fc"].value == 10.0 and out["Fc"].std == pytest.approx(math.hypot(0.1, 0.3))
+
+
+def test_the_stages_give_the_same_estimates_beside_each_other_as_one_after_the_other(cyl_a, train):
+    """With threads, the force balance runs in a thread beside the valve and chambers; one
+    thread runs them in turn. Every stage's estimates and the final ones must be the same
+    numbers: no result depends on how the machine's cores are shared."""
+    from combined_reality.calibrate import CalibrateOptions
+
+    run = train.slice(0, 8000)
+    beside = calibrate(cyl_a, [run], CalibrateOptions(threads=2))
+    in_turn = calibrate(cyl_a, [run], CalibrateOptions(threads=1))
+    assert [s["stage"] for s in beside.stages] == ["force balance", "valve and chambers", "whole model"]
+    for a, b in zip(beside.stages, in_turn.stages):
+        assert a["iterations"] == b["iterations"]
+        for n, v in a["params"].items():
+            assert v == pytest.approx(b["params"][n], rel=1e-9, abs=1e-12), (a["stage"], n)
+    for n, e in beside.result.params.items():
+        assert e.value == pytest.approx(in_turn.result.params[n].value, rel=1e-9, abs=1e-12), n
