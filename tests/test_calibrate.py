@@ -18,7 +18,7 @@ from conftest import CONFIGS
 
 from combined_reality.calibrate import CALIBRATED, calibrate, flow_coverage
 from combined_reality.cli import main
-from combined_reality.files import cylinder_tag, read_run, write_run
+from combined_reality.files import cylinder_tag, write_run
 from combined_reality.files.cylinder_file import cylinder_file_text
 from combined_reality.identify import IdentifyOptions, identify
 from combined_reality.live import run_program
