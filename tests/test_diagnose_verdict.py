@@ -2,6 +2,8 @@
 identifier (fast): a weak winner is `unexplained`, combining effects give the pair, a
 nested candidate never ends worse than the nominal model, and no fit has a wall-clock limit."""
 import math
+import os
+import threading
 import time
 
 import numpy as np
@@ -333,3 +335,23 @@ def test_no_pair_is_fitted_where_the_best_candidate_leaves_no_gap(cyl_a, monkeyp
     ranking[0].effects = (neutral_start("valve_delay"),)
     analysis._best_pair(nominal, None, None, ranking, *args[4:])
     assert len(fits) == 1
+
+
+def _index_and_process(job):
+    i, _lock, _payload = job
+    time.sleep(0.0 if i < 2 else 0.5)
+    return i, os.getpid()
+
+
+def test_pool_jobs_reach_the_processes_by_fork_never_through_the_pipe():
+    """A job of megabytes sent through the pool's pipe could be caught half-written when the
+    pool is stopped early, and the pool would wait for it forever (a benchmark run hung so).
+    The jobs arrive with the fork: one that cannot even be pickled (it holds a lock) runs in
+    the pool's processes, and the pool stopped after the second returns at once."""
+    lock = threading.Lock()
+    jobs = [(i, lock, np.zeros(1_000_000)) for i in range(6)]
+    t0 = time.perf_counter()
+    out = analysis._run_jobs(jobs, 2, enough=lambda r: r[0] == 1, work=_index_and_process)
+    assert [i for i, _ in out] == [0, 1]
+    assert all(pid != os.getpid() for _, pid in out)  # run in the pool, not here
+    assert time.perf_counter() - t0 < 60  # returned (a hang would not); the bound is no timing claim

@@ -366,13 +366,19 @@ def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | No
               work: Callable | None = None) -> list:
     """`work` (fit_candidate) of each of `jobs`, in job order. With `enough`, the results end at
     the first job (in job order, whatever finished first) for which it holds: the same fits
-    count on any machine and any number of workers; the later jobs still running are stopped."""
+    count on any machine and any number of workers; the later jobs still running are stopped.
+
+    The pool's processes get the jobs when they are forked (_hold_jobs), and a task is a job's
+    index. A task that carries its job (megabytes with the runs) can be caught half-written
+    into the pool's pipe when the pool is stopped early, and terminate() then waits for it
+    forever: that hung a benchmark run."""
     parallel = workers > 1 and len(jobs) > 1 and not mp.current_process().daemon
-    pool = mp.get_context("fork").Pool(min(workers, len(jobs))) if parallel else None
     work = work or fit_candidate
+    pool = mp.get_context("fork").Pool(min(workers, len(jobs)), initializer=_hold_jobs, initargs=(work, jobs)) \
+        if parallel else None
     results: list = []
     try:
-        for c in pool.imap(work, jobs) if pool is not None else map(work, jobs):
+        for c in pool.imap(_held_job, range(len(jobs))) if pool is not None else map(work, jobs):
             results.append(c)
             if enough is not None and enough(c):
                 break
@@ -381,6 +387,21 @@ def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | No
             pool.terminate()
             pool.join()
     return results
+
+
+# a pool process's jobs and their work (set once per process by _hold_jobs, which the pool
+# runs in each process it forks: the jobs arrive with the fork, never through its pipe)
+_held: tuple[Callable, list] = (lambda job: None, [])
+
+
+def _hold_jobs(work: Callable, jobs: list) -> None:
+    global _held
+    _held = (work, jobs)
+
+
+def _held_job(i: int):
+    work, jobs = _held
+    return work(jobs[i])
 
 
 def best_of_starts(results: list[Candidate], nominal: NominalFit) -> list[Candidate]:
