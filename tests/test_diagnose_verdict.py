@@ -350,8 +350,6 @@ def test_pool_jobs_reach_the_processes_by_fork_never_through_the_pipe():
     the pool's processes, and the pool stopped after the second returns at once."""
     lock = threading.Lock()
     jobs = [(i, lock, np.zeros(1_000_000)) for i in range(6)]
-    t0 = time.perf_counter()
     out = analysis._run_jobs(jobs, 2, enough=lambda r: r[0] == 1, work=_index_and_process)
     assert [i for i, _ in out] == [0, 1]
     assert all(pid != os.getpid() for _, pid in out)  # run in the pool, not here
-    assert time.perf_counter() - t0 < 60  # returned (a hang would not); the bound is no timing claim

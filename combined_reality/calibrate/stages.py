@@ -131,11 +131,14 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
 
     # 1 and 2 need nothing from each other: the force balance runs in a thread beside the valve
     # and chambers (the compiled evaluations release the GIL), on one thread of its own
-    with ThreadPoolExecutor(1) as pool:
-        beside = options.threads > 1
-        mech_job = pool.submit(_force_balance, cyl, runs, want, replace(options, threads=1), say) if beside else None
+    if options.threads > 1:
+        with ThreadPoolExecutor(1) as pool:
+            mech_job = pool.submit(_force_balance, cyl, runs, want, replace(options, threads=1), say)
+            pneu = _valve_and_chambers(cyl, runs, want, options, say)
+            mech = mech_job.result()
+    else:
+        mech = _force_balance(cyl, runs, want, options, say)
         pneu = _valve_and_chambers(cyl, runs, want, options, say)
-        mech = mech_job.result() if beside else _force_balance(cyl, runs, want, options, say)
     if mech is not None:
         stages.append({"stage": "force balance", "drive": "pressure", **_summary(mech)})
     if pneu is not None:
@@ -154,9 +157,7 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
             o2 = values.get("offset_p2", cyl.sensors.offset_p2) - cyl.sensors.offset_p2
             values["external_force"] += o1 * g.area_cap - o2 * g.area_rod
     # node states from the stages: motion from the force balance, pressures from the chambers
-    nodes = None
-    if mech is not None and pneu is not None and mech.nodes.shape[1] == pneu.nodes.shape[1]:
-        nodes = np.vstack([pneu.nodes[:2], mech.nodes[:2]])
+    nodes = np.vstack([pneu.nodes[:2], mech.nodes[:2]]) if mech is not None and pneu is not None else None
     joint = _stage("3/3 the whole model (driven by the command)", cyl.with_values(values), runs, "command",
                    [n for n in CALIBRATED if n in want], options, say, nodes)
     if joint is None:

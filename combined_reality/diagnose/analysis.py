@@ -391,7 +391,7 @@ def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | No
 
 # a pool process's jobs and their work (set once per process by _hold_jobs, which the pool
 # runs in each process it forks: the jobs arrive with the fork, never through its pipe)
-_held: tuple[Callable, list] = (lambda job: None, [])
+_held: tuple[Callable, list] | None = None
 
 
 def _hold_jobs(work: Callable, jobs: list) -> None:
