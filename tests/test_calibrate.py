@@ -174,7 +174,7 @@ def test_a_written_cylinder_file_round_trips_and_keeps_defaults_out(cyl_a):
               "critical_ratio": 0.41, "dead_volume_cap": 1.234e-5, "dead_volume_rod": 4.321e-6,
               "external_force": -2.5, "end_stiffness": 3e6, "end_damping": 1500.0, "offset_p1": 2345.6,
               "offset_p2": -1234.5, "overlap_extend": 0.045, "overlap_retract": 0.02,
-              **{f"flow_retract_{k + 1}": 0.05 * (k + 1) for k in range(len(GRID))}}
+              **{f"flow_retract_{k + 1}": 0.03 * (k + 1) for k in range(len(GRID))}}
     assert set(values) >= set(CALIBRATED) - {n for n in CALIBRATED if n.startswith("flow_extend")}
     changed = cyl_a.with_values(values)
     text = cylinder_file_text(changed, note="test")

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from sim.cylinder import (
+    EARLIER_OPENING_GRIDS,
     ESTIMABLE,
     FLOW_CHARACTERISTIC,
     OPENING_GRID,
@@ -357,6 +358,20 @@ def test_flow_characteristic_loads_and_round_trips(tmp_path: Path) -> None:
     again = load_cylinder(write(tmp_path, cylinder_to_toml(cyl), name="again.toml"))
     assert again == cyl
     assert load_cylinder(write(tmp_path, EXAMPLE, name="plain.toml")).valve.is_linear
+
+
+def test_a_file_on_the_earlier_grid_is_read_as_the_same_curve(tmp_path: Path) -> None:
+    """A file written on the 11 openings of earlier versions: the same monotone cubic, evaluated
+    at today's openings; exact for a straight characteristic, close for a curved one."""
+    old = EARLIER_OPENING_GRIDS[0]
+    assert len(old) != N
+    straight = load_cylinder(write(tmp_path, with_valve(f"flow_extend = {list(old)}\n")))
+    assert straight.valve.flow_extend == OPENING_GRID and straight.valve.is_linear  # the nominal law, exactly
+    curved = tuple(1.2 * g ** 1.6 for g in old)
+    v = load_cylinder(write(tmp_path, with_valve(f"flow_extend = {list(curved)}\n"), name="curved.toml")).valve
+    assert len(v.flow_extend) == N and v.flow_extend[-1] == curved[-1]
+    assert all(b >= a for a, b in zip(v.flow_extend, v.flow_extend[1:]))
+    assert v.flow_extend == pytest.approx(tuple(1.2 * g ** 1.6 for g in OPENING_GRID), rel=0.03, abs=2e-4)
 
 
 @pytest.mark.parametrize("lines, fragment", [

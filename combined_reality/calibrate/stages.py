@@ -33,6 +33,7 @@ from sim.cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, VALVE_DIRECTIONS, Cy
 
 from ..files import Run
 from ..identify import Estimate, IdentificationError, IdentifyOptions, IdentifyResult, PriorRow, identify, validate
+from .dead_band import dead_band_in_overlap
 from .identifiability import Identifiability, assess
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets
 
@@ -156,17 +157,44 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
             o1 = values.get("offset_p1", cyl.sensors.offset_p1) - cyl.sensors.offset_p1
             o2 = values.get("offset_p2", cyl.sensors.offset_p2) - cyl.sensors.offset_p2
             values["external_force"] += o1 * g.area_cap - o2 * g.area_rod
+    start = cyl.with_values(values)
+    start = start.with_values(_dead_band_moved(start, want, say))
     # node states from the stages: motion from the force balance, pressures from the chambers
     nodes = np.vstack([pneu.nodes[:2], mech.nodes[:2]]) if mech is not None and pneu is not None else None
-    joint = _stage("3/3 the whole model (driven by the command)", cyl.with_values(values), runs, "command",
-                   [n for n in CALIBRATED if n in want], options, say, nodes)
+    estimate = [n for n in CALIBRATED if n in want]
+    joint = _stage("3/3 the whole model (driven by the command)", start, runs, "command", estimate, options, say, nodes)
     if joint is None:
         raise IdentificationError("nothing to calibrate: the estimate list is empty.")
     stages.append({"stage": "whole model", "drive": "command", **_summary(joint)})
+    moved = _dead_band_moved(joint.cylinder, want, say, start)
+    if moved:  # the whole model closed a dead band of its own: once more, from the same curve said so
+        again = _stage("3/3 again, the dead band in the overlap", joint.cylinder.with_values(moved), runs, "command",
+                       estimate, options, say, joint.nodes)
+        stages.append({"stage": "whole model, the dead band in the overlap", "drive": "command", **_summary(again)})
+        if again.solver["cost"] < joint.solver["cost"]:
+            joint = again
     if mech is not None and mech.explains_run:
         joint.params.update(with_model_error(joint.params, mech.params))
     return Calibration(cylinder=joint.cylinder, result=joint, identifiability=assess(joint, runs), stages=stages,
                        wall_s=time.perf_counter() - t0)
+
+
+def _dead_band_moved(cyl: Cylinder, want: set[str], say: Callable[[str], None],
+                     started: Cylinder | None = None) -> dict[str, float]:
+    """The flow characteristic's dead band moved into its overlap (dead_band.py), where the
+    overlap and the rises are estimated; not where the fit `started` from that very overlap
+    (it went back to the band it was given: a second start would repeat the first)."""
+    moved: dict[str, float] = {}
+    found = dead_band_in_overlap(cyl)
+    for d in VALVE_DIRECTIONS:
+        mine = {n: v for n, v in found.items() if n.startswith((f"overlap_{d}", f"flow_{d}_"))}
+        if started is not None and mine and abs(mine[f"overlap_{d}"] - started.value(f"overlap_{d}")) < 1e-3:
+            continue
+        if mine and set(mine) <= want:  # the whole curve of that direction is estimated
+            moved.update(mine)
+            say(f"  the {d} characteristic is closed up to {moved[f'overlap_{d}']:.3f} of the command: "
+                "its overlap from there")
+    return moved
 
 
 def _force_balance(cyl: Cylinder, runs: Sequence[Run], want: set[str], options: CalibrateOptions,
