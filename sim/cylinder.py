@@ -17,8 +17,6 @@ from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-from scipy.interpolate import PchipInterpolator
-
 
 class ConfigError(ValueError):
     """A cylinder file that cannot be used; the message is one sentence naming file and key."""
@@ -349,6 +347,8 @@ def resampled_levels(grid: tuple[float, ...], levels: tuple[float, ...]) -> tupl
     full = levels[-1]
     if all(abs(level - full * g) <= 1e-12 * full for level, g in zip(levels, grid)):
         return tuple(full * g for g in OPENING_GRID)
+    from scipy.interpolate import PchipInterpolator  # here: importing scipy costs every command 0.16 s
+
     curve = PchipInterpolator((0.0, *grid), (0.0, *levels))
     out = [float(curve(a)) for a in OPENING_GRID]
     out[-1] = float(levels[-1])
