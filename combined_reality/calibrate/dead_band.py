@@ -34,10 +34,12 @@ def dead_band_in_overlap(cyl: Cylinder) -> dict[str, float]:
     grid = (0.0, *OPENING_GRID)
     for d in VALVE_DIRECTIONS:
         levels = getattr(v, f"flow_{d}")
-        closed = [k for k, level in enumerate(levels) if level <= CLOSED_LEVEL * levels[-1]]
-        if not closed or closed[0] != 0 or levels[-1] <= 0:
+        if levels[-1] <= 0:
             continue
-        k0 = max(k for k in range(len(closed)) if closed[k] == k)  # the last of the leading closed points
+        closed = sum(level <= CLOSED_LEVEL * levels[-1] for level in levels)  # leading: the levels never fall
+        if not closed:
+            continue
+        k0 = closed - 1  # the last closed grid point
         overlap = getattr(v, f"overlap_{d}")
         s0 = OPENING_GRID[k0]
         new_overlap = overlap + s0 * (1.0 - overlap)
