@@ -31,7 +31,9 @@ def test_a_curve_closed_at_its_first_levels_gets_that_band_as_overlap(cyl) -> No
     # closed up to the third grid point beyond an overlap of 0.02, then a power law
     levels = np.where(grid <= OPENING_GRID[2], 0.0, 1.3 * np.clip((grid - OPENING_GRID[2]) / (1 - OPENING_GRID[2]), 0, 1) ** 1.5)
     start = replace(cyl, valve=replace(cyl.valve, overlap_extend=0.02, flow_extend=tuple(levels)))
-    moved = dead_band_in_overlap(start)
+    found = dead_band_in_overlap(start)
+    assert set(found) == {"extend"}
+    moved = found["extend"]
     assert set(moved) == {"overlap_extend", *(f"flow_extend_{k + 1}" for k in range(len(OPENING_GRID)))}
     assert moved["overlap_extend"] == pytest.approx(0.02 + OPENING_GRID[2] * 0.98)
     after = start.with_values(moved)

@@ -13,9 +13,7 @@ moved before the whole model's fit, it found an overlap of 0.072 and VALID came 
 """
 from __future__ import annotations
 
-from scipy.interpolate import PchipInterpolator
-
-from sim.cylinder import OPENING_GRID, VALVE_DIRECTIONS, Cylinder
+from sim.cylinder import OPENING_GRID, VALVE_DIRECTIONS, Cylinder, flow_levels_at
 
 __all__ = ["CLOSED_LEVEL", "dead_band_in_overlap"]
 
@@ -25,34 +23,24 @@ CLOSED_LEVEL = 1e-4
 MAX_OVERLAP = 0.45  # leave room below the parameter's bound (0.5)
 
 
-def dead_band_in_overlap(cyl: Cylinder) -> dict[str, float]:
-    """For each direction whose characteristic is closed at its first grid levels: the overlap
-    moved to the last closed grid point and the rises of the same curve (the plant's monotone
-    cubic) on the grid beyond it, by parameter name. Empty when no direction has a dead band."""
+def dead_band_in_overlap(cyl: Cylinder) -> dict[str, dict[str, float]]:
+    """Per direction whose characteristic is closed at its first grid levels: the overlap moved
+    to the last closed grid point and the rises of the same curve on the grid beyond it, by
+    parameter name. Directions without a dead band are left out."""
     v = cyl.valve
-    out: dict[str, float] = {}
-    grid = (0.0, *OPENING_GRID)
+    out: dict[str, dict[str, float]] = {}
     for d in VALVE_DIRECTIONS:
         levels = getattr(v, f"flow_{d}")
-        if levels[-1] <= 0:
-            continue
         closed = sum(level <= CLOSED_LEVEL * levels[-1] for level in levels)  # leading: the levels never fall
-        if not closed:
+        if levels[-1] <= 0 or not closed:
             continue
-        k0 = closed - 1  # the last closed grid point
+        s0 = OPENING_GRID[closed - 1]  # the last closed grid point
         overlap = getattr(v, f"overlap_{d}")
-        s0 = OPENING_GRID[k0]
         new_overlap = overlap + s0 * (1.0 - overlap)
         if new_overlap > MAX_OVERLAP:
             continue
-        curve = PchipInterpolator(grid, (0.0, *levels))
-        # the new grid's openings, as openings of the old curve: a = o' + s'(1 - o') = o + s(1 - o)
-        new_levels = [max(float(curve(s0 + s * (1.0 - s0))), 0.0) for s in OPENING_GRID]
-        new_levels[-1] = float(levels[-1])
-        out[f"overlap_{d}"] = new_overlap
-        previous = 0.0
-        for k, level in enumerate(new_levels):
-            level = max(level, previous)  # monotone, whatever the rounding
-            out[f"flow_{d}_{k + 1}"] = level - previous
-            previous = level
+        # the new grid's openings as openings of the old curve: a = o' + s'(1 - o') = o + s(1 - o)
+        new_levels = flow_levels_at(OPENING_GRID, levels, [s0 + s * (1.0 - s0) for s in OPENING_GRID])
+        out[d] = {f"overlap_{d}": new_overlap,
+                  **{f"flow_{d}_{k + 1}": b - a for k, (a, b) in enumerate(zip((0.0, *new_levels), new_levels))}}
     return out

@@ -171,11 +171,15 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
     stages.append({"stage": "whole model", "drive": "command", **_summary(joint)})
     moved = _dead_band_moved(joint.cylinder, want, say, start)
     if moved:  # the whole model closed a dead band of its own: once more, from the same curve said so
-        again = _stage("3/3 again, the dead band in the overlap", joint.cylinder.with_values(moved), runs, "command",
-                       estimate, options, say, joint.nodes)
-        stages.append({"stage": "whole model, the dead band in the overlap", "drive": "command", **_summary(again)})
-        if again.solver["cost"] < joint.solver["cost"]:
-            joint = again
+        try:
+            again = _stage("3/3 again, the dead band in the overlap", joint.cylinder.with_values(moved), runs,
+                           "command", estimate, options, say, joint.nodes)
+        except IdentificationError as e:  # a second start only: the first fit stands
+            say(f"  the second start failed ({e}); the first fit stands")
+        else:
+            stages.append({"stage": "whole model, the dead band in the overlap", "drive": "command", **_summary(again)})
+            if again.solver["cost"] < joint.solver["cost"]:
+                joint = again
     if mech is not None and mech.explains_run:
         joint.params.update(with_model_error(joint.params, mech.params))
     return Calibration(cylinder=joint.cylinder, result=joint, identifiability=assess(joint, runs), stages=stages,
@@ -188,14 +192,12 @@ def _dead_band_moved(cyl: Cylinder, want: set[str], say: Callable[[str], None],
     overlap and the rises are estimated; not where the fit `started` from that very overlap
     (it went back to the band it was given: a second start would repeat the first)."""
     moved: dict[str, float] = {}
-    found = dead_band_in_overlap(cyl)
-    for d in VALVE_DIRECTIONS:
-        mine = {n: v for n, v in found.items() if n.startswith((f"overlap_{d}", f"flow_{d}_"))}
-        if started is not None and mine and abs(mine[f"overlap_{d}"] - started.value(f"overlap_{d}")) < 1e-3:
+    for d, values in dead_band_in_overlap(cyl).items():
+        if started is not None and abs(values[f"overlap_{d}"] - started.value(f"overlap_{d}")) < 1e-3:
             continue
-        if mine and set(mine) <= want:  # the whole curve of that direction is estimated
-            moved.update(mine)
-            say(f"  the {d} characteristic is closed up to {moved[f'overlap_{d}']:.3f} of the command: "
+        if set(values) <= want:  # the whole curve of that direction is estimated
+            moved.update(values)
+            say(f"  the {d} characteristic is closed up to {values[f'overlap_{d}']:.3f} of the command: "
                 "its overlap from there")
     return moved
 
