@@ -60,9 +60,9 @@ class Supply:
 # them (PCHIP). Denser at small openings, where closed-loop position control spends most of its
 # time: a real valve's curve there (a power of the opening, an S-shape) decides how the piston
 # creeps. On the calibration benchmark's Norgren rigs, the earlier grid of 11 openings could not
-# follow such curves closely enough: the whole model fitted its calibration run to 1.3-1.5 x the
-# sensor noise only, and predicted another run to 3-16 x; on these 15 it fits to 1.0-1.1 x and
-# predicts to 1.0-1.8 x.
+# follow such curves closely enough: the whole model fitted their calibration runs to 1.25-1.67 x
+# the sensor noise, and predicted another run to 3.1-16 x in 4 of 6; on these 15 it fits to
+# 1.00-1.11 x and predicts to 1.0-1.8 x.
 OPENING_GRID: tuple[float, ...] = (0.01, 0.03, 0.06, 0.1, 0.14, 0.18, 0.23, 0.28, 0.34, 0.4, 0.5, 0.6, 0.7, 0.85, 1.0)
 # Grids of earlier versions: a cylinder file with as many levels is read on its own grid and
 # resampled onto OPENING_GRID (the same monotone cubic, evaluated there).
