@@ -124,6 +124,42 @@ def test_threads_share_the_window_and_change_no_estimate(cyl_a, lossy_a):
         assert a.values == b.values and a.std == b.std and a.sigma == b.sigma
 
 
+def test_after_an_update_without_a_step_only_the_new_intervals_are_simulated(cyl_a, lossy_a, monkeypatch):
+    """An update that took no step leaves its linearisation where the next window starts: the
+    intervals both windows share are not simulated again (most updates of a warm stream), and
+    every estimate is the one that evaluating each whole window anew gives."""
+    from combined_reality.identify.shooting import ShootingProblem
+
+    run = lossy_a.slice(0, 8000)
+    windows = []  # with_sens of every whole-window simulation
+    simulate = ShootingProblem.simulate
+
+    def counted(self, S, p, with_sens):
+        windows.append(with_sens)
+        return simulate(self, S, p, with_sens)
+
+    monkeypatch.setattr(ShootingProblem, "simulate", counted)
+    reused = _stream(MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions()), run)
+    reused_sens = sum(windows)
+    update = MovingHorizonEstimator.update
+
+    def forgetting(self):  # the same estimator, made to forget its linearisation after every update
+        e = update(self)
+        self._prev["Sens"] = None
+        return e
+
+    monkeypatch.setattr(MovingHorizonEstimator, "update", forgetting)
+    windows.clear()
+    fresh = _stream(MovingHorizonEstimator(cyl_a, 1e-3, OnlineOptions()), run)
+    assert len(reused) == len(fresh) > 25 and sum(e.gaps for e in fresh) > 100
+    assert sum(windows) >= len(fresh)  # each update evaluated its whole window at least once
+    assert reused_sens < 0.5 * len(reused)
+    for a, b in zip(reused, fresh):
+        for n in ("Fc", "Fv", "kp"):
+            assert a.values[n] == pytest.approx(b.values[n], rel=1e-9, abs=0), (a.t, n)
+            assert a.std[n] == pytest.approx(b.std[n], rel=1e-6, abs=0), (a.t, n)
+
+
 def test_holding_the_last_command_across_a_gap_would_not_fit(cyl_a, lossy_a):
     """Why the command over a gap is estimated: held from the sample before, the windows do
     not fit (the estimator's bridge must beat this)."""

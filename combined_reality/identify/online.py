@@ -24,6 +24,13 @@ Outputs not measured at a sample (NaN) have no residual there.
 Windows slide by whole intervals and never by more than a window, so no sample is skipped
 when the estimator falls behind (it then slides further per update instead).
 
+Cost: most updates of a warm stream find no step worth taking (less to gain than fitting
+the unknowns to noise). Such an update leaves its linearisation where the next window
+starts, so the next one simulates only its new intervals, with their sensitivities, and
+takes the shared ones as they are: on a 2-core machine an update then costs about 5 ms
+instead of 16 ms (2 s window at 1 kHz, one thread), and a window is evaluated whole only
+after a step.
+
 The standard deviation is that of the whole-session estimate: the Gauss-Newton covariance
 of window and arrival cost together, scaled by the residual variance of the whole session,
 or the cluster-robust (sandwich) covariance over clusters of `cluster_s` when residuals
@@ -74,8 +81,8 @@ class OnlineOptions:
     # threads of the compiled window evaluation (the estimates do not depend on it). One by
     # default: the estimator runs beside acquisition, and a second thread took a core from
     # whatever else runs (a host-side velocity loop on the other core came late). Where nothing
-    # real-time can suffer, two halve the evaluation (update p50 33 -> 23 ms, p95 55 -> 37 ms on
-    # a 2-core machine): a live session whose acquisition runs at real-time priority, and replay
+    # real-time can suffer, two share a whole window's evaluation (the update p95 17.8 -> 14.4 ms
+    # on a 2-core machine): a live session whose acquisition runs at real-time priority, and replay
     threads: int = 1
     bridge_s: float = 0.01  # lost samples up to this long are bridged (their command estimated)
     max_bridged: int = 100  # bridged gaps per window at most (each adds an unknown); more start new pieces
@@ -198,6 +205,7 @@ class MovingHorizonEstimator:
         # one step for each side of the central differences over the bridged gaps of a window,
         # by size in steps of 8 (a few compiled maps, few unused columns)
         self._gap_steps: dict[int, NumpyCall] = {}
+        self._sens_one = NumpyCall(self.sf.sens)  # one interval with its sensitivities
         self._buf = np.empty((5, 0))  # rows t, u, x, p1, p2
         self._base = 0  # stream index of _buf[:, 0]
         self._seen = 0  # stream index one past the newest row
@@ -480,16 +488,30 @@ class MovingHorizonEstimator:
         # measured state where a new piece begins
         keep = prev["Kw"] - left if prev is not None else 0
         S = self._node_guesses(lay, np.arange(Kw) >= keep)
+        first_ev = None  # the first iteration's evaluation, when the overlap provides it
         if keep > 0:
             X = np.empty((nx, Kw, M))
             S[:, :keep] = prev["S"][:, left:]
             X[:, :keep] = prev["X"][:, left:]
             W = commands(p)
+            # when the last update took no step, its linearisation holds where this window
+            # starts: the intervals both windows share are not simulated again (an update that
+            # takes no step then costs the new intervals, not the window)
+            Sens = None
+            if prev["Sens"] is not None:
+                Sens = np.empty((nx, Kw, M, nx + nth))
+                Sens[:, :keep] = prev["Sens"][:, left:]
             for k in range(keep - 1, Kw):  # the old last interval may have a successor now
                 if k >= keep and has_next[k - 1]:
                     S[:, k] = X[:, k - 1, M - 1]
-                X[:, k] = np.asarray(self.sf.interval(S[:, k], W[:, k * (M + 1):(k + 1) * (M + 1)], p[:npar],
-                                                      lay["H"][:, k * M:(k + 1) * M]))
+                args = (S[:, k], W[:, k * (M + 1):(k + 1) * (M + 1)], p[:npar], lay["H"][:, k * M:(k + 1) * M])
+                if Sens is None:
+                    X[:, k] = np.asarray(self.sf.interval(*args))
+                else:
+                    X[:, k], sens_k = self._sens_one(*args)
+                    Sens[:, k] = sens_k.reshape(nx, M, nx + nth)
+            if Sens is not None and prob.prob.allows(S) and np.all(np.isfinite(X)):
+                first_ev = (*prob.residuals(S, X), X, Sens)
         # (else: the first iteration's evaluation is the first simulation of these nodes)
         lam, mu, it = 0.0, 0.0, 0
         lin_at = step_taken = None
@@ -505,7 +527,7 @@ class MovingHorizonEstimator:
         for it in range(1, n_iter + 1):
             # Jacobians are taken fresh every iteration: reusing those of the overlap (taken
             # before the last step) fails at reversals, where stick and slip switch
-            ev = evaluate(S, p, True)
+            ev = first_ev if it == 1 and first_ev is not None else evaluate(S, p, True)
             if ev is None:
                 raise RuntimeError(f"online estimate: the simulation of the window at t = {t_first:.3f} s "
                                    "is not finite; check the cylinder file against the rig")
@@ -518,7 +540,7 @@ class MovingHorizonEstimator:
             dev = theta - mean
             Nm[th_sl, th_sl] += info
             g[th_sl] += info @ dev
-            lin_at, step_taken = (Js, Jt, r0), None
+            lin_at, lin_sens, step_taken = (Js, Jt, r0), ev[3], None
             cost = 0.5 * float(np.sum(E * E)) + 0.5 * float(dev @ info @ dev)
             viol = float(np.sum(np.abs(D)))
             accepted = converged = False
@@ -565,7 +587,8 @@ class MovingHorizonEstimator:
         r_acc = r0 if step_taken is None else r0 + _apply(Js, Jt, *step_taken)
         t0 = self._buf[0, lay["starts"]]
         self._prev = {"k0": k0, "Kw": Kw, "S": S, "X": X, "Js": Js, "Jt": Jt, "r": r_acc, "theta": self.theta,
-                      "piece_of": piece_of, "mask": lay["mask"], "t0": t0}
+                      "piece_of": piece_of, "mask": lay["mask"], "t0": t0,
+                      "Sens": lin_sens if step_taken is None else None}
         seen = self._base + r_last + 1 - self._virtual_gone - bisect.bisect_right(self._virtual, self._base + r_last)
         # what later windows can still need
         if r_first > 0:  # (buffer positions)

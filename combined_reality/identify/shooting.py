@@ -145,6 +145,10 @@ class ShootingProblem:
         E, D = self.residuals(S, sim[0])
         return E, D, *sim
 
+    def allows(self, S: np.ndarray) -> bool:
+        """Whether every node state in S is a possible state of the plant."""
+        return self.possible is None or bool(np.all((S >= self.possible[0]) & (S <= self.possible[1])))
+
     def simulate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
         """(X, Sens) of the intervals from node states S, or None when the simulation is not
         finite or a node state impossible.
@@ -153,7 +157,7 @@ class ShootingProblem:
         there refines every sample and costs ten normal evaluations (a strong dead zone's
         nominal fit spent 12.7 of its 13.2 s so), and the line search rejects the result anyway."""
         nx, K, M = self.nx, self.K, self.M
-        if self.possible is not None and not np.all((S >= self.possible[0]) & (S <= self.possible[1])):
+        if not self.allows(S):
             return None
         if with_sens:
             Xr, Sr = self.f_sens(S, self.W, p, self.H)
