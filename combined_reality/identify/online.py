@@ -81,8 +81,10 @@ class OnlineOptions:
     # threads of the compiled window evaluation (the estimates do not depend on it). One by
     # default: the estimator runs beside acquisition, and a second thread took a core from
     # whatever else runs (a host-side velocity loop on the other core came late). Where nothing
-    # real-time can suffer, two share a whole window's evaluation (the update p95 17.8 -> 14.4 ms
-    # on a 2-core machine): a live session whose acquisition runs at real-time priority, and replay
+    # real-time can suffer, two share a whole window's evaluation: a live session whose
+    # acquisition runs at real-time priority, and replay. Since most updates evaluate only their
+    # new intervals, the gain is small (update p95 17.8 -> 14.4 ms in one benchmark run on a
+    # 2-core machine, 17.9 -> 20.0 ms in another)
     threads: int = 1
     bridge_s: float = 0.01  # lost samples up to this long are bridged (their command estimated)
     max_bridged: int = 100  # bridged gaps per window at most (each adds an unknown); more start new pieces
