@@ -175,6 +175,9 @@ class _PaddedProblem:
         E, D = self.residuals(S, X)
         return E, D, X, Sens
 
+    def allows(self, S: np.ndarray) -> bool:
+        return self.prob.allows(S)
+
     def residuals(self, S: np.ndarray, X: np.ndarray):
         return shooting_residuals(S, X, self.Y, self.mask, self.prob.wts, self.prob.sscale, self.nxt, self.out_idx)
 
@@ -512,7 +515,7 @@ class MovingHorizonEstimator:
                 else:
                     X[:, k], sens_k = self._sens_one(*args)
                     Sens[:, k] = sens_k.reshape(nx, M, nx + nth)
-            if Sens is not None and prob.prob.allows(S) and np.all(np.isfinite(X)):
+            if Sens is not None and prob.allows(S) and np.all(np.isfinite(X)):
                 first_ev = (*prob.residuals(S, X), X, Sens)
         # (else: the first iteration's evaluation is the first simulation of these nodes)
         lam, mu, it = 0.0, 0.0, 0
