@@ -352,14 +352,15 @@ def resampled_levels(grid: tuple[float, ...], levels: tuple[float, ...]) -> tupl
 
 def flow_levels_at(grid: tuple[float, ...], levels: tuple[float, ...], openings) -> tuple[float, ...]:
     """The flow characteristic whose `levels` are given at the openings `grid` (ending at full
-    opening, 1), at other `openings` in [0, 1]: the monotone cubic through (0, 0) and them
-    (PCHIP, as the plant interpolates), non-decreasing, full opening's level kept exactly."""
-    # imported here: on top of the command line's own imports it costs 0.4-0.5 s, which every
-    # command would pay
-    from scipy.interpolate import PchipInterpolator
+    opening, 1), at other `openings` in [0, 1]: the plant's own monotone cubic through (0, 0)
+    and them (sim.flow.flow_characteristic), non-decreasing, full opening's level kept exactly."""
+    import casadi as ca  # here: reading a cylinder file needs no numerics otherwise
+
+    from .flow import flow_characteristic
 
     a = [float(x) for x in openings]
-    y = PchipInterpolator((0.0, *grid), (0.0, *levels))(a)
+    rises = [ca.DM(b - c) for c, b in zip((0.0, *levels), levels)]
+    y = ca.DM(flow_characteristic(ca.DM(a), rises, grid)).elements()
     out = [levels[-1] if math.isclose(x, 1.0) else max(float(v), 0.0) for x, v in zip(a, y)]
     return tuple(itertools.accumulate(out, max))
 

@@ -37,3 +37,43 @@ def mass_flow(conductance, p_from, p_to, b, temperature):
     pd = ca.fmin(p_from, p_to)
     m = choked_flow(conductance, pu, temperature) * flow_function(pd / pu, b)
     return ca.if_else(p_from >= p_to, m, -m)
+
+
+def _pchip_slopes(rises, widths):
+    """Knot slopes of the monotone piecewise-cubic interpolant (Fritsch and Carlson, with the
+    weighted harmonic mean of Fritsch and Butland; as scipy's PchipInterpolator) through the
+    levels whose rises over segments of `widths` are given (rises >= 0: a monotone curve)."""
+    d = [r / h for r, h in zip(rises, widths)]  # secants
+    slopes = []
+    for k in range(len(d) + 1):
+        if k == 0 or k == len(d):  # an end: the one-sided three-point estimate, kept monotone
+            if len(d) == 1:
+                slopes.append(d[0])
+                continue
+            i, j = (0, 1) if k == 0 else (len(d) - 1, len(d) - 2)
+            h0, h1 = widths[i], widths[j]
+            m = ((2 * h0 + h1) * d[i] - h0 * d[j]) / (h0 + h1)
+            m = ca.if_else(m <= 0, 0.0, ca.if_else((d[j] <= 0) * (m > 3 * d[i]), 3 * d[i], m))
+            slopes.append(ca.if_else(d[i] <= 0, 0.0, m))
+            continue
+        h0, h1 = widths[k - 1], widths[k]
+        w1, w2 = 2 * h1 + h0, h1 + 2 * h0
+        harmonic = (w1 + w2) / (w1 / ca.fmax(d[k - 1], 1e-300) + w2 / ca.fmax(d[k], 1e-300))
+        slopes.append(ca.if_else(d[k - 1] * d[k] <= 0, 0.0, harmonic))
+    return slopes
+
+
+def flow_characteristic(s, rises, grid):
+    """The valve's flow characteristic at the opening s in [0, 1] beyond the overlap: the
+    monotone piecewise-cubic (PCHIP) curve through (0, 0) and the levels its `rises` reach at
+    the openings `grid` (ending at 1). Symbolic or numeric (casadi DM: elementwise over a
+    column of openings)."""
+    widths = [hi - lo for lo, hi in zip((0.0, *grid[:-1]), grid)]
+    m = _pchip_slopes(rises, widths)
+    g, lo = 0.0, 0.0
+    for k, (rise, hi, h) in enumerate(zip(rises, grid, widths)):
+        t = ca.fmin(ca.fmax((s - lo) / h, 0.0), 1.0)  # 0 before the segment, 1 beyond it
+        # the Hermite cubic's rise within the segment: 0 at t = 0, the whole rise at t = 1
+        g = g + rise * t * t * (3 - 2 * t) + h * (m[k] * t * (1 - t) ** 2 - m[k + 1] * t * t * (1 - t))
+        lo = hi
+    return g
