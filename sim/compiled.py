@@ -12,6 +12,7 @@ Compiler: $CC, else gcc, cc or clang; CC=none uses the serialised form only.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import platform
@@ -47,6 +48,7 @@ def cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "combined_reality"
 
 
+@functools.cache  # read once per process: every cache lookup needs it
 def host_cpu() -> str:
     """What identifies this machine's instruction set: the CPU model and feature flags."""
     try:
