@@ -126,8 +126,9 @@ def test_threads_share_the_window_and_change_no_estimate(cyl_a, lossy_a):
 
 def test_after_an_update_without_a_step_only_the_new_intervals_are_simulated(cyl_a, lossy_a, monkeypatch):
     """An update that took no step leaves its linearisation where the next window starts: the
-    intervals both windows share are not simulated again (most updates of a warm stream), and
-    every estimate is the one that evaluating each whole window anew gives."""
+    intervals both windows share are not simulated again (most updates of a warm stream), nor
+    the steps across their gaps, and every estimate is the one that evaluating each whole
+    window anew gives."""
     from combined_reality.identify.shooting import ShootingProblem
 
     run = lossy_a.slice(0, 8000)
@@ -143,9 +144,10 @@ def test_after_an_update_without_a_step_only_the_new_intervals_are_simulated(cyl
     reused_sens = sum(windows)
     update = MovingHorizonEstimator.update
 
-    def forgetting(self):  # the same estimator, made to forget its linearisation after every update
-        e = update(self)
+    def forgetting(self):  # the same estimator, made to forget its linearisation (and its
+        e = update(self)  # gaps' slopes) after every update
         self._prev["Sens"] = None
+        self._gap_slopes.clear()
         return e
 
     monkeypatch.setattr(MovingHorizonEstimator, "update", forgetting)
@@ -272,3 +274,53 @@ def test_the_reported_std_covers_the_truth_over_20_seeds(cyl_a):
         for n in inside:
             inside[n] += abs(est[-1].values[n] - cyl_a.value(n)) <= 3 * est[-1].std[n]
     assert all(k >= 18 for k in inside.values()), inside
+
+
+def test_the_gap_offsets_columns_taken_through_the_node_states_equal_the_dense_ones():
+    """The offsets over bridged gaps reach the residuals only through the node states, so the
+    window's normal equations, the residual change of a step, the scores and the profiled
+    information are taken through nx-by-nx blocks: they equal what the dense columns give."""
+    from combined_reality.identify.online import _Piece, _ReducedWindow
+    from combined_reality.identify.shooting import normal_equations, reduce_nodes
+
+    rng = np.random.default_rng(3)
+    K, M, ny, nx, nth, ngap = 9, 5, 3, 4, 3, 4
+    G = rng.normal(size=(K, M, ny, nx))
+    Hth = rng.normal(size=(K, M, ny, nth))
+    A = 0.3 * rng.normal(size=(K, nx, nx)) + np.eye(nx)
+    B = rng.normal(size=(K, nx, nth + ngap))
+    B[..., nth:] = 0.0
+    before = [1, 2, 6, 7]  # the intervals a gap ends (the first piece holds two, the second two)
+    B[before, :, nth + np.arange(ngap)] = rng.normal(size=(ngap, nx))
+    E = rng.normal(size=(K, M, ny))
+    has_next = np.array([1, 1, 1, 0, 1, 1, 1, 1, 0], bool)  # pieces 0-3 and 4-8
+    D = rng.normal(size=(nx, int(has_next.sum())))
+    pieces = [_Piece(0, 4), _Piece(4, 5)]
+    piece_of = np.repeat([0, 1], [4, 5])
+    nu = nth + ngap
+
+    dense_H = np.concatenate([Hth, np.zeros((K, M, ny, ngap))], axis=-1)
+    P, Q, q, Js, Jt, r0 = reduce_nodes((G, dense_H, A, B), E, D, has_next, nx, nu)
+    N, g, _ = normal_equations(Js, Jt, r0, pieces, nx, nu)
+    red = _ReducedWindow((G, Hth, A, B), E, D, has_next, nx, nth)
+    N2, g2 = red.normal_equations(pieces)
+    np.testing.assert_allclose(N2, N, rtol=1e-10, atol=1e-10 * np.abs(N).max())
+    np.testing.assert_allclose(g2, g, rtol=1e-10, atol=1e-10 * np.abs(g).max())
+    np.testing.assert_allclose(red.r0, r0, rtol=1e-12)
+
+    ds0, dth = rng.normal(size=(2, nx)), rng.normal(size=nu)
+    dense_step = (Js.reshape(K, -1, nx) @ ds0[piece_of][:, :, None]).reshape(r0.shape) + Jt @ dth
+    np.testing.assert_allclose(red.apply(ds0[piece_of], dth), dense_step, rtol=1e-10, atol=1e-10)
+    rr = r0.reshape(K, -1)
+    np.testing.assert_allclose(red.parameter_scores(r0), np.einsum("kmoi,kmo->ki", Jt, r0), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(red.state_scores(r0), np.einsum("kmoi,kmo->ki", Js, r0), rtol=1e-10, atol=1e-10)
+
+    ks = np.arange(4, 9)  # the second piece leaving the window: its state and gaps profiled out
+    nuis = np.concatenate([Js[ks].reshape(5, -1, nx), Jt[ks][..., nth:].reshape(5, -1, ngap)], axis=-1)
+    par = Jt[ks][..., :nth].reshape(5, -1, nth)
+    fn, fp = nuis.reshape(-1, nx + ngap), par.reshape(-1, nth)
+    par = par - nuis @ (np.linalg.pinv(fn.T @ fn) @ (fn.T @ fp))
+    s_k, A_k, r_k = red.profiled_scores(ks, r0)
+    np.testing.assert_allclose(s_k, (par.transpose(0, 2, 1) @ rr[ks][:, :, None])[..., 0], rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(A_k, par.transpose(0, 2, 1) @ par, rtol=1e-8, atol=1e-8)
+    np.testing.assert_array_equal(r_k, rr[ks])

@@ -29,7 +29,10 @@ the unknowns to noise). Such an update leaves its linearisation where the next w
 starts, so the next one simulates only its new intervals, with their sensitivities, and
 takes the shared ones as they are: on a 2-core machine an update then costs about 5 ms
 instead of 16 ms (2 s window at 1 kHz, one thread), and a window is evaluated whole only
-after a step.
+after a step. A gap's offset is never a dense column of the residual Jacobian: it moves the
+node states after its gap only, so its products go through the intervals' nx-by-nx blocks
+(`_ReducedWindow`), and a step is taken when it gains more than fitting the window's
+unknowns to noise would in nine windows of ten (`_noise_gain`), however many gaps it holds.
 
 The standard deviation is that of the whole-session estimate: the Gauss-Newton covariance
 of window and arrival cost together, scaled by the residual variance of the whole session,
@@ -39,12 +42,14 @@ are correlated in time, whichever is larger (as `identify` reports).
 from __future__ import annotations
 
 import bisect
+import functools
 import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
+from scipy.stats import chi2
 
 from sim.compiled import NumpyCall, shooting_functions
 from sim.cylinder import Cylinder
@@ -54,9 +59,9 @@ from sim.plant import plant_for
 
 from ..files import Run
 from .newton import equation_error_friction
-from .shooting import (ShootingProblem, free_parameters, line_search, linearize, normal_equations, parameter_bounds,
-                       parameter_unit, reduce_nodes, residual_scales, scaled_inverse, shooting_residuals,
-                       solve_bounded)
+from .shooting import (ShootingProblem, free_parameters, line_search, linearize, node_transitions,
+                       normal_equations, parameter_bounds, parameter_unit, residual_scales, scaled_inverse,
+                       shooting_residuals, solve_bounded)
 from .smoothing import fill_missing, velocity_estimate
 
 
@@ -210,6 +215,7 @@ class MovingHorizonEstimator:
         # one step for each side of the central differences over the bridged gaps of a window,
         # by size in steps of 8 (a few compiled maps, few unused columns)
         self._gap_steps: dict[int, NumpyCall] = {}
+        self._gap_slopes: dict[tuple, np.ndarray] = {}  # the last evaluation's, by gap and where its step began
         self._sens_one = NumpyCall(self.sf.sens)  # one interval with its sensitivities
         self._buf = np.empty((5, 0))  # rows t, u, x, p1, p2
         self._base = 0  # stream index of _buf[:, 0]
@@ -539,13 +545,14 @@ class MovingHorizonEstimator:
             E, D, X = ev[0], ev[1], ev[2]
             lin = linearize(ev, prob.out_idx, self.wts, lay["mask"], M, nx, len(self.wts), nth)
             if G:
-                lin = self._with_gap_offsets(lin, S, X, p, commands(p), lay)
-            P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, D * self.sscale[:, None], has_next, nx, nu)
-            Nm, g, _ = normal_equations(Js, Jt, r0, pieces, nx, nu)
+                lin = self._with_gap_offsets(lin, S, X, p, commands(p), lay, k0)
+            red = _ReducedWindow(lin, E, D * self.sscale[:, None], has_next, nx, nth)
+            P, Q, q, r0 = red.P, red.Q, red.q, red.r0
+            Nm, g = red.normal_equations(pieces)
             dev = theta - mean
             Nm[th_sl, th_sl] += info
             g[th_sl] += info @ dev
-            lin_at, lin_sens, step_taken = (Js, Jt, r0), ev[3], None
+            lin_at, lin_sens, step_taken = red, ev[3], None
             cost = 0.5 * float(np.sum(E * E)) + 0.5 * float(dev @ info @ dev)
             viol = float(np.sum(np.abs(D)))
             accepted = converged = False
@@ -560,11 +567,11 @@ class MovingHorizonEstimator:
                 ds0, dth = step[:R * nx].reshape(R, nx), step[R * nx:]
                 dS = (np.einsum("kij,kj->ki", P, ds0[piece_of]) + Q @ dth + q).T
                 # the decrease the linear model promises, closing the defects included
-                r_lin = r0 + _apply(Js, Jt, ds0[piece_of], dth)
+                r_lin = r0 + red.apply(ds0[piece_of], dth)
                 d_lin = dev + dth
                 pred = cost - 0.5 * float(np.sum(r_lin * r_lin)) - 0.5 * float(d_lin @ info @ d_lin)
-                if pred < max(0.5 * nu, 1e-3 * cost) and viol < 1e-2 * Kw:
-                    converged = True  # less to gain than fitting nu unknowns to noise would (chi2: nu/2)
+                if pred < max(_noise_gain(nu), 1e-3 * cost) and viol < 1e-2 * Kw:
+                    converged = True  # less to gain than fitting nu unknowns to noise would
                     break
                 # the penalty on the defects needs only outweigh a cost the step would add to close
                 # them; a penalty sized by the decrease over a vanishing violation would refuse any
@@ -587,11 +594,11 @@ class MovingHorizonEstimator:
         self.theta, self.p = theta[:nth].copy(), p[:npar].copy()
         self._du = {k0 + k: float(v) for k, v in zip(lay["after_gap"], theta[nth:])}
         self._fitted = True
-        Js, Jt, r0 = lin_at
+        red = lin_at
         # residuals at the accepted point, as the last linearisation predicts them
-        r_acc = r0 if step_taken is None else r0 + _apply(Js, Jt, *step_taken)
+        r_acc = red.r0 if step_taken is None else red.r0 + red.apply(*step_taken)
         t0 = self._buf[0, lay["starts"]]
-        self._prev = {"k0": k0, "Kw": Kw, "S": S, "X": X, "Js": Js, "Jt": Jt, "r": r_acc, "theta": self.theta,
+        self._prev = {"k0": k0, "Kw": Kw, "S": S, "X": X, "red": red, "r": r_acc, "theta": self.theta,
                       "piece_of": piece_of, "mask": lay["mask"], "t0": t0,
                       "Sens": lin_sens if step_taken is None else None}
         seen = self._base + r_last + 1 - self._virtual_gone - bisect.bisect_right(self._virtual, self._base + r_last)
@@ -609,7 +616,7 @@ class MovingHorizonEstimator:
 
         nres = float(lay["mask"].sum())
         sigma2 = float(np.sum(E * E)) / max(1.0, nres - R * nx - nu)
-        std = self._std(Nm, R, piece_of, Js, Jt, r_acc, lay["mask"], t0, self.theta)
+        std = self._std(Nm, R, piece_of, red, r_acc, lay["mask"], t0, self.theta)
         w = self.wts
         rmse = {f"rmse_{n}": float(np.sqrt(np.sum(E[..., j] ** 2) / max(lay["mask"][..., j].sum(), 1))) / w[j]
                 for j, n in enumerate(self.plant.output_names)}
@@ -620,10 +627,11 @@ class MovingHorizonEstimator:
             iterations=it, wall_s=time.perf_counter() - t_wall, pieces=R, gaps=G, state=state.copy(),
             params=self.p.copy())
 
-    def _with_gap_offsets(self, lin, S, X, p, W, lay):
+    def _with_gap_offsets(self, lin, S, X, p, W, lay, k0: int):
         """The linearisation with the command offsets over the bridged gaps as further
-        parameters: each moves the end state of the interval before its gap (the step across
-        the gap) along the derivative of that step by the command (central differences)."""
+        parameters of the transitions (B): each moves the end state of the interval before its
+        gap (the step across the gap) along the derivative of that step by the command (central
+        differences). No residual depends on an offset directly (Hth keeps the parameters)."""
         G_, Hth, A, B = lin
         npar = len(self.p)
         after = lay["after_gap"]
@@ -633,17 +641,27 @@ class MovingHorizonEstimator:
         xb = X[:, before, np.maximum(n - 2, 0)]  # the state at the last sample before each gap
         xb[:, n == 1] = S[:, before[n == 1]]
         u, h = W[0, lay["gap_w"]], lay["H"][0, lay["gap_h"]]
-        eps, cols = 1e-4, -(-Gn // 8) * 8  # the unused columns take zero-length steps
-        if cols not in self._gap_steps:
-            self._gap_steps[cols] = NumpyCall(self.sf.step.map(2 * cols))
-        xs, us, hs = np.zeros((xb.shape[0], 2 * cols)), np.zeros(2 * cols), np.zeros(2 * cols)
-        for side, d in enumerate((eps, -eps)):
-            xs[:, side * cols:side * cols + Gn], us[side * cols:side * cols + Gn] = xb, u + d
-            hs[side * cols:side * cols + Gn] = h
-        xn = self._gap_steps[cols](xs, us[None], us[None], p[:npar, None], hs[None])[0]
-        dxdu = (xn[:, :Gn] - xn[:, cols:cols + Gn]) / (2 * eps)
+        # a gap whose step starts where it did in the last evaluation has the same slope (most
+        # updates take no step: only the new gaps are differenced)
+        at = np.vstack([xb, u, h, np.repeat(p[:npar, None], Gn, axis=1)])
+        keys = [(int(k), at[:, i].tobytes()) for i, k in enumerate(k0 + after)]
+        dxdu = np.empty((xb.shape[0], Gn))
+        new = [i for i, key in enumerate(keys) if key not in self._gap_slopes]
+        for i, key in enumerate(keys):
+            if key in self._gap_slopes:
+                dxdu[:, i] = self._gap_slopes[key]
+        if new:
+            eps, cols = 1e-4, -(-len(new) // 8) * 8  # the unused columns take zero-length steps
+            if cols not in self._gap_steps:
+                self._gap_steps[cols] = NumpyCall(self.sf.step.map(2 * cols))
+            xs, us, hs = np.zeros((xb.shape[0], 2 * cols)), np.zeros(2 * cols), np.zeros(2 * cols)
+            for side, d in enumerate((eps, -eps)):
+                at = slice(side * cols, side * cols + len(new))
+                xs[:, at], us[at], hs[at] = xb[:, new], u[new] + d, h[new]
+            xn = self._gap_steps[cols](xs, us[None], us[None], p[:npar, None], hs[None])[0]
+            dxdu[:, new] = (xn[:, :len(new)] - xn[:, cols:cols + len(new)]) / (2 * eps)
+        self._gap_slopes = {key: dxdu[:, i].copy() for i, key in enumerate(keys)}
         nth = Hth.shape[-1]
-        Hth = np.concatenate([Hth, np.zeros(Hth.shape[:-1] + (Gn,))], axis=-1)
         B = np.concatenate([B, np.zeros(B.shape[:-1] + (Gn,))], axis=-1)
         B[before, :, nth + np.arange(Gn)] = dxdu.T
         return G_, Hth, A, B
@@ -669,7 +687,7 @@ class MovingHorizonEstimator:
         leaving = np.arange(left)
         for part in np.unique(prev["piece_of"][:left]):
             ks = leaving[prev["piece_of"][:left] == part]
-            s_k, A_k, r = _profiled_scores(prev["Js"][ks], prev["Jt"][ks], prev["r"][ks], nth)
+            s_k, A_k, r = prev["red"].profiled_scores(ks, prev["r"])
             A += A_k.sum(axis=0)
             b += s_k.sum(axis=0)
             self._clusters.add((prev["t0"][ks] // self.options.cluster_s).astype(int), s_k, A_k, theta)
@@ -680,7 +698,7 @@ class MovingHorizonEstimator:
         # the leaving data's cost around theta, 0.5 d'A d + b'd, merged with the prior
         self.prior_mean = _solve_scaled(self.info, info_old @ self.prior_mean + A @ theta - b)
 
-    def _std(self, Nm, R, piece_of, Js, Jt, r, mask, t0, theta) -> np.ndarray:
+    def _std(self, Nm, R, piece_of, red: "_ReducedWindow", r, mask, t0, theta) -> np.ndarray:
         """Standard deviations of the whole-session estimate: the larger of the Gauss-Newton one
         (scaled by the session's residual variance) and the cluster-robust one. Nm holds the
         window's normal equations with the arrival cost; its node states and gap offsets are
@@ -695,16 +713,14 @@ class MovingHorizonEstimator:
             return np.full(nth, np.nan)
         # the session's residual variance: what left the window and the window itself
         ssr = self._ssr + float(np.sum(r * r))
-        dof = self._nres + float(mask.sum()) - self._nstates - R * nx - Jt.shape[-1]
+        dof = self._nres + float(mask.sum()) - self._nstates - R * nx - red.nu
         var = np.diag(Hinv) * (ssr / dof if dof > 0 else np.nan)
         # each window interval's parameter gradient, with the window's nuisances profiled out,
         # joins the clusters of what has left
-        K = Js.shape[0]
-        rr = r.reshape(K, -1, 1)
+        K = len(piece_of)
         g_nuis = np.zeros((K, int((~th).sum())))
-        g_nuis[np.arange(K)[:, None], piece_of[:, None] * nx + np.arange(nx)] = \
-            (Js.reshape(K, rr.shape[1], nx).transpose(0, 2, 1) @ rr)[..., 0]
-        g_par = (Jt.reshape(K, rr.shape[1], -1).transpose(0, 2, 1) @ rr)[..., 0]
+        g_nuis[np.arange(K)[:, None], piece_of[:, None] * nx + np.arange(nx)] = red.state_scores(r)
+        g_par = red.parameter_scores(r)
         g_nuis[:, R * nx:] = g_par[:, nth:]
         s_k = g_par[:, :nth] - g_nuis @ proj
         scores = self._clusters.at(theta, (t0 // self.options.cluster_s).astype(int), s_k)
@@ -754,31 +770,101 @@ class _Clusters:
         return self.rows[i]
 
 
+@functools.cache
+def _noise_gain(nu: int) -> float:
+    """The decrease of 0.5 |r|^2 that fitting nu unknowns to pure noise exceeds in one window
+    of ten (chi2 with nu degrees of freedom, halved): the threshold of a step worth taking.
+    The mean, nu / 2, is crossed by four windows in ten, so a window with twenty gap offsets
+    took a step for noise that often, while the parameters alone (nu = 3, 1.5) were held to
+    about this quantile (3.1) by the threshold's other term, a thousandth of the cost."""
+    return 0.5 * float(chi2.ppf(0.9, nu))
+
+
 def _merit(ev, theta: np.ndarray, mean: np.ndarray, info: np.ndarray, mu: float) -> float:
     """Data cost, arrival cost (and the gap offsets' prior) and the l1 penalty on the defects."""
     d = theta - mean
     return 0.5 * float(np.sum(ev[0] ** 2)) + 0.5 * float(d @ info @ d) + mu * float(np.sum(np.abs(ev[1])))
 
 
-def _apply(Js, Jt, ds0_k, dth):
-    """The change of the reduced residuals for node increments ds0_k (per interval) and dth."""
-    K, shape = Js.shape[0], Js.shape[:-1]
-    return (Js.reshape(K, -1, Js.shape[-1]) @ ds0_k[:, :, None]).reshape(shape) + Jt @ dth
+class _ReducedWindow:
+    """The window's residuals linearised in the reduced unknowns: the start state of each
+    piece, the parameters and the command offsets over the bridged gaps.
 
+    An offset reaches the residuals only through the node states after its gap, so its
+    columns are Gf_k Qg_k (Gf_k: an interval's residuals by its node state, Qg_k: the node
+    state by the offsets) and are never formed: every product with them is taken through
+    the small nx-by-nx blocks Gf_k' Gf_k (building the normal equations of a 2 s window with
+    twenty gaps takes a sixth longer than without, where the dense columns doubled it)."""
 
-def _profiled_scores(Js, Jt, r, nth: int):
-    """Per interval of one piece: the gradient contributions and information of the first
-    `nth` parameters with the piece's start state and the other columns of Jt (the gap
-    offsets) profiled out (they sum to the reduced gradient and the Schur complement), and
-    the residuals."""
-    k, rows = Js.shape[0], Js.shape[1] * Js.shape[2]
-    nuis = np.concatenate([Js.reshape(k, rows, -1), Jt[..., nth:].reshape(k, rows, Jt.shape[-1] - nth)], axis=-1)
-    par = Jt[..., :nth].reshape(k, rows, nth)
-    flat_n, flat_p = nuis.reshape(-1, nuis.shape[-1]), par.reshape(-1, nth)
-    proj = _pinv_scaled(flat_n.T @ flat_n) @ (flat_n.T @ flat_p)
-    par = par - nuis @ proj
-    rr = r.reshape(k, -1)
-    return (par.transpose(0, 2, 1) @ rr[:, :, None])[..., 0], par.transpose(0, 2, 1) @ par, rr
+    @np.errstate(over="ignore", invalid="ignore")  # see shooting.reduce_nodes
+    def __init__(self, lin, E, Draw, has_next, nx: int, nth: int):
+        G, Hth, A, B = lin  # B: by the parameters, then by the offsets
+        K = G.shape[0]
+        self.P, self.Q, self.q = node_transitions(A, B, Draw, has_next)
+        self.nx, self.nth, self.nu = nx, nth, B.shape[-1]
+        self.Gf = G.reshape(K, -1, nx)
+        self.Qg = self.Q[..., nth:]
+        self.Js = (self.Gf @ self.P).reshape(G.shape[:3] + (nx,))
+        self.Jth = (self.Gf @ self.Q[..., :nth]).reshape(G.shape[:3] + (nth,)) + Hth
+        self.r0 = E + (self.Gf @ self.q[:, :, None]).reshape(E.shape)
+
+    def _Gt(self, v):
+        """Gf_k' v_k for per-interval residual blocks v (K, M, ny, ...)."""
+        K = v.shape[0]
+        return self.Gf.transpose(0, 2, 1) @ v.reshape(K, self.Gf.shape[1], -1)
+
+    def normal_equations(self, pieces: Sequence[_Piece]):
+        """(N, g) in (the pieces' start states, the parameters, the offsets) at r0."""
+        nx, nth, nu, R = self.nx, self.nth, self.nu, len(pieces)
+        Nt, gt, _ = normal_equations(self.Js, self.Jth, self.r0, pieces, nx, nth)
+        if nu == nth:
+            return Nt, gt
+        n0 = R * nx + nth
+        N = np.zeros((n0 + nu - nth,) * 2)
+        g = np.zeros(n0 + nu - nth)
+        N[:n0, :n0], g[:n0] = Nt, gt
+        K, ng = self.Qg.shape[0], nu - nth
+        Qg = self.Qg.reshape(K * nx, ng)  # the sums over intervals and states as one product each
+        CQ = (self.Gf.transpose(0, 2, 1) @ self.Gf) @ self.Qg
+        starts = [pc.node0 for pc in pieces]
+        N[:R * nx, n0:] = np.add.reduceat(self.P.transpose(0, 2, 1) @ CQ, starts, axis=0).reshape(R * nx, ng)
+        N[R * nx:n0, n0:] = self._Gt(self.Jth).transpose(2, 0, 1).reshape(nth, K * nx) @ Qg
+        N[n0:, :n0] = N[:n0, n0:].T
+        N[n0:, n0:] = Qg.T @ CQ.reshape(K * nx, ng)
+        g[n0:] = Qg.T @ self._Gt(self.r0).reshape(K * nx)
+        return N, g
+
+    def apply(self, ds0_k, dth):
+        """The change of the residuals for node increments ds0_k (per interval) and dth."""
+        shape = self.r0.shape
+        dx = self.P @ ds0_k[:, :, None] + self.Qg @ dth[self.nth:, None]
+        return (self.Gf @ dx).reshape(shape) + self.Jth @ dth[:self.nth]
+
+    def parameter_scores(self, r):
+        """Per interval: the gradient of 0.5 |r|^2 by the parameters and by the offsets."""
+        K = self.Js.shape[0]
+        rr = r.reshape(K, -1, 1)
+        g_th = (self.Jth.reshape(K, rr.shape[1], -1).transpose(0, 2, 1) @ rr)[..., 0]
+        g_gap = (self.Qg.transpose(0, 2, 1) @ self._Gt(r))[..., 0]
+        return np.concatenate([g_th, g_gap], axis=1)
+
+    def state_scores(self, r):
+        """Per interval: the gradient by the start state of its piece."""
+        return (self.P.transpose(0, 2, 1) @ self._Gt(r))[..., 0]
+
+    def profiled_scores(self, ks, r):
+        """Per interval ks of one piece: the gradient contributions and information of the
+        parameters with the piece's start state and the gap offsets profiled out (they sum
+        to the reduced gradient and the Schur complement), and the residuals r[ks]."""
+        nth, k = self.nth, len(ks)
+        Nk = np.concatenate([self.P[ks], self.Qg[ks]], axis=-1)  # nuisances = Gf_k Nk
+        Gf, Jth = self.Gf[ks], self.Jth[ks].reshape(k, -1, nth)
+        F = Gf.transpose(0, 2, 1) @ Jth
+        NtCN = np.einsum("kai,kab,kbj->ij", Nk, Gf.transpose(0, 2, 1) @ Gf, Nk)
+        proj = _pinv_scaled(NtCN) @ np.einsum("kai,kaj->ij", Nk, F)
+        par = Jth - Gf @ (Nk @ proj)
+        rr = r[ks].reshape(k, -1)
+        return (par.transpose(0, 2, 1) @ rr[:, :, None])[..., 0], par.transpose(0, 2, 1) @ par, rr
 
 
 def _pinv_scaled(N: np.ndarray) -> np.ndarray:

@@ -330,17 +330,12 @@ def linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
     return G, Hth, A, B
 
 
-# The transition products of a long piece overflow where a linearised model is unstable: the
-# normal equations are then not finite, solve_bounded returns no step and the fit ends saying
-# so; numpy's overflow warnings would only alarm the user.
-@np.errstate(over="ignore", invalid="ignore")
-def reduce_nodes(lin, E, Draw, has_next, nx, nth):
-    """Eliminate the node increments: ds_k = P_k ds0 + Q_k dtheta + q_k within each run.
-
-    Returns P, Q, q and the reduced residual Jacobians Js = dr/ds0, Jt = dr/dtheta and the
-    linearised residual r0 (all per interval)."""
-    G, Hth, A, B = lin
-    Ktot = G.shape[0]
+@np.errstate(over="ignore", invalid="ignore")  # see reduce_nodes
+def node_transitions(A, B, Draw, has_next):
+    """P, Q, q of ds_k = P_k ds0 + Q_k dtheta + q_k: every node increment in terms of the
+    start state of its run (or gap-free piece), from the intervals' transition Jacobians A, B
+    and the defects Draw (one column per link)."""
+    Ktot, nx, nth = B.shape
     P = np.empty((Ktot, nx, nx))
     Q = np.empty((Ktot, nx, nth))
     q = np.empty((Ktot, nx))
@@ -355,6 +350,21 @@ def reduce_nodes(lin, E, Draw, has_next, nx, nth):
             Q[k] = A[j] @ Q[j] + B[j]
             q[k] = A[j] @ q[j] + Draw[:, link]
             link += 1
+    return P, Q, q
+
+
+# The transition products of a long piece overflow where a linearised model is unstable: the
+# normal equations are then not finite, solve_bounded returns no step and the fit ends saying
+# so; numpy's overflow warnings would only alarm the user.
+@np.errstate(over="ignore", invalid="ignore")
+def reduce_nodes(lin, E, Draw, has_next, nx, nth):
+    """Eliminate the node increments: ds_k = P_k ds0 + Q_k dtheta + q_k within each run.
+
+    Returns P, Q, q and the reduced residual Jacobians Js = dr/ds0, Jt = dr/dtheta and the
+    linearised residual r0 (all per interval)."""
+    G, Hth, A, B = lin
+    Ktot = G.shape[0]
+    P, Q, q = node_transitions(A, B, Draw, has_next)
     # batched matrix products (BLAS) rather than einsum: the same sums, several times faster
     Gf = G.reshape(Ktot, -1, nx)
     Js = (Gf @ P).reshape(G.shape[:3] + (nx,))
