@@ -12,7 +12,8 @@
     one thread, and on two where a live session runs it so (acquisition real-time: the raised
     priority, and one row on the machine as it is). As a ratio to the baseline measured in the
     same run: the offline identifier solving the same 2 s window from the same start (what a
-    user would do without the estimator);
+    user would do without the estimator); and each row with 1 % lost as a ratio to the row
+    without loss under the same conditions;
 (b) `combined-reality replay --speed max` of a 20 s run as a separate process: real
     time / wall time (target >= 10; median of 3 starts with the bytecode cached, as on an
     installed copy), the estimator's final Fc, Fv against the truth.
