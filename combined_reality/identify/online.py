@@ -792,8 +792,8 @@ class _ReducedWindow:
     An offset reaches the residuals only through the node states after its gap, so its
     columns are Gf_k Qg_k (Gf_k: an interval's residuals by its node state, Qg_k: the node
     state by the offsets) and are never formed: every product with them is taken through
-    the small nx-by-nx blocks Gf_k' Gf_k (building the normal equations of a 2 s window with
-    twenty gaps takes a sixth longer than without, where the dense columns doubled it)."""
+    the small nx-by-nx blocks Gf_k' Gf_k (the normal equations of a 2 s window with twenty
+    gaps: 1.4 ms, against 2.3 ms with dense columns and 1.1-1.2 ms without gaps)."""
 
     @np.errstate(over="ignore", invalid="ignore")  # see shooting.reduce_nodes
     def __init__(self, lin, E, Draw, has_next, nx: int, nth: int):
