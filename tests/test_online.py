@@ -312,8 +312,9 @@ def test_the_gap_offsets_columns_taken_through_the_node_states_equal_the_dense_o
     dense_step = (Js.reshape(K, -1, nx) @ ds0[piece_of][:, :, None]).reshape(r0.shape) + Jt @ dth
     np.testing.assert_allclose(red.apply(ds0[piece_of], dth), dense_step, rtol=1e-10, atol=1e-10)
     rr = r0.reshape(K, -1)
-    np.testing.assert_allclose(red.parameter_scores(r0), np.einsum("kmoi,kmo->ki", Jt, r0), rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(red.state_scores(r0), np.einsum("kmoi,kmo->ki", Js, r0), rtol=1e-10, atol=1e-10)
+    g_state, g_par = red.scores(r0)
+    np.testing.assert_allclose(g_par, np.einsum("kmoi,kmo->ki", Jt, r0), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(g_state, np.einsum("kmoi,kmo->ki", Js, r0), rtol=1e-10, atol=1e-10)
 
     ks = np.arange(4, 9)  # the second piece leaving the window: its state and gaps profiled out
     nuis = np.concatenate([Js[ks].reshape(5, -1, nx), Jt[ks][..., nth:].reshape(5, -1, ngap)], axis=-1)

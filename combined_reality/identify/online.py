@@ -523,7 +523,7 @@ class MovingHorizonEstimator:
                 first_ev = (*prob.residuals(S, X), X, Sens)
         # (else: the first iteration's evaluation is the first simulation of these nodes)
         lam, mu, it = 0.0, 0.0, 0
-        lin_at = step_taken = None
+        step_taken = None
         # the first window starts cold; a piece that starts in the new data (after an outage)
         # gets a few more iterations than a warm start
         n_iter = self.options.first_iterations if prev is None else self.options.max_iterations
@@ -550,7 +550,7 @@ class MovingHorizonEstimator:
             dev = theta - mean
             Nm[th_sl, th_sl] += info
             g[th_sl] += info @ dev
-            lin_at, lin_sens, step_taken = red, ev[3], None
+            lin_sens, step_taken = ev[3], None
             cost = 0.5 * float(np.sum(E * E)) + 0.5 * float(dev @ info @ dev)
             viol = float(np.sum(np.abs(D)))
             accepted = converged = False
@@ -592,8 +592,7 @@ class MovingHorizonEstimator:
         self.theta, self.p = theta[:nth].copy(), p[:npar].copy()
         self._du = {k0 + k: float(v) for k, v in zip(lay["after_gap"], theta[nth:])}
         self._fitted = True
-        red = lin_at
-        # residuals at the accepted point, as the last linearisation predicts them
+        # residuals at the accepted point, as the last linearisation (red) predicts them
         r_acc = red.r0 if step_taken is None else red.r0 + red.apply(*step_taken)
         t0 = self._buf[0, lay["starts"]]
         self._prev = {"k0": k0, "Kw": Kw, "S": S, "X": X, "red": red, "r": r_acc, "theta": self.theta,
@@ -644,10 +643,12 @@ class MovingHorizonEstimator:
         at = np.vstack([xb, u, h, np.repeat(p[:npar, None], Gn, axis=1)])
         keys = [(int(k), at[:, i].tobytes()) for i, k in enumerate(k0 + after)]
         dxdu = np.empty((xb.shape[0], Gn))
-        new = [i for i, key in enumerate(keys) if key not in self._gap_slopes]
+        new = []
         for i, key in enumerate(keys):
-            if key in self._gap_slopes:
-                dxdu[:, i] = self._gap_slopes[key]
+            if (kept := self._gap_slopes.get(key)) is None:
+                new.append(i)
+            else:
+                dxdu[:, i] = kept
         if new:
             eps, cols = 1e-4, -(-len(new) // 8) * 8  # the unused columns take zero-length steps
             if cols not in self._gap_steps:
@@ -696,7 +697,7 @@ class MovingHorizonEstimator:
         # the leaving data's cost around theta, 0.5 d'A d + b'd, merged with the prior
         self.prior_mean = _solve_scaled(self.info, info_old @ self.prior_mean + A @ theta - b)
 
-    def _std(self, Nm, R, piece_of, red: "_ReducedWindow", r, mask, t0, theta) -> np.ndarray:
+    def _std(self, Nm, R, piece_of, red: _ReducedWindow, r, mask, t0, theta) -> np.ndarray:
         """Standard deviations of the whole-session estimate: the larger of the Gauss-Newton one
         (scaled by the session's residual variance) and the cluster-robust one. Nm holds the
         window's normal equations with the arrival cost; its node states and gap offsets are
@@ -717,8 +718,8 @@ class MovingHorizonEstimator:
         # joins the clusters of what has left
         K = len(piece_of)
         g_nuis = np.zeros((K, int((~th).sum())))
-        g_nuis[np.arange(K)[:, None], piece_of[:, None] * nx + np.arange(nx)] = red.state_scores(r)
-        g_par = red.parameter_scores(r)
+        g_state, g_par = red.scores(r)
+        g_nuis[np.arange(K)[:, None], piece_of[:, None] * nx + np.arange(nx)] = g_state
         g_nuis[:, R * nx:] = g_par[:, nth:]
         s_k = g_par[:, :nth] - g_nuis @ proj
         scores = self._clusters.at(theta, (t0 // self.options.cluster_s).astype(int), s_k)
@@ -795,7 +796,7 @@ class _ReducedWindow:
     the small nx-by-nx blocks Gf_k' Gf_k (the normal equations of a 2 s window with twenty
     gaps: 1.4 ms, against 2.3 ms with dense columns and 1.1-1.2 ms without gaps)."""
 
-    @np.errstate(over="ignore", invalid="ignore")  # see shooting.reduce_nodes
+    @np.errstate(over="ignore", invalid="ignore")  # see shooting.node_transitions
     def __init__(self, lin, E, Draw, has_next, nx: int, nth: int):
         G, Hth, A, B = lin  # B: by the parameters, then by the offsets
         K = G.shape[0]
@@ -839,17 +840,15 @@ class _ReducedWindow:
         dx = self.P @ ds0_k[:, :, None] + self.Qg @ dth[self.nth:, None]
         return (self.Gf @ dx).reshape(shape) + self.Jth @ dth[:self.nth]
 
-    def parameter_scores(self, r):
-        """Per interval: the gradient of 0.5 |r|^2 by the parameters and by the offsets."""
+    def scores(self, r):
+        """Per interval, the gradient of 0.5 |r|^2: by the start state of its piece, and by
+        the parameters and the offsets."""
         K = self.Js.shape[0]
         rr = r.reshape(K, -1, 1)
+        gt_r = self._Gt(r)
         g_th = (self.Jth.reshape(K, rr.shape[1], -1).transpose(0, 2, 1) @ rr)[..., 0]
-        g_gap = (self.Qg.transpose(0, 2, 1) @ self._Gt(r))[..., 0]
-        return np.concatenate([g_th, g_gap], axis=1)
-
-    def state_scores(self, r):
-        """Per interval: the gradient by the start state of its piece."""
-        return (self.P.transpose(0, 2, 1) @ self._Gt(r))[..., 0]
+        g_gap = (self.Qg.transpose(0, 2, 1) @ gt_r)[..., 0]
+        return (self.P.transpose(0, 2, 1) @ gt_r)[..., 0], np.concatenate([g_th, g_gap], axis=1)
 
     def profiled_scores(self, ks, r):
         """Per interval ks of one piece: the gradient contributions and information of the

@@ -330,7 +330,10 @@ def linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
     return G, Hth, A, B
 
 
-@np.errstate(over="ignore", invalid="ignore")  # see reduce_nodes
+# The transition products of a long piece overflow where a linearised model is unstable: the
+# normal equations are then not finite, solve_bounded returns no step and the fit ends saying
+# so; numpy's overflow warnings would only alarm the user.
+@np.errstate(over="ignore", invalid="ignore")
 def node_transitions(A, B, Draw, has_next):
     """P, Q, q of ds_k = P_k ds0 + Q_k dtheta + q_k: every node increment in terms of the
     start state of its run (or gap-free piece), from the intervals' transition Jacobians A, B
@@ -353,10 +356,7 @@ def node_transitions(A, B, Draw, has_next):
     return P, Q, q
 
 
-# The transition products of a long piece overflow where a linearised model is unstable: the
-# normal equations are then not finite, solve_bounded returns no step and the fit ends saying
-# so; numpy's overflow warnings would only alarm the user.
-@np.errstate(over="ignore", invalid="ignore")
+@np.errstate(over="ignore", invalid="ignore")  # see node_transitions
 def reduce_nodes(lin, E, Draw, has_next, nx, nth):
     """Eliminate the node increments: ds_k = P_k ds0 + Q_k dtheta + q_k within each run.
 
@@ -381,7 +381,7 @@ def condense(lin, E, Draw, layouts, has_next, nx, nth):
     return N, g, P, Q, q, scores
 
 
-@np.errstate(over="ignore", invalid="ignore")  # see reduce_nodes
+@np.errstate(over="ignore", invalid="ignore")  # see node_transitions
 def normal_equations(Js, Jt, r0, layouts, nx, nth):
     """(N, g, scores) of the reduced problem in (ds0 of every run or gap-free piece, dtheta):
     `layouts` give each piece's first interval (node0) and its number of intervals (K);
