@@ -106,6 +106,22 @@ def test_the_true_model_validates_to_the_sensor_noise(cyl_a):
     assert validation_gain(true, nominal)[1] < -3  # the worse model is no gain
 
 
+def test_validation_segments_fitted_in_two_processes_give_the_same_validation(cyl_a):
+    """The segments share nothing: fitted in two processes (the fallback's starts included),
+    every segment's prediction, cost, status and node states are those of one process, in
+    the segments' order."""
+    run = simulate_run(cyl_a, 4.0, seed=6, effects=[parse_effect_spec("valve_delay:tau=0.003")])
+    segs = validation_segments(run, 1.0)
+    base = validate(cyl_a, [], run, segments=segs)
+    lag = parse_effect_spec("valve_delay:tau=0.001")  # wrong: the fallback's starts are tried too
+    one = validate(cyl_a, [lag], run, segments=segs, fallback=base)
+    two = validate(cyl_a, [lag], run, segments=segs, fallback=base, workers=2)
+    assert np.array_equal(one.simulated, two.simulated, equal_nan=True)
+    assert np.array_equal(one.segment_cost, two.segment_cost) and one.status == two.status
+    assert all(np.array_equal(a, b) for a, b in zip(one.nodes, two.nodes)) and len(two.nodes) == len(segs)
+    assert np.isfinite(two.simulated).all() and one.normalized_rms() > 1.5
+
+
 def test_validation_gain_of_noise_is_not_significant():
     """Two predictions that differ by less than the noise, scored on pure noise: z ~ N(<0, 1)."""
     rng = np.random.default_rng(3)

@@ -14,6 +14,7 @@ from combined_reality.diagnose import (Candidate, DiagnoseOptions, NominalFit, a
                                        candidate_starts, decide, explained_share, fit_candidate, further_starts,
                                        has_nested_start, neutral_start)
 from combined_reality.identify import Validation
+from combined_reality.parallel import run_jobs
 from sim.effects import EFFECTS
 
 NOISE = np.array([5e-6, 300.0, 300.0])
@@ -350,6 +351,6 @@ def test_pool_jobs_reach_the_processes_by_fork_never_through_the_pipe():
     the pool's processes, and the pool stopped after the second returns at once."""
     lock = threading.Lock()
     jobs = [(i, lock, np.zeros(1_000_000)) for i in range(6)]
-    out = analysis._run_jobs(jobs, 2, enough=lambda r: r[0] == 1, work=_index_and_process)
+    out = run_jobs(_index_and_process, jobs, 2, enough=lambda r: r[0] == 1)
     assert [i for i, _ in out] == [0, 1]
     assert all(pid != os.getpid() for _, pid in out)  # run in the pool, not here

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import copy
 import math
-import multiprocessing as mp
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -35,6 +34,7 @@ from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
 
 from ..files import Run
+from ..parallel import run_jobs, workers_here
 from ..identify import (IdentificationError, IdentifyOptions, Validation, equation_error_friction,
                         friction_from_newton, identify, savgol_kernels, derivative_kernels, validate, validation_gain,
                         validation_segments, velocity_estimate)
@@ -139,7 +139,7 @@ def regions(cyl: Cylinder, run: Run, base: Validation, best: Validation | None =
 def whiteness(resid: np.ndarray, lags: int = 20, decimate: int = 10) -> dict:
     """Ljung-Box statistic of a residual (decimated, to 10 ms at 1 kHz, where sensor noise no
     longer dominates) and its first autocorrelation; `white` at the 0.1 % level."""
-    from scipy.stats import chi2
+    from scipy.special import chdtrc  # chi2's survival function, without scipy.stats's 0.6 s import
 
     r = resid[np.isfinite(resid)][::decimate]
     r = r - r.mean()
@@ -147,7 +147,7 @@ def whiteness(resid: np.ndarray, lags: int = 20, decimate: int = 10) -> dict:
     den = float(r @ r) or 1.0
     acf = np.array([float(r[:-k] @ r[k:]) / den for k in range(1, min(lags, n - 1) + 1)])
     q = n * (n + 2) * float(np.sum(acf ** 2 / (n - np.arange(1, len(acf) + 1))))
-    p = float(chi2.sf(q, len(acf))) if len(acf) else 1.0
+    p = float(chdtrc(len(acf), q)) if len(acf) else 1.0
     return {"ljung_box_q": q, "lags": len(acf), "p_value": p, "acf_1": float(acf[0]) if len(acf) else 0.0,
             "white": bool(p > 1e-3)}
 
@@ -300,7 +300,7 @@ def validate_candidate(args) -> Candidate:
     try:
         with np.errstate(all="ignore"):
             c.validation = validate(c.cylinder, c.effects, valid, opts.horizon_s, segments=segments,
-                                    fallback=nominal.validation)
+                                    fallback=nominal.validation, workers=workers_here(opts.workers))
         c.rmse_x_validation = c.validation.rmse("x")
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         c.status, c.error = "failed", f"the validation could not be computed ({type(e).__name__}: {e})"
@@ -312,7 +312,9 @@ def _fit_on_train(nominal, train, effects, start, opts, label) -> Candidate:
     names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
     # candidates have further starts of their own (further_starts); the nominal model was fitted
     # without a restart too, so that every candidate is measured against the same baseline
-    options = IdentifyOptions(estimate=names, threads=1, max_iter=opts.max_iter, restart_misfit=False,
+    # the model's threads: one in a pool's process, all of them where a fit runs alone (the pair)
+    options = IdentifyOptions(estimate=names, threads=workers_here(opts.workers), max_iter=opts.max_iter,
+                              restart_misfit=False,
                               give_up_above=nominal.train_cost * (1 + opts.min_train_gain))
     if start == NESTED_START:
         # from the nominal optimum, node states included: the fit starts at the nominal
@@ -364,44 +366,9 @@ def _nested_floor(c: Candidate, nominal: NominalFit) -> Candidate:
 
 def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | None = None,
               work: Callable | None = None) -> list:
-    """`work` (fit_candidate) of each of `jobs`, in job order. With `enough`, the results end at
-    the first job (in job order, whatever finished first) for which it holds: the same fits
-    count on any machine and any number of workers; the later jobs still running are stopped.
-
-    The pool's processes get the jobs when they are forked (_hold_jobs), and a task is a job's
-    index. A task that carries its job (megabytes with the runs) can be caught half-written
-    into the pool's pipe when the pool is stopped early, and terminate() then waits for it
-    forever: that hung a benchmark run."""
-    parallel = workers > 1 and len(jobs) > 1 and not mp.current_process().daemon
-    work = work or fit_candidate
-    pool = mp.get_context("fork").Pool(min(workers, len(jobs)), initializer=_hold_jobs, initargs=(work, jobs)) \
-        if parallel else None
-    results: list = []
-    try:
-        for c in pool.imap(_held_job, range(len(jobs))) if pool is not None else map(work, jobs):
-            results.append(c)
-            if enough is not None and enough(c):
-                break
-    finally:
-        if pool is not None:
-            pool.terminate()
-            pool.join()
-    return results
-
-
-# a pool process's jobs and their work (set once per process by _hold_jobs, which the pool
-# runs in each process it forks: the jobs arrive with the fork, never through its pipe)
-_held: tuple[Callable, list] | None = None
-
-
-def _hold_jobs(work: Callable, jobs: list) -> None:
-    global _held
-    _held = (work, jobs)
-
-
-def _held_job(i: int):
-    work, jobs = _held
-    return work(jobs[i])
+    """`work` (fit_candidate) of each of `jobs` over `workers` processes, in job order, ending
+    at the first for which `enough` holds (parallel.run_jobs)."""
+    return run_jobs(work or fit_candidate, jobs, workers, enough)
 
 
 def best_of_starts(results: list[Candidate], nominal: NominalFit) -> list[Candidate]:
@@ -589,7 +556,7 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     base = identify(cyl, [train], IdentifyOptions(restart_misfit=False))
     nominal = base.cylinder
     segments = validation_segments(valid, opts.horizon_s)
-    base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments)
+    base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments, workers=opts.workers)
     start = NominalFit(cyl, nominal, base.nodes, base.solver["cost"], base_val)
     base_rmse = base_val.rmse("x")
     say(f"  validation RMSE of x: {base_rmse * 1e6:.2f} um, all outputs {base_val.normalized_rms():.2f} x the "

@@ -19,6 +19,7 @@ from sim.cylinder import Cylinder
 from sim.extension import Effect
 
 from ..files import Run, split_at_gaps
+from ..parallel import run_jobs
 from .offline import IdentifyOptions, identify
 from .shooting import IdentificationError, sensor_noise
 from .smoothing import velocity_estimate
@@ -70,63 +71,80 @@ class Validation:
 
 
 def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: float = 1.0, drive: str = "command",
-             segments: list[tuple[int, int]] | None = None, fallback: "Validation | None" = None) -> Validation:
+             segments: list[tuple[int, int]] | None = None, fallback: "Validation | None" = None,
+             workers: int = 1) -> Validation:
     """Score a model on `run`: every segment simulated from its own fitted initial state.
 
     The initial-state fit starts from the measured state; a segment that stays well above
     the noise is fitted again from `fallback`'s trajectory there (another model's validation,
     e.g. the nominal one), and the better fit is kept: stick-slip and friction memory give
-    the initial-state fit local minima. Only states are fitted, never parameters."""
+    the initial-state fit local minima. Only states are fitted, never parameters. The
+    segments share nothing: with `workers` > 1 they are fitted in that many processes, with
+    the same results."""
     segments = segments or validation_segments(run, horizon_s)
     # one problem per segment: they share nothing, and one line search for all would let the
     # hardest segment set the step of every other
     opts = IdentifyOptions(drive=drive, estimate=(), prefit=False, max_iter=30, threads=1)
-    sims, statuses, nodes, costs = [], [], [], []
-    for j, (a, b) in enumerate(segments):
-        piece = run.slice(a, b)
-        tries = [(None, opts)]
-        if fallback is not None and fallback.nodes[j] is not None:
-            tries.append((fallback.nodes[j], opts))
-            # and the fallback's start simulated as it is (added states at their initial
-            # values): states an effect barely couples to are undetermined in the fit, which
-            # may then drive them anywhere (heat exchange with h near 0)
-            tries.append((fallback.nodes[j], replace(opts, max_iter=0)))
-        best = None
-        for warm, try_opts in tries:
-            try:
-                res = identify(cyl, [piece], try_opts, effects=effects, nodes=warm)
-            except IdentificationError:
-                continue
-            if try_opts.max_iter == 0:
-                res.solver["status"] = "converged"  # a simulation, not a fit that ran out
-            meas = np.vstack([getattr(piece, o) for o in res.output_names])
-            sim = res.simulated[0]
-            if not np.all(np.isfinite(sim)):
-                continue  # diverged: its cost would count only the samples before
-            # outputs not measured at a sample (NaN) have no residual there
-            cost = float(np.nansum(((meas - sim) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
-            if not math.isfinite(cost):
-                continue
-            if best is None or cost < best[0]:
-                best = (cost, res)
-            if cost < 1.5 * np.isfinite(meas).sum():  # near the noise: nothing to gain from another start
-                break
-        if best is None:
+    jobs = [(cyl, effects, run.slice(a, b), None if fallback is None else fallback.nodes[j], opts)
+            for j, (a, b) in enumerate(segments)]
+    fits = run_jobs(_fit_segment, jobs, workers)
+    for (a, b), fit in zip(segments, fits):
+        if fit is None:
             raise IdentificationError(f"the model cannot be simulated on the validation segment "
                                       f"{run.t[a]:.2f}-{run.t[b - 1]:.2f} s")
-        cost, res = best
-        sims.append(res.simulated[0])
-        statuses.append(res.solver["status"])
-        nodes.append(res.nodes)
-        costs.append(cost)
-    outputs = res.output_names
+    outputs = fits[0].outputs
     meas = np.vstack([getattr(run, o) for o in outputs])
     sim = np.full_like(meas, np.nan)
-    for (a, b), s in zip(segments, sims):
-        sim[:, a:b] = s
+    for (a, b), fit in zip(segments, fits):
+        sim[:, a:b] = fit.simulated
     noise = sensor_noise(cyl, outputs)
+    statuses = [f.status for f in fits]
     worst = next((st for st in ("line_search_failed", "time_limit", "max_iterations") if st in statuses), "converged")
-    return Validation(outputs, sim, meas - sim, segments, np.array(costs), noise, worst, nodes)
+    return Validation(outputs, sim, meas - sim, segments, np.array([f.cost for f in fits]), noise, worst,
+                      [f.nodes for f in fits])
+
+
+@dataclass(frozen=True)
+class _SegmentFit:
+    outputs: tuple[str, ...]
+    simulated: np.ndarray
+    cost: float
+    status: str
+    nodes: np.ndarray
+
+
+def _fit_segment(job) -> _SegmentFit | None:
+    """The initial-state fit of one validation segment that predicts it best (None when no
+    start can be simulated). job: (cylinder, effects, segment, fallback nodes or None,
+    IdentifyOptions)."""
+    cyl, effects, piece, warm_nodes, opts = job
+    tries = [(None, opts)]
+    if warm_nodes is not None:
+        tries.append((warm_nodes, opts))
+        # and the fallback's start simulated as it is (added states at their initial
+        # values): states an effect barely couples to are undetermined in the fit, which
+        # may then drive them anywhere (heat exchange with h near 0)
+        tries.append((warm_nodes, replace(opts, max_iter=0)))
+    best = None
+    for warm, try_opts in tries:
+        try:
+            res = identify(cyl, [piece], try_opts, effects=effects, nodes=warm)
+        except IdentificationError:
+            continue
+        status = "converged" if try_opts.max_iter == 0 else res.solver["status"]  # a simulation, not a fit that ran out
+        meas = np.vstack([getattr(piece, o) for o in res.output_names])
+        sim = res.simulated[0]
+        if not np.all(np.isfinite(sim)):
+            continue  # diverged: its cost would count only the samples before
+        # outputs not measured at a sample (NaN) have no residual there
+        cost = float(np.nansum(((meas - sim) / sensor_noise(cyl, res.output_names)[:, None]) ** 2))
+        if not math.isfinite(cost):
+            continue
+        if best is None or cost < best.cost:
+            best = _SegmentFit(tuple(res.output_names), sim, cost, status, res.nodes)
+        if cost < 1.5 * np.isfinite(meas).sum():  # near the noise: nothing to gain from another start
+            break
+    return best
 
 
 def validation_gain(base: Validation, cand: Validation) -> tuple[float, float]:
