@@ -190,7 +190,7 @@ def test_candidate_fits_have_no_wall_clock_limit_and_the_nested_start_is_the_nom
     nodes = np.ones((4, 2))
     nominal = NominalFit(cyl_a, optimum, nodes, 100.0, _val(3.0))
     opts = DiagnoseOptions(candidates=("leakage",), workers=1)
-    out = [fit_candidate((nominal, None, None, (eff,), k, opts, None))
+    out = [fit_candidate((nominal, None, None, (eff,), k, opts, None, math.inf))
            for k, eff in enumerate(candidate_starts("leakage"))]
     assert all(math.isinf(o.time_limit_s) for _, o, _ in seen)
     (c0, o0, n0), (c1, o1, n1) = seen[:2]
@@ -203,6 +203,35 @@ def test_candidate_fits_have_no_wall_clock_limit_and_the_nested_start_is_the_nom
     assert floor.params == {"conductance": 0.0} and floor.friction == {}
     assert "no start fitted TRAIN better than the nominal model" in floor.error
     assert "ended worse on TRAIN" in floor.error
+
+
+def test_a_further_start_that_ends_above_its_effects_best_start_is_not_scored(cyl_a, monkeypatch):
+    """Only the start with the lowest TRAIN cost is kept: a further start that ends above the
+    effect's best start so far is not scored on VALID, with the reason in words (it runs as
+    any fit does: it gives up only above the nominal model's cost); the best start stays the
+    candidate."""
+    seen, scored = [], []
+
+    def fake_identify(cyl, runs, options, effects=(), nodes=None, **kw):
+        seen.append(options.give_up_above)
+        r = _Res(cost=70.0)  # better than the nominal model's 100, worse than the best start's 60
+        r.solver["status"] = "max_iterations"
+        r.params = {n: type("E", (), {"value": 1.0, "std": 0.1})() for n in options.estimate}
+        return r
+
+    monkeypatch.setattr(analysis, "identify", fake_identify)
+    monkeypatch.setattr(analysis, "validate_candidate", lambda args: scored.append(args[0]) or args[0])
+    nominal = NominalFit(cyl_a, cyl_a, np.ones((4, 2)), 100.0, _val(3.0))
+    opts = DiagnoseOptions(candidates=("leakage",), workers=1)
+    c = fit_candidate((nominal, None, None, (candidate_starts("leakage")[1],), 1, opts, None, 60.0))
+    assert seen == [pytest.approx(100.0 * (1 + opts.min_train_gain))] and not scored
+    assert c.status == "no_better_start" and "worse than the effect's best start" in c.error
+    best = _cand("leakage", 2.0, significant=True)
+    best.train_cost = 60.0
+    assert best_of_starts([best, c], nominal)[0] is best
+    # with nothing to beat, the same fit is scored
+    c = fit_candidate((nominal, None, None, (candidate_starts("leakage")[1],), 1, opts, None, math.inf))
+    assert scored == [c]
 
 
 def test_the_console_says_why_a_candidate_was_not_scored():

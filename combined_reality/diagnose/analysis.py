@@ -237,15 +237,16 @@ class NominalFit:
 
 
 # a first fit that found nothing on TRAIN: no validation; its defaults are tried as well
-_NO_GAIN = ("no_gain_on_train", "worse_than_nominal", "failed")
+_NO_GAIN = ("no_gain_on_train", "worse_than_nominal", "failed", "no_better_start")
 
 
 def fit_candidate(args) -> Candidate:
     """Re-identify on TRAIN with the effects added from one start, then score on VALID when it
-    fits TRAIN better than the nominal model. args: (NominalFit, TRAIN, VALID, effects, start
-    index of candidate_starts, DiagnoseOptions, validation segments)."""
-    nominal, train, valid, effects, start, opts, segments = args
-    c = _fit(nominal, train, effects, start, opts)
+    fits TRAIN better than the nominal model and than `beat`. args: (NominalFit, TRAIN, VALID,
+    effects, start index of candidate_starts, DiagnoseOptions, validation segments, beat: the
+    TRAIN cost of the effect's best start so far, inf for none)."""
+    nominal, train, valid, effects, start, opts, segments, beat = args
+    c = _fit(nominal, train, effects, start, opts, beat)
     return c if c.status in _NO_GAIN else validate_candidate((c, nominal, valid, opts, segments))
 
 
@@ -277,12 +278,13 @@ def fit_first(args) -> list[Candidate]:
 _STALLED_ITERATIONS = 2
 
 
-def _fit(nominal: NominalFit, train: Run, effects: tuple[Effect, ...], start: int, opts: DiagnoseOptions) -> Candidate:
+def _fit(nominal: NominalFit, train: Run, effects: tuple[Effect, ...], start: int, opts: DiagnoseOptions,
+         beat: float = math.inf) -> Candidate:
     t0 = time.perf_counter()
     label = "+".join(e.name for e in effects)
     try:
         with np.errstate(all="ignore"):  # a diverging candidate is caught by its costs, not by warnings
-            c = _fit_on_train(nominal, train, effects, start, opts, label)
+            c = _fit_on_train(nominal, train, effects, start, opts, label, beat)
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         # one candidate failing must not end the diagnosis
         c = Candidate(effect=label, status="failed", start=start,
@@ -308,7 +310,7 @@ def validate_candidate(args) -> Candidate:
     return c
 
 
-def _fit_on_train(nominal, train, effects, start, opts, label) -> Candidate:
+def _fit_on_train(nominal, train, effects, start, opts, label, beat: float = math.inf) -> Candidate:
     names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
     # candidates have further starts of their own (further_starts); the nominal model was fitted
     # without a restart too, so that every candidate is measured against the same baseline
@@ -346,6 +348,12 @@ def _fit_on_train(nominal, train, effects, start, opts, label) -> Candidate:
         # the fast screen: what does not fit TRAIN better cannot explain the gap
         c.status = "no_gain_on_train"
         c.error = f"fits TRAIN no better than the nominal model ({gain:+.2%} of its cost): not validated"
+    elif c.train_cost >= beat:
+        # a further start that stayed above its effect's best start: only the best start is
+        # kept (the lowest TRAIN cost, _best_starts), so scoring this one on VALID is no use
+        c.status = "no_better_start"
+        c.error = (f"this start fits TRAIN worse than the effect's best start (cost {c.train_cost:.4g} vs "
+                   f"{beat:.4g}, {res.solver['status']} after {res.solver['iterations']} iterations): not validated")
     return c
 
 
@@ -579,7 +587,10 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     tried = {(c.effect, c.start) for c in fitted}
     cands = validate_screened(best_of_starts(fitted, start), start, valid, segments, base_rmse, opts, say)
     # the cheapest first: they end at the first start that closes the gap (closes_gap)
-    more = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments)
+    # a further start that ends above its effect's best start so far is not scored on VALID
+    # (the start with the lowest TRAIN cost is kept): that cost, where that start was scored
+    beat = {c.effect: c.train_cost for c in cands if c.validation is not None}
+    more = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments, beat.get(n, math.inf))
             for n, k in further_starts(cands, base_val, order[::-1], tried, opts)]
     if more:
         say(f"  trying {len(more)} further starts (the effects' defaults and alternatives) ...")
@@ -722,7 +733,7 @@ def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, 
     inner = NominalFit(nominal.config, nominal.config.with_values(best.friction), best.nodes, best.train_cost,
                        best.validation)
     c = fit_candidate((inner, train, valid, (best.effects[0], neutral_start(second.effect)), NESTED_START, opts,
-                       segments))
+                       segments, math.inf))
     _score(c, base_val, base_rmse, opts)
     c.significant = c.significant and _gain_over(best.validation, c.validation, opts)
     if math.isfinite(c.shrink):
