@@ -430,37 +430,3 @@ def test_node_states_no_cylinder_can_have_are_rejected_without_a_simulation(cyl_
         S_bad = S.copy()
         S_bad[i, 1] = bad
         assert prob.evaluate(S_bad, p, False) is None and prob.evaluate(S_bad, p, True) is None
-
-
-@pytest.mark.parametrize("hint", [None, 1.0, 0.5, 0.25, 0.125, 1 / 16, 1 / 32, 1 / 64])
-def test_the_hinted_line_search_takes_the_step_halving_takes_in_fewer_simulations(hint):
-    """Where every step shorter than an accepted one is accepted too, the search takes the
-    longest accepted step of 1, 1/2, ..., 1/64 (what halving takes), or none when none is
-    accepted, whatever the hint; in at most six simulations (halving: up to seven), four
-    without a hint, three when the hint names the step or its neighbour."""
-    from combined_reality.identify.shooting import line_search
-
-    for longest in [*range(7), None]:  # the exponent of the longest accepted step; None: none is
-        ok_up_to = 0.0 if longest is None else 0.5 ** longest
-        calls = []
-
-        def evaluate(S, p, with_sens):
-            assert not with_sens
-            calls.append(float(p[0]))
-            return ("ev", float(p[0]))
-
-        # the merit at step length a: below m0's Armijo line exactly for a <= ok_up_to
-        def merit(ev, th):
-            return 10.0 - (1.0 if ev[1] <= ok_up_to + 1e-15 else -1.0)
-
-        found = line_search(evaluate, merit, np.zeros((1, 1)), np.zeros((1, 1)), np.zeros(1), np.ones(1),
-                            np.zeros(1), [0], np.array([-1.0]), np.array([2.0]), 10.0, -1e-3, 1 / 64, hint=hint)
-        if longest is None:
-            assert found is None
-        else:
-            assert found[0] == ok_up_to and found[2][0] == ok_up_to and found[4] == ("ev", ok_up_to)
-        assert len(calls) == len(set(calls))  # no step simulated twice
-        assert len(calls) <= (4 if hint is None or hint >= 0.5 else 6)
-        near = hint is not None and hint < 0.5 and longest is not None and abs(0.5 ** longest / hint - 1) < 0.6
-        if near and longest > 0:
-            assert len(calls) <= 3, (hint, longest, calls)

@@ -389,8 +389,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
             if creeping >= NONMONOTONE:
                 reference = max([reference] + [h["cost"] + mu * h["defect"] for h in history[-NONMONOTONE:]])
             found = line_search(evaluate, lambda ev_, th_: merit(ev_[0], ev_[1], mu, th_), S, dS.T, theta, dth, p,
-                                free, lower, upper, reference, min(gdir - mu * viol, 0.0), 1.0 / 64,
-                                hint=history[-1]["alpha"] if history else None)
+                                free, lower, upper, reference, min(gdir - mu * viol, 0.0), 1.0 / 64)
             if found:
                 alpha, S_try, th_try, p_try, ev_try = found
                 accepted = True

@@ -244,65 +244,22 @@ def parameter_bounds(plant: Plant, names: Sequence[str]) -> tuple[np.ndarray, np
 
 
 def line_search(evaluate, merit, S, dS, theta, dth, p, free, lower, upper, m0: float, slope: float,
-                min_alpha: float, hint: float | None = None):
-    """Backtracking by halving from the full step on an l1 merit (Armijo, or a tie at the
-    numerical noise floor): (alpha, S, theta, p, evaluation) of the longest step 1, 1/2, ...,
-    `min_alpha` that is accepted, or None.
-
-    Halving tries these one after the other, and a fit that creeps along a curved valley
-    (1/16-1/32 of its Gauss-Newton step, iteration after iteration) or whose search fails
-    spent five to seven simulations of the whole problem per iteration. So, where acceptance
-    is monotone in the step length (every step shorter than an accepted one is accepted too),
-    the same step is found with fewer: after the full step, the one `hint` names (the step the
-    previous iteration accepted) and its neighbour (twice as long when it is accepted, half
-    as long when not), then a bisection of the steps left: at most six simulations (halving:
-    seven), four without a hint, three when the hint names the step or its neighbour."""
-    grid = [1.0]
-    while grid[-1] * 0.5 >= min_alpha:
-        grid.append(grid[-1] * 0.5)
-    last = len(grid) - 1
-    tried: dict[int, tuple | None] = {}
-
-    def accepted(e: int):
-        if e not in tried:
-            alpha = grid[e]
-            th = np.clip(theta + alpha * dth, lower, upper)
-            p_try = p.copy()
-            p_try[free] = th
-            S_try = S + alpha * dS
-            ev = evaluate(S_try, p_try, False)
-            ok = ev is not None and _armijo(merit(ev, th), m0, alpha, slope)
-            tried[e] = (alpha, S_try, th, p_try, ev) if ok else None
-        return tried[e]
-
-    if accepted(0):
-        return tried[0]
-    lo, hi = 1, last  # the longest accepted step lies in lo .. hi, if any does
-    h = min(last, round(-math.log2(hint))) if hint and 0 < hint < 1 else 0
-    if h >= 2:
-        if accepted(h):
-            hi = h
-            if not accepted(h - 1):
-                return tried[h]
-            hi = h - 1
-        else:
-            lo = h + 1
-            if lo <= last and accepted(lo):
-                return tried[lo]
-            lo += 1
-    if lo > hi:
-        return None
-    while lo < hi:  # bisection
-        mid = (lo + hi) // 2
-        if accepted(mid):
-            hi = mid
-        else:
-            lo = mid + 1
-    return accepted(hi)
-
-
-def _armijo(m1: float, m0: float, alpha: float, slope: float) -> bool:
-    return m1 <= m0 + 1e-4 * alpha * slope or abs(m1 - m0) <= 1e-12 * max(m0, 1.0)
+                min_alpha: float):
+    """Backtracking from the full step on an l1 merit (Armijo, or a tie at the numerical noise
+    floor): (alpha, S, theta, p, evaluation) of the first accepted trial, or None."""
+    alpha = 1.0
+    while alpha >= min_alpha:
+        th = np.clip(theta + alpha * dth, lower, upper)
+        p_try = p.copy()
+        p_try[free] = th
+        S_try = S + alpha * dS
+        ev = evaluate(S_try, p_try, False)
+        if ev is not None:
+            m1 = merit(ev, th)
+            if m1 <= m0 + 1e-4 * alpha * slope or abs(m1 - m0) <= 1e-12 * max(m0, 1.0):
+                return alpha, S_try, th, p_try, ev
+        alpha *= 0.5
+    return None
 
 
 def scaled_inverse(N: np.ndarray) -> np.ndarray:
