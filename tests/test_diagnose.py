@@ -7,7 +7,7 @@ import pytest
 
 from combined_reality.cli import main
 from combined_reality.live import simulate_run
-from combined_reality.identify import Validation, validate, validation_gain, validation_segments
+from combined_reality.identify import IdentificationError, Validation, validate, validation_gain, validation_segments
 from combined_reality.files import cylinder_tag, read_run, write_run
 from sim.effects import parse_effect_spec
 
@@ -120,6 +120,12 @@ def test_validation_segments_fitted_in_two_processes_give_the_same_validation(cy
     assert np.array_equal(one.segment_cost, two.segment_cost) and one.status == two.status
     assert all(np.array_equal(a, b) for a, b in zip(one.nodes, two.nodes)) and len(two.nodes) == len(segs)
     assert np.isfinite(two.simulated).all() and one.normalized_rms() > 1.5
+
+
+def test_a_run_too_short_to_score_on_says_so(cyl_a):
+    run = simulate_run(cyl_a, 0.2, seed=6).slice(0, 8)
+    with pytest.raises(IdentificationError, match="no gap-free stretch of 10 samples"):
+        validate(cyl_a, [], run)
 
 
 def test_validation_gain_of_noise_is_not_significant():

@@ -349,7 +349,7 @@ def _fit_on_train(nominal, train, effects, start, opts, label, beat: float = mat
         c.status = "no_gain_on_train"
         c.error = f"fits TRAIN no better than the nominal model ({gain:+.2%} of its cost): not validated"
     elif c.train_cost >= beat:
-        # a further start that stayed above its effect's best start: only the best start is
+        # a further start that ended above its effect's best start: only the best start is
         # kept (the lowest TRAIN cost, _best_starts), so scoring this one on VALID is no use
         c.status = "no_better_start"
         c.error = (f"this start fits TRAIN worse than the effect's best start (cost {c.train_cost:.4g} vs "

@@ -82,6 +82,8 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
     segments share nothing: with `workers` > 1 they are fitted in that many processes, with
     the same results."""
     segments = segments or validation_segments(run, horizon_s)
+    if not segments:
+        raise IdentificationError("the validation run has no gap-free stretch of 10 samples or more to score on")
     # one problem per segment: they share nothing, and one line search for all would let the
     # hardest segment set the step of every other
     opts = IdentifyOptions(drive=drive, estimate=(), prefit=False, max_iter=30, threads=1)
@@ -106,6 +108,9 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
 
 @dataclass(frozen=True)
 class _SegmentFit:
+    """One segment's best prediction: its simulated outputs, their noise-weighted cost, the
+    fit's status and the fitted node states."""
+
     outputs: tuple[str, ...]
     simulated: np.ndarray
     cost: float
