@@ -29,7 +29,7 @@ def run_jobs(work: Callable[[Any], Any], jobs: list, workers: int,
     into the pool's pipe when the pool is stopped early, and terminate() then waits for it
     forever: that hung a benchmark run. Inside a pool's process (a daemon, which cannot fork
     a pool of its own) the jobs run one after the other."""
-    parallel = workers > 1 and len(jobs) > 1 and not mp.current_process().daemon
+    parallel = workers_here(workers) > 1 and len(jobs) > 1
     pool = mp.get_context("fork").Pool(min(workers, len(jobs)), initializer=_hold_jobs, initargs=(work, jobs)) \
         if parallel else None
     results: list = []

@@ -128,6 +128,24 @@ def test_a_run_too_short_to_score_on_says_so(cyl_a):
         validate(cyl_a, [], run)
 
 
+def test_the_first_segment_a_model_cannot_be_simulated_on_ends_the_validation(cyl_a, monkeypatch):
+    """No segment after it is fitted, and the error names that segment's times."""
+    from combined_reality.identify import validation
+
+    run = simulate_run(cyl_a, 4.0, seed=6)
+    segs = validation_segments(run, 1.0)
+    fitted = []
+
+    def fit_segment(job):
+        fitted.append(job[2].t[0])
+        return None if len(fitted) == 2 else validation._SegmentFit(("x",), job[2].x[None], 1.0, "converged", None)
+
+    monkeypatch.setattr(validation, "_fit_segment", fit_segment)
+    with pytest.raises(IdentificationError, match=f"segment {run.t[segs[1][0]]:.2f}-{run.t[segs[1][1] - 1]:.2f} s"):
+        validate(cyl_a, [], run, segments=segs)
+    assert len(fitted) == 2 < len(segs)
+
+
 def test_validation_gain_of_noise_is_not_significant():
     """Two predictions that differ by less than the noise, scored on pure noise: z ~ N(<0, 1)."""
     rng = np.random.default_rng(3)

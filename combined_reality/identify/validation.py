@@ -89,11 +89,12 @@ def validate(cyl: Cylinder, effects: Sequence[Effect], run: Run, horizon_s: floa
     opts = IdentifyOptions(drive=drive, estimate=(), prefit=False, max_iter=30, threads=1)
     jobs = [(cyl, effects, run.slice(a, b), None if fallback is None else fallback.nodes[j], opts)
             for j, (a, b) in enumerate(segments)]
-    fits = run_jobs(_fit_segment, jobs, workers)
-    for (a, b), fit in zip(segments, fits):
-        if fit is None:
-            raise IdentificationError(f"the model cannot be simulated on the validation segment "
-                                      f"{run.t[a]:.2f}-{run.t[b - 1]:.2f} s")
+    # the first segment the model cannot be simulated on ends the validation
+    fits = run_jobs(_fit_segment, jobs, workers, enough=lambda fit: fit is None)
+    if fits[-1] is None:
+        a, b = segments[len(fits) - 1]
+        raise IdentificationError(f"the model cannot be simulated on the validation segment "
+                                  f"{run.t[a]:.2f}-{run.t[b - 1]:.2f} s")
     outputs = fits[0].outputs
     meas = np.vstack([getattr(run, o) for o in outputs])
     sim = np.full_like(meas, np.nan)
