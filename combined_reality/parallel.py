@@ -7,9 +7,9 @@ same inputs give the same outputs on any machine, with any number of workers.
 from __future__ import annotations
 
 import multiprocessing as mp
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
-__all__ = ["run_jobs", "workers_here"]
+__all__ = ["iter_jobs", "run_jobs", "runs_in_pool", "workers_here"]
 
 
 def workers_here(workers: int) -> int:
@@ -18,31 +18,53 @@ def workers_here(workers: int) -> int:
     return 1 if mp.current_process().daemon else max(1, workers)
 
 
+def runs_in_pool(workers: int, n_jobs: int) -> bool:
+    """Whether run_jobs and iter_jobs farm `n_jobs` out to a pool of processes here."""
+    return workers_here(workers) > 1 and n_jobs > 1
+
+
 def run_jobs(work: Callable[[Any], Any], jobs: list, workers: int,
              enough: Callable[[Any], bool] | None = None) -> list:
     """`work` of each of `jobs`, in job order. With `enough`, the results end at the first job
     (in job order, whatever finished first) for which it holds: the same work counts on any
-    machine and any number of workers; the later jobs still running are stopped.
+    machine and any number of workers; the later jobs still running are stopped."""
+    results: list = []
+    it = iter_jobs(work, jobs, workers)
+    try:
+        for r in it:
+            results.append(r)
+            if enough is not None and enough(r):
+                break
+    finally:
+        it.close()  # stops the pool's jobs still running
+    return results
+
+
+def iter_jobs(work: Callable[[Any], Any], jobs: list, workers: int) -> Iterator[Any]:
+    """`work` of each of `jobs`, yielded in job order as they are done, while the pool works on
+    the later ones; closing the iterator stops them. The pool is gone before the last result
+    is yielded, so that whoever takes it may fork a pool of its own.
 
     The pool's processes get the jobs when they are forked (_hold_jobs), and a task is a job's
     index. A task that carries its job (megabytes with the runs) can be caught half-written
     into the pool's pipe when the pool is stopped early, and terminate() then waits for it
     forever: that hung a benchmark run. Inside a pool's process (a daemon, which cannot fork
     a pool of its own) the jobs run one after the other."""
-    parallel = workers_here(workers) > 1 and len(jobs) > 1
-    pool = mp.get_context("fork").Pool(min(workers, len(jobs)), initializer=_hold_jobs, initargs=(work, jobs)) \
-        if parallel else None
-    results: list = []
+    if not runs_in_pool(workers, len(jobs)):
+        yield from map(work, jobs)
+        return
+    pool = mp.get_context("fork").Pool(min(workers, len(jobs)), initializer=_hold_jobs, initargs=(work, jobs))
     try:
-        for r in pool.imap(_held_job, range(len(jobs))) if pool is not None else map(work, jobs):
-            results.append(r)
-            if enough is not None and enough(r):
-                break
+        results = pool.imap(_held_job, range(len(jobs)))
+        for i in range(len(jobs)):
+            r = next(results)
+            if i == len(jobs) - 1:
+                pool.terminate()  # every job is done
+                pool.join()
+            yield r
     finally:
-        if pool is not None:
-            pool.terminate()
-            pool.join()
-    return results
+        pool.terminate()
+        pool.join()
 
 
 # a pool process's jobs and their work (set once per process by _hold_jobs, which the pool

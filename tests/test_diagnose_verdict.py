@@ -92,23 +92,60 @@ def test_a_dominant_candidate_keeps_the_further_starts_to_itself():
 
 
 def _slow_first_fit(args) -> Candidate:
-    """A stub fit: the first job is the slowest, so the others finish before it."""
-    effect, delay = args
+    """A stub further fit: the first job is the slowest, so the others finish before it; the
+    TRAIN cost is the job's."""
+    effect, delay, cost = args
     time.sleep(delay)
-    return Candidate(effect, status="converged")
+    return Candidate(effect, status="converged", train_cost=cost)
 
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_further_starts_end_at_the_first_in_job_order_that_closes_the_gap(monkeypatch, workers):
     """Which fits count never depends on which finished first: the results end at the first job,
-    in job order, that closes the gap, with one worker or two."""
-    monkeypatch.setattr(analysis, "fit_candidate", _slow_first_fit)
-    jobs = [("leakage", 0.5), ("valve_deadzone", 0.0), ("mass", 0.0), ("stiction", 0.0)]
-    closes = {"valve_deadzone", "stiction"}
-    got = analysis._run_jobs(jobs, workers, lambda c: c.effect in closes)
-    assert [c.effect for c in got] == ["leakage", "valve_deadzone"]
-    assert [c.effect for c in analysis._run_jobs(jobs, workers)] == [e for e, _ in jobs]
-    assert [c.effect for c in analysis._run_jobs(jobs, workers, lambda c: False)] == [e for e, _ in jobs]
+    in job order, that closes the gap, with one worker or two. A start that ends above its
+    effect's best scored start (also one scored in this round) is not scored, said in words."""
+    scored = []
+    base, stub = _validated_to({"leakage": 9.0, "valve_deadzone": 1.0, "mass": 8.0, "stiction": 1.0}, scored)
+    monkeypatch.setattr(analysis, "further_fit", _slow_first_fit)
+    monkeypatch.setattr(analysis, "validate_candidate", stub)
+    nominal = NominalFit(None, None, None, 100.0, base)
+    opts = DiagnoseOptions(workers=workers)
+
+    def run(jobs, beat):
+        return analysis.further_scored(jobs, dict(beat), nominal, None, None, 1e-4, opts)
+
+    jobs = [("leakage", 0.5, 50.0), ("mass", 0.0, 40.0), ("mass", 0.0, 45.0), ("valve_deadzone", 0.0, 30.0),
+            ("stiction", 0.0, 20.0)]
+    got = run(jobs, {"leakage": 60.0, "mass": 42.0})
+    assert [c.effect for c in got] == ["leakage", "mass", "mass", "valve_deadzone"]
+    assert scored == ["leakage", "mass", "valve_deadzone"]
+    # the second mass start lost to the first one of this round (40), not only to the first pass (42)
+    assert got[2].status == "no_better_start" and "worse than the effect's best start (cost 45 vs 40" in got[2].error
+    scored.clear()
+    got = run(jobs, {"leakage": 50.0, "mass": 30.0})  # leakage and mass lose to their earlier starts
+    assert [c.status for c in got[:3]] == ["no_better_start"] * 3 and scored == ["valve_deadzone"]
+    scored.clear()
+    nothing = [("leakage", 0.5, 50.0), ("mass", 0.0, 40.0)]
+    assert [c.effect for c in run(nothing, {})] == ["leakage", "mass"] and scored == ["leakage", "mass"]
+
+
+def test_pooled_jobs_come_in_job_order_and_stop_when_told(tmp_path):
+    """run_jobs: results in job order whatever finished first; an early stop stops the jobs
+    still running (the last one's marker file is never written)."""
+    jobs = [(0, 0.4, None), (1, 0.0, None), (2, 0.0, None), (3, 1.5, tmp_path / "late")]
+    assert run_jobs(_sleep_then_mark, jobs[:3], 2) == [0, 1, 2]
+    assert run_jobs(_sleep_then_mark, jobs, 2, enough=lambda i: i == 1) == [0, 1]
+    time.sleep(2.0)
+    assert not (tmp_path / "late").exists()
+    assert run_jobs(_sleep_then_mark, jobs, 2) == [0, 1, 2, 3] and (tmp_path / "late").exists()
+
+
+def _sleep_then_mark(job) -> int:
+    index, delay, mark = job
+    time.sleep(delay)
+    if mark is not None:
+        mark.write_text("ran to its end")
+    return index
 
 
 def test_one_start_closes_the_gap_when_it_is_significant_and_near_the_noise():
@@ -190,7 +227,7 @@ def test_candidate_fits_have_no_wall_clock_limit_and_the_nested_start_is_the_nom
     nodes = np.ones((4, 2))
     nominal = NominalFit(cyl_a, optimum, nodes, 100.0, _val(3.0))
     opts = DiagnoseOptions(candidates=("leakage",), workers=1)
-    out = [fit_candidate((nominal, None, None, (eff,), k, opts, None, math.inf))
+    out = [fit_candidate((nominal, None, None, (eff,), k, opts, None))
            for k, eff in enumerate(candidate_starts("leakage"))]
     assert all(math.isinf(o.time_limit_s) for _, o, _ in seen)
     (c0, o0, n0), (c1, o1, n1) = seen[:2]
@@ -223,14 +260,16 @@ def test_a_further_start_that_ends_above_its_effects_best_start_is_not_scored(cy
     monkeypatch.setattr(analysis, "validate_candidate", lambda args: scored.append(args[0]) or args[0])
     nominal = NominalFit(cyl_a, cyl_a, np.ones((4, 2)), 100.0, _val(3.0))
     opts = DiagnoseOptions(candidates=("leakage",), workers=1)
-    c = fit_candidate((nominal, None, None, (candidate_starts("leakage")[1],), 1, opts, None, 60.0))
+    job = (nominal, None, (candidate_starts("leakage")[1],), 1, opts)
+    c, = analysis.further_scored([job], {"leakage": 60.0}, nominal, None, None, 1e-4, opts)
     assert seen == [pytest.approx(100.0 * (1 + opts.min_train_gain))] and not scored
     assert c.status == "no_better_start" and "worse than the effect's best start" in c.error
+    assert "max_iterations after" in c.error
     best = _cand("leakage", 2.0, significant=True)
     best.train_cost = 60.0
     assert best_of_starts([best, c], nominal)[0] is best
     # with nothing to beat, the same fit is scored
-    c = fit_candidate((nominal, None, None, (candidate_starts("leakage")[1],), 1, opts, None, math.inf))
+    c, = analysis.further_scored([job], {}, nominal, None, None, 1e-4, opts)
     assert scored == [c]
 
 

@@ -109,6 +109,20 @@ def test_effects_extend_without_forking(cyl_a):
     assert full.structure_key != base.structure_key
 
 
+def test_one_symbolic_build_serves_every_value_of_a_structure(cyl_a):
+    """Effect values are parameters: plants of one structure share their equations, and each
+    carries (and feeds the parameter vector from) its own effects' values."""
+    weak, strong = build_plant("command", [Stiction(5.0)]), build_plant("command", [Stiction(9.0)])
+    assert weak.rhs is strong.rhs and weak.effects != strong.effects
+    assert weak.parameter_vector(cyl_a)[-2:] != strong.parameter_vector(cyl_a)[-2:]
+    assert strong.parameter_vector(cyl_a)[weak.param_names.index("stiction.Fs_excess")] == 9.0
+    # another structure (drive, effects, their order, the valve law) builds its own
+    assert build_plant("pressure", [Stiction(5.0)]).rhs is not weak.rhs
+    assert build_plant("command", [Stiction(5.0), Leakage()]).rhs is not \
+        build_plant("command", [Leakage(), Stiction(5.0)]).rhs
+    assert build_plant("command", [Stiction(5.0)], valve_curve=False).rhs is not weak.rhs
+
+
 def test_stiction_adds_breakaway_force(cyl_a):
     plant = build_plant("command", [Stiction(Fs_excess=8.0, v_stribeck=0.01)])
     base = build_plant("command")

@@ -34,7 +34,7 @@ from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
 
 from ..files import Run
-from ..parallel import run_jobs, workers_here
+from ..parallel import iter_jobs, run_jobs, runs_in_pool, workers_here
 from ..identify import (IdentificationError, IdentifyOptions, Validation, equation_error_friction,
                         friction_from_newton, identify, savgol_kernels, derivative_kernels, validate, validation_gain,
                         validation_segments, velocity_estimate)
@@ -242,12 +242,49 @@ _NO_GAIN = ("no_gain_on_train", "worse_than_nominal", "failed", "no_better_start
 
 def fit_candidate(args) -> Candidate:
     """Re-identify on TRAIN with the effects added from one start, then score on VALID when it
-    fits TRAIN better than the nominal model and than `beat`. args: (NominalFit, TRAIN, VALID,
-    effects, start index of candidate_starts, DiagnoseOptions, validation segments, beat: the
-    TRAIN cost of the effect's best start so far, inf for none)."""
-    nominal, train, valid, effects, start, opts, segments, beat = args
-    c = _fit(nominal, train, effects, start, opts, beat)
+    fits TRAIN better than the nominal model. args: (NominalFit, TRAIN, VALID, effects, start
+    index of candidate_starts, DiagnoseOptions, validation segments)."""
+    nominal, train, valid, effects, start, opts, segments = args
+    c = _fit(nominal, train, effects, start, opts)
     return c if c.status in _NO_GAIN else validate_candidate((c, nominal, valid, opts, segments))
+
+
+def further_fit(args) -> Candidate:
+    """A further start's fit on TRAIN alone (further_scored scores it). args: (NominalFit, TRAIN,
+    effects, start index of candidate_starts, DiagnoseOptions)."""
+    nominal, train, effects, start, opts = args
+    return _fit(nominal, train, effects, start, opts)
+
+
+def further_scored(jobs: list, beat: dict[str, float], nominal: NominalFit, valid: Run, segments,
+                   base_rmse_x: float, opts: DiagnoseOptions) -> list[Candidate]:
+    """The further starts (`jobs` of further_fit) fitted over `opts.workers` processes and scored on
+    VALID in job order as they come, while the pool fits the later ones (a validation then
+    takes one process). Only the start with the lowest TRAIN cost is kept (_best_starts): one
+    that ends at or above its effect's best scored start (`beat`: the effect's TRAIN cost,
+    updated as starts are scored) is not scored, said in words. The results end at the first
+    start that closes the gap: the same ones on any number of workers."""
+    fits = iter_jobs(further_fit, jobs, opts.workers)
+    pooled = runs_in_pool(opts.workers, len(jobs))
+    done = []
+    try:
+        for i, c in enumerate(fits):
+            if c.status not in _NO_GAIN:
+                if c.train_cost >= beat.get(c.effect, math.inf):
+                    c.error = (f"this start fits TRAIN worse than the effect's best start (cost {c.train_cost:.4g} "
+                               f"vs {beat[c.effect]:.4g}, {c.status} after {c.iterations} iterations): not validated")
+                    c.status = "no_better_start"
+                else:
+                    busy = pooled and i < len(jobs) - 1  # the pool is gone when the last start comes
+                    c = validate_candidate((c, nominal, valid, replace(opts, workers=1) if busy else opts, segments))
+                    if c.validation is not None:
+                        beat[c.effect] = c.train_cost
+            done.append(c)
+            if closes_gap(c, nominal.validation, base_rmse_x, opts):
+                break
+    finally:
+        fits.close()  # stops the fits still running
+    return done
 
 
 def _call(job):
@@ -278,13 +315,12 @@ def fit_first(args) -> list[Candidate]:
 _STALLED_ITERATIONS = 2
 
 
-def _fit(nominal: NominalFit, train: Run, effects: tuple[Effect, ...], start: int, opts: DiagnoseOptions,
-         beat: float = math.inf) -> Candidate:
+def _fit(nominal: NominalFit, train: Run, effects: tuple[Effect, ...], start: int, opts: DiagnoseOptions) -> Candidate:
     t0 = time.perf_counter()
     label = "+".join(e.name for e in effects)
     try:
         with np.errstate(all="ignore"):  # a diverging candidate is caught by its costs, not by warnings
-            c = _fit_on_train(nominal, train, effects, start, opts, label, beat)
+            c = _fit_on_train(nominal, train, effects, start, opts, label)
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         # one candidate failing must not end the diagnosis
         c = Candidate(effect=label, status="failed", start=start,
@@ -310,7 +346,7 @@ def validate_candidate(args) -> Candidate:
     return c
 
 
-def _fit_on_train(nominal, train, effects, start, opts, label, beat: float = math.inf) -> Candidate:
+def _fit_on_train(nominal, train, effects, start, opts, label) -> Candidate:
     names = ("Fc", "Fv", "kp") + tuple(e.key(k) for e in effects for k in e.PARAMS)
     # candidates have further starts of their own (further_starts); the nominal model was fitted
     # without a restart too, so that every candidate is measured against the same baseline
@@ -348,12 +384,6 @@ def _fit_on_train(nominal, train, effects, start, opts, label, beat: float = mat
         # the fast screen: what does not fit TRAIN better cannot explain the gap
         c.status = "no_gain_on_train"
         c.error = f"fits TRAIN no better than the nominal model ({gain:+.2%} of its cost): not validated"
-    elif c.train_cost >= beat:
-        # a further start that ended above its effect's best start: only the best start is
-        # kept (the lowest TRAIN cost, _best_starts), so scoring this one on VALID is no use
-        c.status = "no_better_start"
-        c.error = (f"this start fits TRAIN worse than the effect's best start (cost {c.train_cost:.4g} vs "
-                   f"{beat:.4g}, {res.solver['status']} after {res.solver['iterations']} iterations): not validated")
     return c
 
 
@@ -370,13 +400,6 @@ def _nested_floor(c: Candidate, nominal: NominalFit) -> Candidate:
                      iterations=c.iterations, start=NESTED_START, wall_s=c.wall_s, effects=(neutral,),
                      error=f"no start fitted TRAIN better than the nominal model ({why}); the candidate "
                            "is reported at its neutral value, i.e. the nominal model: not validated")
-
-
-def _run_jobs(jobs: list, workers: int, enough: Callable[[Candidate], bool] | None = None,
-              work: Callable | None = None) -> list:
-    """`work` (fit_candidate) of each of `jobs` over `workers` processes, in job order, ending
-    at the first for which `enough` holds (parallel.run_jobs)."""
-    return run_jobs(work or fit_candidate, jobs, workers, enough)
 
 
 def best_of_starts(results: list[Candidate], nominal: NominalFit) -> list[Candidate]:
@@ -421,8 +444,14 @@ def validate_screened(cands: list[Candidate], nominal: NominalFit, valid: Run, s
                        f"of the best candidate's gain ({leader}: {top:.2%}): not validated (the screen)")
     if keep:
         say(f"  validating {len(keep)} of them on VALID, the best fit on TRAIN first ...")
-    done = _run_jobs([(c, nominal, valid, opts, segments) for c in keep], opts.workers,
-                     lambda c: closes_gap(c, base, base_rmse_x, opts), work=validate_candidate)
+    # one candidate after the other, its segments over all processes: a candidate's validation
+    # is done before the next one starts (the first that closes the gap ends them), and no
+    # process idles while the last candidate's segments are fitted
+    done = []
+    for c in keep:
+        done.append(validate_candidate((c, nominal, valid, opts, segments)))
+        if closes_gap(done[-1], base, base_rmse_x, opts):
+            break
     closer = done[-1] if len(done) < len(keep) else None
     for c in keep[len(done):]:
         c.status = "not_validated"
@@ -581,20 +610,19 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     first.append((subsystem_split, (cyl, nominal, train, valid, base_val, opts, segments)))
     say(f"re-identifying {len(order)} candidate effects on TRAIN from the nominal optimum "
         f"({min(opts.workers, len(first))} processes) ...")
-    done_first = _run_jobs(first, opts.workers, work=_call)
+    done_first = run_jobs(_call, first, opts.workers)
     subsystems = done_first.pop()
     fitted = [c for cs in done_first for c in cs]
     tried = {(c.effect, c.start) for c in fitted}
     cands = validate_screened(best_of_starts(fitted, start), start, valid, segments, base_rmse, opts, say)
-    # the cheapest first: they end at the first start that closes the gap (closes_gap)
-    # a further start that ends above its effect's best start so far is not scored on VALID
-    # (the start with the lowest TRAIN cost is kept): that cost, where that start was scored
-    beat = {c.effect: c.train_cost for c in cands if c.validation is not None}
-    more = [(start, train, valid, (candidate_starts(n)[k],), k, opts, segments, beat.get(n, math.inf))
+    # the cheapest first: they end at the first start that closes the gap (closes_gap). Each is
+    # scored as soon as it and those before it are fitted, while the pool fits the next ones
+    more = [(start, train, (candidate_starts(n)[k],), k, opts)
             for n, k in further_starts(cands, base_val, order[::-1], tried, opts)]
     if more:
         say(f"  trying {len(more)} further starts (the effects' defaults and alternatives) ...")
-        done = _run_jobs(more, opts.workers, lambda c: closes_gap(c, base_val, base_rmse, opts))
+        done = further_scored(more, {c.effect: c.train_cost for c in cands if c.validation is not None}, start,
+                              valid, segments, base_rmse, opts)
         if len(done) < len(more):
             say(f"  {done[-1].effect} (start {done[-1].start}) closed the gap: the {len(more) - len(done)} "
                 "further starts after it were not needed")
@@ -733,7 +761,7 @@ def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, 
     inner = NominalFit(nominal.config, nominal.config.with_values(best.friction), best.nodes, best.train_cost,
                        best.validation)
     c = fit_candidate((inner, train, valid, (best.effects[0], neutral_start(second.effect)), NESTED_START, opts,
-                       segments, math.inf))
+                       segments))
     _score(c, base_val, base_rmse, opts)
     c.significant = c.significant and _gain_over(best.validation, c.validation, opts)
     if math.isfinite(c.shrink):
