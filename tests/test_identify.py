@@ -430,3 +430,34 @@ def test_node_states_no_cylinder_can_have_are_rejected_without_a_simulation(cyl_
         S_bad = S.copy()
         S_bad[i, 1] = bad
         assert prob.evaluate(S_bad, p, False) is None and prob.evaluate(S_bad, p, True) is None
+
+
+def test_a_trial_step_given_up_part_way_changes_nothing_but_the_work(cyl_a, monkeypatch):
+    """A line search's trial whose first intervals already put the merit above the acceptance
+    bound is given up there: the fit takes the very same steps as one that simulates every
+    trial whole (the same history and estimates to the last digit), and trials were given up
+    part way that a whole simulation would have rejected."""
+    import combined_reality.identify.shooting as shooting
+
+    given_up = []
+    whole = shooting.ShootingProblem._simulate_unless
+
+    def watched(self, S, p, give_up):
+        out = whole(self, S, p, give_up)
+        if out is None and self.allows(S) and self.simulate(S, p, False) is not None:
+            given_up.append(S)  # a finite trial given up part way
+        return out
+
+    monkeypatch.setattr(shooting.ShootingProblem, "_simulate_unless", watched)
+    opts = IdentifyOptions(prefit=False, restart_misfit=False)
+    run = simulate_run(cyl_a, 6.0, seed=3)
+    far = cyl_a.with_values({"Fc": 3 * cyl_a.friction.Fc, "Fv": 0.2 * cyl_a.friction.Fv, "kp": 3 * cyl_a.friction.kp})
+    pieces = identify(far, [run], opts)
+    monkeypatch.setattr(shooting, "TRIAL_CHUNKS", 1)  # one piece: every trial is simulated whole
+    n_given_up = len(given_up)
+    at_once = identify(far, [run], opts)
+    assert n_given_up > 0 and len(given_up) == n_given_up
+    assert [h["cost"] for h in pieces.solver["history"]] == [h["cost"] for h in at_once.solver["history"]]
+    assert [h["alpha"] for h in pieces.solver["history"]] == [h["alpha"] for h in at_once.solver["history"]]
+    assert {n: e.value for n, e in pieces.params.items()} == {n: e.value for n, e in at_once.params.items()}
+    assert pieces.solver["cost"] == at_once.solver["cost"]

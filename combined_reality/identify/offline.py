@@ -308,6 +308,11 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         with np.errstate(over="ignore"):
             return 0.5 * float(np.sum(E * E)) + prior_cost(th) + mu * float(np.sum(np.abs(D)))
 
+    def merit_part(E, D, mu) -> float:
+        """merit's share of some intervals' residuals and defects (without the prior)"""
+        with np.errstate(over="ignore"):
+            return 0.5 * float(np.sum(E * E)) + mu * float(np.sum(np.abs(D)))
+
     def with_prior(Nmat: np.ndarray, g: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if not len(tp):
             return Nmat, g
@@ -389,7 +394,8 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
             if creeping >= NONMONOTONE:
                 reference = max([reference] + [h["cost"] + mu * h["defect"] for h in history[-NONMONOTONE:]])
             found = line_search(evaluate, lambda ev_, th_: merit(ev_[0], ev_[1], mu, th_), S, dS.T, theta, dth, p,
-                                free, lower, upper, reference, min(gdir - mu * viol, 0.0), 1.0 / 64)
+                                free, lower, upper, reference, min(gdir - mu * viol, 0.0), 1.0 / 64,
+                                part=lambda E_, D_: merit_part(E_, D_, mu))
             if found:
                 alpha, S_try, th_try, p_try, ev_try = found
                 accepted = True

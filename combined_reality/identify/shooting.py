@@ -5,9 +5,10 @@ bounded Gauss-Newton step with its line search, and the covariance of the estima
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -121,6 +122,11 @@ def run_layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> Run
 
 
 
+# a line search's trial is simulated in this many pieces of its intervals, so that one whose
+# merit the first pieces already put above the acceptance bound is given up early
+TRIAL_CHUNKS = 8
+
+
 class ShootingProblem:
     """Weighted output residuals and scaled continuity defects of K shooting intervals."""
 
@@ -134,16 +140,56 @@ class ShootingProblem:
         self.W, self.H, self.Y, self.mask, self.wts, self.sscale, self.nxt = W, H, Y, mask, wts, sscale, nxt
         self.K, self.M = K, sf.interval_len
         self.plant = plant
+        self._interval, self._threads = sf.interval, threads
         self.nx, self.nth = plant.nx, len(sf.free)
         self.out_idx = [plant.state_names.index(n) for n in plant.output_names]
 
-    def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
-        """(E, D, X, Sens) or None when the simulation is not finite or a node state impossible."""
-        sim = self.simulate(S, p, with_sens)
+    def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool,
+                 give_up: Callable[[np.ndarray, np.ndarray], bool] | None = None):
+        """(E, D, X, Sens) or None when the simulation is not finite or a node state impossible.
+
+        `give_up(E, D)` (without sensitivities): called with the residuals and defects of each
+        piece of the intervals as it is simulated, in order; True ends the simulation there
+        (None). A line search's trial whose merit the first pieces already put above the
+        acceptance bound is rejected at a fraction of a whole simulation; one that is not
+        given up is simulated and returned exactly as without."""
+        if give_up is not None and not with_sens:
+            sim = self._simulate_unless(S, p, give_up)
+        else:
+            sim = self.simulate(S, p, with_sens)
         if sim is None:
             return None
         E, D = self.residuals(S, sim[0])
         return E, D, *sim
+
+    @functools.cached_property
+    def chunks(self) -> list[tuple[int, int, NumpyCall]]:
+        """The intervals in TRIAL_CHUNKS pieces (first, end, their simulation), for trials that
+        may be given up part way; built on first use (a simulation without a fit never needs them)."""
+        K, size = self.K, -(-self.K // TRIAL_CHUNKS)
+        f, threads = self._interval, self._threads
+        maps = {n: NumpyCall(f.map(n, "thread", threads) if threads > 1 else f.map(n))
+                for n in {min(size, K - a) for a in range(0, K, size)}}
+        return [(a, min(a + size, K), maps[min(size, K - a)]) for a in range(0, K, size)]
+
+    def _simulate_unless(self, S: np.ndarray, p: np.ndarray, give_up) -> tuple[np.ndarray, None] | None:
+        nx, M = self.nx, self.M
+        if not self.allows(S):
+            return None
+        X = np.empty((nx, self.K, M))
+        for a, b, f in self.chunks:
+            Xc = f(S[:, a:b], self.W[:, a * (M + 1):b * (M + 1)], p, self.H[:, a * M:b * M])[0].reshape(nx, b - a, M)
+            if not np.all(np.isfinite(Xc)):
+                return None
+            X[:, a:b] = Xc
+            if b < self.K:
+                E = shooting_residuals(S[:, a:b], Xc, self.Y[a:b], self.mask[a:b], self.wts, self.sscale,
+                                       self.nxt[:0], self.out_idx)[0]
+                links = self.nxt[(self.nxt >= a) & (self.nxt < b)]  # their successors' nodes are known
+                D = (Xc[:, links - a, M - 1] - S[:, links + 1]) / self.sscale[:, None]
+                if give_up(E, D):
+                    return None
+        return X, None
 
     def allows(self, S: np.ndarray) -> bool:
         """Whether every node state in S is a possible state of the plant."""
@@ -244,16 +290,31 @@ def parameter_bounds(plant: Plant, names: Sequence[str]) -> tuple[np.ndarray, np
 
 
 def line_search(evaluate, merit, S, dS, theta, dth, p, free, lower, upper, m0: float, slope: float,
-                min_alpha: float):
+                min_alpha: float, part: Callable[[np.ndarray, np.ndarray], float] | None = None):
     """Backtracking from the full step on an l1 merit (Armijo, or a tie at the numerical noise
-    floor): (alpha, S, theta, p, evaluation) of the first accepted trial, or None."""
+    floor): (alpha, S, theta, p, evaluation) of the first accepted trial, or None.
+
+    With `part(E, D)`, the merit's share of some intervals' residuals and defects (the rest,
+    a prior, is >= 0), a trial whose first intervals already put the merit above m0 is given
+    up there (ShootingProblem.evaluate): such a trial could not be accepted, so the steps are
+    the same, found with less simulation."""
+    bound = m0 + 1e-9 * max(abs(m0), 1.0)  # above it neither the Armijo test nor a tie can hold
     alpha = 1.0
     while alpha >= min_alpha:
         th = np.clip(theta + alpha * dth, lower, upper)
         p_try = p.copy()
         p_try[free] = th
         S_try = S + alpha * dS
-        ev = evaluate(S_try, p_try, False)
+        if part is None:
+            ev = evaluate(S_try, p_try, False)
+        else:
+            so_far = [0.0]
+
+            def give_up(E, D) -> bool:
+                so_far[0] += part(E, D)
+                return so_far[0] > bound
+
+            ev = evaluate(S_try, p_try, False, give_up)
         if ev is not None:
             m1 = merit(ev, th)
             if m1 <= m0 + 1e-4 * alpha * slope or abs(m1 - m0) <= 1e-12 * max(m0, 1.0):
