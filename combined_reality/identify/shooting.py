@@ -173,6 +173,8 @@ class ShootingProblem:
         return [(a, min(a + size, K), maps[min(size, K - a)]) for a in range(0, K, size)]
 
     def _simulate_unless(self, S: np.ndarray, p: np.ndarray, give_up) -> tuple[np.ndarray, None] | None:
+        """simulate(S, p, False) piece by piece (the same numbers: one interval function), or None
+        once `give_up` holds for the pieces so far (the last piece is never asked: it is whole)."""
         nx, M = self.nx, self.M
         if not self.allows(S):
             return None
