@@ -56,15 +56,13 @@ def iter_jobs(work: Callable[[Any], Any], jobs: list, workers: int) -> Iterator[
     pool = mp.get_context("fork").Pool(min(workers, len(jobs)), initializer=_hold_jobs, initargs=(work, jobs))
     try:
         results = pool.imap(_held_job, range(len(jobs)))
-        for i in range(len(jobs)):
-            r = next(results)
-            if i == len(jobs) - 1:
-                pool.terminate()  # every job is done
-                pool.join()
-            yield r
+        for _ in range(len(jobs) - 1):
+            yield next(results)
+        last = next(results)
     finally:
         pool.terminate()
         pool.join()
+    yield last
 
 
 # a pool process's jobs and their work (set once per process by _hold_jobs, which the pool

@@ -2,6 +2,7 @@
 identifier (fast): a weak winner is `unexplained`, combining effects give the pair, a
 nested candidate never ends worse than the nominal model, and no fit has a wall-clock limit."""
 import math
+import multiprocessing
 import os
 import threading
 import time
@@ -14,7 +15,7 @@ from combined_reality.diagnose import (Candidate, DiagnoseOptions, NominalFit, a
                                        candidate_starts, decide, explained_share, fit_candidate, further_starts,
                                        has_nested_start, neutral_start)
 from combined_reality.identify import Validation
-from combined_reality.parallel import run_jobs
+from combined_reality.parallel import iter_jobs, run_jobs
 from sim.effects import EFFECTS
 
 NOISE = np.array([5e-6, 300.0, 300.0])
@@ -138,6 +139,9 @@ def test_pooled_jobs_come_in_job_order_and_stop_when_told(tmp_path):
     time.sleep(2.0)
     assert not (tmp_path / "late").exists()
     assert run_jobs(_sleep_then_mark, jobs, 2) == [0, 1, 2, 3] and (tmp_path / "late").exists()
+    # iter_jobs: the pool is gone when the last result comes (its taker may fork a pool)
+    alive = [len(multiprocessing.active_children()) for _ in iter_jobs(_sleep_then_mark, jobs[:3], 2)]
+    assert alive[0] == 2 and alive[-1] == 0
 
 
 def _sleep_then_mark(job) -> int:
