@@ -152,7 +152,8 @@ def run_case(c: dict, duration: float, workers: int, reports: Path | None = None
             "baseline_rmse_x": res["baseline"]["rmse_x_validation"],
             "baseline_normalized": res["baseline"]["normalized_rms"],
             "pair": res["pair"]["effect"] if res["pair"] else None,
-            "t_diagnose": t_diag, "t_identify": t_ident}
+            "t_diagnose": t_diag, "t_identify": t_ident,
+            "diagnosis": res}  # the whole document: each candidate's status, iterations and time
 
 
 def extra_class(r: dict) -> str:

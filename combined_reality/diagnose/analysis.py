@@ -61,6 +61,11 @@ class DiagnoseOptions:
     # share of what the first leaves (a partner that imitates part of a single effect's misfit
     # takes less; with 0.5, a stiction fit in a local minimum was named stiction+mass)
     pair_rest: float = 0.8
+    # a pair fit gives up (not validated) when it stays above this share of what a pair verdict
+    # needs on TRAIN (the part of the single effect's excess cost that pair_rest, or closing the
+    # gap, asks for) for IdentifyOptions.give_up_after iterations in a row: the pair of a
+    # single-effect case crept for 20 iterations at a sixth of what the single effect left
+    pair_give_up: float = 0.5
     min_train_gain: float = 1e-3  # a candidate must cut the TRAIN cost by this share to be validated
     # ... and by this share of the best candidate's cut (the screen): what imitates a sliver
     # of the misfit on TRAIN neither wins on VALID nor partners the winner
@@ -234,10 +239,14 @@ class NominalFit:
     nodes: np.ndarray | None
     train_cost: float
     validation: Validation
+    noise_cost: float = math.nan  # the TRAIN cost of a model at the sensor noise
+    # the TRAIN cost a fit from here must get under within IdentifyOptions.give_up_after
+    # iterations (NaN: the train cost itself, plus min_train_gain of it)
+    give_up_above: float = math.nan
 
 
 # a first fit that found nothing on TRAIN: no validation; its defaults are tried as well
-_NO_GAIN = ("no_gain_on_train", "worse_than_nominal", "failed", "no_better_start")
+_NO_GAIN = ("no_gain_on_train", "worse_than_nominal", "failed", "no_better_start", "falls_short")
 
 
 def fit_candidate(args) -> Candidate:
@@ -351,9 +360,10 @@ def _fit_on_train(nominal, train, effects, start, opts, label) -> Candidate:
     # candidates have further starts of their own (further_starts); the nominal model was fitted
     # without a restart too, so that every candidate is measured against the same baseline
     # the model's threads: one in a pool's process, all of them where a fit runs alone (the pair)
+    reference = (nominal.train_cost * (1 + opts.min_train_gain) if math.isnan(nominal.give_up_above)
+                 else nominal.give_up_above)
     options = IdentifyOptions(estimate=names, threads=workers_here(opts.workers), max_iter=opts.max_iter,
-                              restart_misfit=False,
-                              give_up_above=nominal.train_cost * (1 + opts.min_train_gain))
+                              restart_misfit=False, give_up_above=reference)
     if start == NESTED_START:
         # from the nominal optimum, node states included: the fit starts at the nominal
         # model's TRAIN cost and a descent can only lower it. A single effect gets half the
@@ -384,6 +394,11 @@ def _fit_on_train(nominal, train, effects, start, opts, label) -> Candidate:
         # the fast screen: what does not fit TRAIN better cannot explain the gap
         c.status = "no_gain_on_train"
         c.error = f"fits TRAIN no better than the nominal model ({gain:+.2%} of its cost): not validated"
+    elif res.solver["status"] == "above_reference" and c.train_cost > reference:
+        # it gained, but stayed above what its caller needs of it (the pair: _best_pair)
+        c.status = "falls_short"
+        c.error = (f"stayed above the TRAIN cost it had to reach ({c.train_cost:.4g} vs {reference:.4g}) for "
+                   f"{options.give_up_after} iterations in a row: given up, not validated")
     return c
 
 
@@ -594,7 +609,9 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     nominal = base.cylinder
     segments = validation_segments(valid, opts.horizon_s)
     base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments, workers=opts.workers)
-    start = NominalFit(cyl, nominal, base.nodes, base.solver["cost"], base_val)
+    sigma = base.solver["residual_sigma"]
+    start = NominalFit(cyl, nominal, base.nodes, base.solver["cost"], base_val,
+                       noise_cost=base.solver["cost"] / sigma ** 2 if sigma > 0 else math.nan)
     base_rmse = base_val.rmse("x")
     say(f"  validation RMSE of x: {base_rmse * 1e6:.2f} um, all outputs {base_val.normalized_rms():.2f} x the "
         f"sensor noise ({len(segments)} segments of about {opts.horizon_s:g} s)")
@@ -758,10 +775,20 @@ def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, 
     if best.validation.normalized_rms() <= opts.closed_gap:
         return None
     say(f"trying the pair {best.effect} + {second.effect} ...")
+    # a fit that stays under pair_give_up of what the pair needs to matter (as a share of the
+    # first effect's excess cost on TRAIN) gives up, unvalidated
+    need = pair_need(base_val, best.validation, opts)
+    excess = best.train_cost - nominal.noise_cost
+    give_up = best.train_cost - opts.pair_give_up * need * excess if excess > 0 else math.nan
     inner = NominalFit(nominal.config, nominal.config.with_values(best.friction), best.nodes, best.train_cost,
-                       best.validation)
+                       best.validation, nominal.noise_cost, give_up)
     c = fit_candidate((inner, train, valid, (best.effects[0], neutral_start(second.effect)), NESTED_START, opts,
                        segments))
+    if c.status == "falls_short":
+        c.error = (f"together they explain {(best.train_cost - c.train_cost) / excess:.0%} of what {best.effect} "
+                   f"leaves on TRAIN above the sensor noise; to change the verdict the pair needs {need:.0%} of "
+                   f"it, and its fit stayed under {opts.pair_give_up * need:.0%} for {IdentifyOptions().give_up_after} "
+                   "iterations in a row: given up, not validated")
     _score(c, base_val, base_rmse, opts)
     c.significant = c.significant and _gain_over(best.validation, c.validation, opts)
     if math.isfinite(c.shrink):
@@ -770,6 +797,20 @@ def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, 
     else:
         say(f"  {c.effect}: not scored ({c.error or c.status})")
     return c
+
+
+def pair_need(base: Validation, best: Validation, opts: DiagnoseOptions) -> float:
+    """The share of what the best single effect leaves on VALID (its error variance above the
+    noise) that the runner-up must explain for the pair to change the verdict (decide): the
+    pair is the verdict where it explains `pair_rest` of it or closes the gap (`closed_gap`),
+    and a single effect that explains under `explained` of the gap is named, instead of
+    `unexplained`, where the pair lifts that to `explained`. The least of these."""
+    b2 = best.normalized_rms() ** 2
+    need = min(opts.pair_rest, (b2 - opts.closed_gap ** 2) / (b2 - 1.0))
+    share = explained_share(base, best)
+    if share < opts.explained:
+        need = min(need, (opts.explained - share) / (1.0 - share))
+    return max(need, 0.0)
 
 
 def _gain_over(ref: Validation, cand: Validation | None, opts: DiagnoseOptions) -> bool:

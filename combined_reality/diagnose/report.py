@@ -340,7 +340,7 @@ def _candidate_row(c, rank, verdict: str, ncols: int) -> str:
            f'<td>{params}</td><td class="small">{fr}</td>'
            f'<td>{_breakable(c.status)}{vnote}<br><span class="small">{c.wall_s:.1f} s</span></td></tr>')
     if c.error:  # the screen's reason is no error of the tool
-        note = "small" if c.status in ("no_gain_on_train", "screened_out", "not_validated") else "err"
+        note = "small" if c.status in ("no_gain_on_train", "screened_out", "not_validated", "falls_short") else "err"
         out += f'<tr class="failed"><td></td><td colspan="{ncols - 1}" class="{note}">{escape(c.error)}</td></tr>'
     return out
 
@@ -370,7 +370,9 @@ better than the nominal model and was not validated (the fast screen); <code>scr
 TRAIN is under {d.options.screen_share:.0%} of the best candidate's, not validated either; <code>not_validated</code>:
 a candidate that fits TRAIN better closed the gap on VALID to near the noise first (validations run in the order of
 the TRAIN fit); <code>worse_than_nominal</code>: the fit ended
-worse on TRAIN than the nominal model it contains (a local minimum) and was not validated; these, failed fits and
+worse on TRAIN than the nominal model it contains (a local minimum) and was not validated; <code>falls_short</code>
+(the pair): its fit stayed under half of what the pair would need on TRAIN to change the verdict for 6 iterations
+in a row and was given up, not validated; these, failed fits and
 models whose simulation of VALID diverged have no shrink and no z (n/a). <b>start fit on VALID</b> (shown when it
 did not converge): how the worst fit of a validation segment's initial state ended; the model's parameters stay as
 identified on TRAIN, and a segment fit that stops early can only make the model look worse.</p>{pair}"""
