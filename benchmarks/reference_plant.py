@@ -1514,8 +1514,10 @@ class Case:
                    end_stiffness=float(d.get("end_stiffness", K_END)), end_damping=float(d.get("end_damping", C_END)))
 
     def key(self) -> str:
-        """A content hash of the case (and of this module's physics revision) for on-disk caches."""
-        text = json.dumps({"case": self.to_json(), "revision": REVISION}, sort_keys=True)
+        """A content hash of the case (and of this module's physics revision) for on-disk caches;
+        not of where the cylinder file lies, so that two checkouts share the runs."""
+        case = {k: v for k, v in self.to_json().items() if k != "cylinder_source"}
+        text = json.dumps({"case": case, "revision": REVISION}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 

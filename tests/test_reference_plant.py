@@ -16,6 +16,7 @@ import importlib.util
 import json
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -400,6 +401,10 @@ def test_cases_round_trip_through_json_and_rebuild_the_same_run(cyl):
     np.testing.assert_array_equal(a.x, b.x)
     np.testing.assert_array_equal(a.p2, b.p2)
     assert rp.Case(cyl, 0.05, 5).key() != rp.Case(cyl, 0.05, 4).key()
+    # the same cylinder read from another checkout: the same runs
+    elsewhere = replace(cyl, source=Path("/elsewhere") / cyl.source.name)
+    assert rp.Case(elsewhere, 0.05, 4).key() == rp.Case(cyl, 0.05, 4).key()
+    assert rp.Case(cyl.with_values({"Fc": 30.0}), 0.05, 4).key() != rp.Case(cyl, 0.05, 4).key()
 
 
 def test_command_line_writes_a_run_the_project_reads(tmp_path, capsys):
