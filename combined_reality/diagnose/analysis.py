@@ -61,10 +61,10 @@ class DiagnoseOptions:
     # share of what the first leaves (a partner that imitates part of a single effect's misfit
     # takes less; with 0.5, a stiction fit in a local minimum was named stiction+mass)
     pair_rest: float = 0.8
-    # a pair fit gives up (not validated) when it stays above this share of what a pair verdict
-    # needs on TRAIN (the part of the single effect's excess cost that pair_rest, or closing the
-    # gap, asks for) for IdentifyOptions.give_up_after iterations in a row: the pair of a
-    # single-effect case crept for 20 iterations at a sixth of what the single effect left
+    # a pair fit that explains less than this share of what it needs to change the verdict
+    # (pair_need, of the single effect's excess cost on TRAIN) for IdentifyOptions.give_up_after
+    # iterations in a row is given up, not validated: the pair of a single-effect case crept for
+    # 20 iterations at a ninth of what the single effect left
     pair_give_up: float = 0.5
     min_train_gain: float = 1e-3  # a candidate must cut the TRAIN cost by this share to be validated
     # ... and by this share of the best candidate's cut (the screen): what imitates a sliver

@@ -371,8 +371,8 @@ TRAIN is under {d.options.screen_share:.0%} of the best candidate's, not validat
 a candidate that fits TRAIN better closed the gap on VALID to near the noise first (validations run in the order of
 the TRAIN fit); <code>worse_than_nominal</code>: the fit ended
 worse on TRAIN than the nominal model it contains (a local minimum) and was not validated; <code>falls_short</code>
-(the pair): its fit stayed under half of what the pair would need on TRAIN to change the verdict for 6 iterations
-in a row and was given up, not validated; these, failed fits and
+(the pair): for 6 iterations in a row its fit explained under {d.options.pair_give_up:.0%} of what the pair would need
+on TRAIN to change the verdict, and it was given up, not validated; these, failed fits and
 models whose simulation of VALID diverged have no shrink and no z (n/a). <b>start fit on VALID</b> (shown when it
 did not converge): how the worst fit of a validation segment's initial state ended; the model's parameters stay as
 identified on TRAIN, and a segment fit that stops early can only make the model look worse.</p>{pair}"""
