@@ -23,7 +23,9 @@ when `unexplained`, `missed` when `none`, `wrong` (a confident wrong verdict) ot
 Prints per plant the confusion matrix, top-1 accuracy, the verdicts on clean runs, the median
 shrink (of the true effect's candidate, on VALID) and the time per diagnosis, as an absolute
 figure and as a ratio to a nominal identification of the same TRAIN run measured in the same
-process (the machines are shared; the ratio travels better), then the extra cases.
+process (the machines are shared; the ratio travels better), then the extra cases. A case that
+built model functions first (the first of its structure on this machine, with a fresh model
+cache) says so: its time includes building them, which later diagnoses skip.
 
     python benchmarks/diagnosis.py                 # both plants, every effect x 2 cylinders + clean + extra
     python benchmarks/diagnosis.py --plant reference --cylinders cyl_a_32x100 --out bench_ref   # resumable
@@ -52,6 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from combined_reality.live import simulate_run  # noqa: E402
 from combined_reality.diagnose import DiagnoseOptions, diagnose  # noqa: E402
 from combined_reality.identify import IdentifyOptions, identify  # noqa: E402
+from sim.compiled import cache_dir  # noqa: E402
 from sim.cylinder import load_cylinder  # noqa: E402
 from sim.effects import EFFECTS  # noqa: E402
 
@@ -123,12 +126,20 @@ def case_runs(c: dict, cyl, duration: float, seed: int, cache: Path | None = Non
     return train, valid, truth
 
 
+def compiled_functions() -> int:
+    """Model functions compiled (or serialised, without a C compiler) in the model cache: a
+    case that adds some paid for building them, once per machine and structure."""
+    d = cache_dir()
+    return len(list(d.glob("cr_*.so"))) + len(list(d.glob("cr_*.casadi"))) if d.is_dir() else 0
+
+
 def run_case(c: dict, duration: float, workers: int, reports: Path | None = None, cache: Path | None = None) -> dict:
     cyl = load_cylinder(ROOT / "configs" / f"{c['cylinder']}.toml")
     # the project plant's seeds as before (its ids had no plant prefix)
     legacy = f"{c['cylinder']}__{c['effect']}__{c['draw']}"
     seed = zlib.crc32((legacy if c.get("plant", "project") == "project" else case_id(c)).encode()) % 100_000
     train, valid, truth = case_runs(c, cyl, duration, seed, cache)
+    built = compiled_functions()
     t0 = time.perf_counter()
     identify(cyl, [train], IdentifyOptions())
     t_ident = time.perf_counter() - t0
@@ -152,7 +163,7 @@ def run_case(c: dict, duration: float, workers: int, reports: Path | None = None
             "baseline_rmse_x": res["baseline"]["rmse_x_validation"],
             "baseline_normalized": res["baseline"]["normalized_rms"],
             "pair": res["pair"]["effect"] if res["pair"] else None,
-            "t_diagnose": t_diag, "t_identify": t_ident,
+            "t_diagnose": t_diag, "t_identify": t_ident, "compiled": compiled_functions() - built,
             "diagnosis": res}  # the whole document: each candidate's status, iterations and time
 
 
@@ -202,6 +213,7 @@ def report(results: list[dict], effects, title: str = "") -> None:
     print(f"time per diagnosis (20 s + 20 s unless --duration): median {np.median(t):.1f} s, max {t.max():.1f} s "
           f"(target median <= 30 s, max <= 45 s); {np.median(ratio):.1f}x a nominal identification of TRAIN in the "
           "same process")
+    _compiled_note(results)
     misses = [r for r in eff_rows if r["verdict"] != r["effect"]]
     if misses:
         print("\nmisses:")
@@ -215,6 +227,20 @@ def report(results: list[dict], effects, title: str = "") -> None:
             counts[k] = counts.get(k, 0) + 1
             print(f"  {k:8s} {r['cylinder']:22s} {_truth_text(r)} -> {r['verdict']}; {_top_text(r)}")
         print("  " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items())) + "   (no `wrong`: target)")
+        t = np.array([r["t_diagnose"] for r in extras])
+        print(f"  time per diagnosis of these: median {np.median(t):.1f} s, max {t.max():.1f} s")
+        _compiled_note(extras)
+
+
+def _compiled_note(results: list[dict]) -> None:
+    """Which times include building model functions (the first case of a structure on this
+    machine): the same diagnosis runs without that from then on."""
+    cold = [r for r in results if r.get("compiled")]
+    warm = [r["t_diagnose"] for r in results if not r.get("compiled")]
+    if cold:
+        which = ", ".join(f"{r['effect']} {r['t_diagnose']:.1f} s" for r in cold)
+        print(f"  {len(cold)} of these cases built model functions first, and their time includes that ({which})"
+              + (f"; max over the others {max(warm):.1f} s" if warm else ""))
 
 
 def _truth_text(r: dict) -> str:
@@ -282,7 +308,8 @@ def main() -> int:
         print(f"[{i:3d}/{len(cases)}] {mark:4s} {c.get('plant', 'project')[:3]} {c['cylinder']:22s} {label:26s} "
               f"-> {r['verdict']:19s} "
               f"true shrink {'-' if r['true_shrink'] is None else format(r['true_shrink'], '.1%'):>6s}  "
-              f"{r['t_diagnose']:5.1f} s", flush=True)
+              f"{r['t_diagnose']:5.1f} s" + (f"  (built {r['compiled']} model functions)" if r.get("compiled") else ""),
+              flush=True)
     print(f"\n{len(cases)} cases in {time.perf_counter() - t_all:.0f} s")
     for pl in plants:
         note = " (benchmarks/reference_plant.py: other forms of the effects)" if pl == "reference" else ""
