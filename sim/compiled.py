@@ -48,6 +48,13 @@ def cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "combined_reality"
 
 
+def cached_model_code() -> list[Path]:
+    """The model code in the cache, one file per structure: compiled (cr_KEY.so) or, where no C
+    compiler worked, CasADi's serialised functions (cr_KEY.casadi)."""
+    d = cache_dir()
+    return sorted(p for p in d.glob("cr_*") if p.suffix in (".so", ".casadi")) if d.is_dir() else []
+
+
 @functools.cache  # read once per process: every cache lookup needs it
 def host_cpu() -> str:
     """What identifies this machine's instruction set: the CPU model and feature flags."""

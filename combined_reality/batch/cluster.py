@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterable
 
-from sim.compiled import cache_dir
+from sim.compiled import cache_dir, cached_model_code
 
 from ..files import atomic_write
 
@@ -14,8 +14,7 @@ __all__ = ["cache_files", "missing_cache_files", "install_cache_files", "share_c
 
 def cache_files() -> dict[str, Path]:
     """The compiled model code of this machine's cache (shipped to cluster workers)."""
-    d = cache_dir()
-    return {p.name: p for p in sorted(d.glob("cr_*.so"))} if d.is_dir() else {}
+    return {p.name: p for p in cached_model_code() if p.suffix == ".so"}
 
 
 def missing_cache_files(names: Iterable[str]) -> list[str]:
