@@ -787,7 +787,7 @@ def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, 
     if c.status == "falls_short":
         c.error = (f"together they explain {(best.train_cost - c.train_cost) / excess:.0%} of what {best.effect} "
                    f"leaves on TRAIN above the sensor noise; to change the verdict the pair needs {need:.0%} of "
-                   f"it, and its fit stayed under {opts.pair_give_up * need:.0%} for {IdentifyOptions().give_up_after} "
+                   f"it, and its fit stayed under {opts.pair_give_up * need:.0%} for {IdentifyOptions.give_up_after} "
                    "iterations in a row: given up, not validated")
     _score(c, base_val, base_rmse, opts)
     c.significant = c.significant and _gain_over(best.validation, c.validation, opts)
