@@ -1,0 +1,75 @@
+"""The gauntlet benchmark's cases (benchmarks/gauntlet.py): drawn from the case's seed alone,
+the project plant's truth holds the departures on the tool's own grid, and what departs beyond
+the mis-set thresholds is told from the truth."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import gauntlet  # noqa: E402
+import reference_plant as ref  # noqa: E402
+from sim.cylinder import OPENING_GRID  # noqa: E402
+
+
+def test_the_cases_cover_every_word_and_form_on_both_plants():
+    words = (*ref.WORDS, "none")
+    project = gauntlet.case_list("project", gauntlet.CYLINDERS, words, 2)
+    reference = gauntlet.case_list("reference", gauntlet.CYLINDERS, words, 2)
+    assert len(project) == 2 * (len(ref.WORDS) + 2)
+    assert len(reference) == 2 * (len(ref.EFFECT_FORMS) + 2)
+    assert len({gauntlet.case_id(c) for c in project + reference}) == len(project) + len(reference)
+    quick = gauntlet.case_list("reference", gauntlet.CYLINDERS[:1], gauntlet.QUICK, 1, standard_form_only=True)
+    assert [c["effect"] for c in quick] == list(gauntlet.QUICK)
+
+
+@pytest.mark.parametrize("plant", ["project", "reference"])
+def test_a_case_is_drawn_from_its_seed_alone(cyl_a, plant):
+    case = {"plant": plant, "cylinder": "cyl_a_32x100", "effect": "friction_asymmetry", "draw": 0}
+    if plant == "reference":
+        case["form"] = ref.forms_of("friction_asymmetry")[1].FORM
+    (dep, eff), (dep2, eff2) = gauntlet.draw(case, cyl_a), gauntlet.draw(dict(case), cyl_a)
+    assert dep.to_json() == dep2.to_json() and eff == eff2 and eff is not None
+    other, _ = gauntlet.draw({**case, "effect": "leakage", "form": "piston"}, cyl_a)
+    assert other.to_json() != dep.to_json()
+    # departures like the calibration benchmark's, an effect at a realistic strength
+    assert 0.5 <= dep.conductance_pos <= 1.5 and 0.15 <= dep.critical_ratio <= 0.5
+    assert abs(dep.offset_p1) <= 5e3
+    if plant == "reference":
+        assert not eff.is_neutral()
+    else:
+        assert eff.a_coulomb != 0
+    if plant == "reference":
+        train, valid = gauntlet.reference_cases(case, cyl_a, 20.0)
+        assert (train.program, valid.program) == ("calibration", "mixed") and train.seed != valid.seed
+        assert train.key() == gauntlet.reference_cases(case, cyl_a, 20.0)[0].key()
+
+
+def test_the_project_truth_holds_the_departures_on_the_tools_grid(cyl_a):
+    case = {"plant": "project", "cylinder": "cyl_a_32x100", "effect": "none", "draw": 0}
+    dep, effect = gauntlet.draw(case, cyl_a)
+    truth = gauntlet.project_truth(cyl_a, dep)
+    assert effect is None
+    assert truth.value("mass") == dep.moving_mass and truth.value("offset_p2") == dep.offset_p2
+    assert truth.valve.overlap_extend == dep.characteristic_pos.overlap
+    np.testing.assert_allclose(truth.valve.flow_retract,
+                               dep.conductance_neg * dep.characteristic_neg.g(np.asarray(OPENING_GRID)))
+    calibrated = gauntlet.truth_of(case, cyl_a)["calibrated"]
+    assert gauntlet.departed_quantities(cyl_a, ref.Calibration(), {n: cyl_a.value(n) for n in calibrated}) == []
+    heavier = {**{n: cyl_a.value(n) for n in calibrated}, "mass": 1.03 * cyl_a.value("mass")}
+    assert gauntlet.departed_quantities(cyl_a, ref.Calibration(), heavier) == ["mass"]
+    assert "valve characteristic" in gauntlet.departed_quantities(cyl_a, dep, calibrated)
+
+
+def test_what_counts_as_found():
+    assert gauntlet.effect_found("leakage", "leakage", []) == "named"
+    assert gauntlet.effect_found("leakage", "heat_transfer+leakage", []) == "named"
+    assert gauntlet.effect_found("leakage", "unexplained", []) == "missed"
+    assert gauntlet.effect_found("mass", "none", ["mass"]) == "absorbed"
+    assert gauntlet.effect_found("leakage", "none", ["mass"]) == "missed"
+    assert gauntlet.effect_found("none", "none", ["mass"]) == "none"
+    assert gauntlet.effect_found("none", "stiction", []) == "missed"
