@@ -276,7 +276,8 @@ def test_bad_files_fail_their_rows_and_the_batch_finishes(folder, tmp_path, caps
         "corrupt": ["bad.csv", f"line {line}", "'x'", "abc"],
         "no_cylinder_file": ["nope.toml", "not found"],
         "no_run_file": ["missing.csv", "not found"],
-        "wrong_cylinder": ["good.csv", "recorded on the cylinder", "cyl_b.toml"],
+        "wrong_cylinder": ["good.csv", "recorded on a cylinder of another bore", "bore 32 mm",
+                           "cyl_b.toml"],
     }
     for name, fragments in expected_errors.items():
         r = by[name]

@@ -160,8 +160,8 @@ def test_command_refuses_a_validation_run_of_another_cylinder(run_files, valid, 
     from sim.cylinder import load_cylinder
 
     other = run_files / "valid_other.csv"
-    write_run(other, valid, comments=[cylinder_tag(load_cylinder(CONFIGS / "ind2_norgren_32x100.toml"))])
+    write_run(other, valid, comments=[cylinder_tag(load_cylinder(CONFIGS / "ind3_norgren_40x250.toml"))])
     code = main(["friction-compare", "--config", str(CONFIG), str(run_files / "train.csv"),
                  "--validate", str(other), "--model", "cv"])
-    assert_refused(code, capsys.readouterr().err, "valid_other.csv was recorded on the cylinder",
-                   "actuator 2", "compare models on runs of the cylinder they were recorded on")
+    assert_refused(code, capsys.readouterr().err, "valid_other.csv was recorded on a cylinder of another bore",
+                   "bore 40 mm", "ind3_norgren_40x250.toml")

@@ -33,10 +33,9 @@ from sim.extension import check_combination
 from sim.friction_models import FrictionModel, parse_truth_spec
 
 from ..diagnose import DiagnoseOptions, diagnose
-from ..files import (RunFormatError, atomic_write, check_run_against_cylinder, cylinder_tag, read_run,
-                     recorded_elsewhere, write_run)
+from ..files import RunFormatError, atomic_write, cylinder_tag, read_run, write_run
 from ..friction import identify_model, model_parameters
-from ..identify import IdentificationError, IdentifyOptions, velocity_estimate
+from ..identify import IdentificationError, IdentifyOptions, preflight, velocity_estimate
 from ..live import simulate_run
 from .manifest import CylinderJob
 from .report import write_batch_report
@@ -87,12 +86,8 @@ def _load_inputs(job: CylinderJob):
                 raise _RowError(f"run {p} not found") from None
             except (RunFormatError, OSError, ValueError) as e:
                 raise _RowError(str(e)) from None
-            theirs = recorded_elsewhere(run, cyl)
-            if theirs is not None:
-                raise _RowError(f"run {Path(p).name} was recorded on the cylinder '{theirs}', not on the one "
-                                f"{Path(job.config).name} describes")
             try:
-                check_run_against_cylinder(run, cyl)
+                preflight(cyl, [run])
             except (RunFormatError, ConfigError) as e:
                 raise _RowError(str(e)) from None
             runs.append(run)

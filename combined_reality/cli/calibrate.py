@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import time
 
-from .common import UsageError, eprint, load_config, progress_printer
+from .common import UsageError, eprint, load_config, preflight_runs, progress_printer
 
 
 def add_parser(sub) -> None:
@@ -56,18 +56,17 @@ def _table(cal, start) -> str:
 
 def run(args) -> int:
     from ..calibrate import CALIBRATED, CalibrateOptions, calibrate, validation_figures
-    from ..files import (check_run_against_cylinder, check_train_and_valid, clean_json, read_run, write_json_atomic)
+    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
     from ..identify import IdentificationError
 
     start = load_config(args.config)
     runs = [read_run(p) for p in args.runs]
-    for r in runs:
-        check_run_against_cylinder(r, start)
     valid = None
     if args.validate:
         valid = read_run(args.validate)
-        check_train_and_valid(start, runs[0], valid, args.runs[0], args.validate, "calibrate")
+        check_train_and_valid(start, runs[0], valid, args.runs[0], args.validate)
+    preflight_runs(start, runs + ([valid] if valid is not None else []))
     estimate = CALIBRATED
     if args.estimate is not None:
         estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())

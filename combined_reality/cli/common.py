@@ -16,8 +16,8 @@ from typing import Callable, Sequence
 
 from sim.cylinder import Cylinder, load_cylinder
 
-__all__ = ["UsageError", "eprint", "progress_printer", "default_config_path", "load_config", "parse_effects",
-           "estimate_list", "positive_float", "rerun_mode", "open_rig", "EFFECT_HELP"]
+__all__ = ["UsageError", "eprint", "progress_printer", "default_config_path", "load_config", "cylinder_for_runs",
+           "preflight_runs", "parse_effects", "estimate_list", "positive_float", "rerun_mode", "open_rig", "EFFECT_HELP"]
 
 EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 (repeatable; any word of the "
                "vocabulary, see docs/effects.md), or a friction model of the family as the friction, e.g. "
@@ -43,9 +43,45 @@ def default_config_path() -> Path:
     return Path(str(resources.files("combined_reality") / "data" / "cyl_a_32x100.toml"))
 
 
-def load_config(path: str | None) -> Cylinder:
-    """The cylinder file given with --config, else the built-in one."""
-    return load_cylinder(path if path else default_config_path())
+def load_config(path: str | None, say: Callable[[str], None] | None = eprint) -> Cylinder:
+    """The cylinder file given with --config, else the built-in one (said in one line)."""
+    if path:
+        return load_cylinder(path)
+    if say:
+        say(f"no --config: the built-in cylinder A (32 mm x 100 mm, {default_config_path().name}) is used")
+    return load_cylinder(default_config_path())
+
+
+def cylinder_for_runs(path: str | None, runs: Sequence, say: Callable[[str], None] | None = eprint) -> Cylinder:
+    """The cylinder file given with --config; else the one the first run's header names, where
+    it exists; else the built-in one. Without --config, says which in one line."""
+    if path:
+        return load_cylinder(path)
+    from ..files import run_name
+    from ..files.checks import header_cylinder_file
+    from ..files.runs import recorded_file
+
+    for run in runs:
+        named = header_cylinder_file(run)
+        if named is not None:
+            if say:
+                say(f"no --config: the cylinder file {named} that {run_name(run)} names in its header is used")
+            return load_cylinder(named)
+    missing = next((recorded_file(r) for r in runs if recorded_file(r)), None)
+    if say:
+        say(f"no --config: the built-in cylinder A (32 mm x 100 mm, {default_config_path().name}) is used"
+            + (f" (the header's {missing} is not here)" if missing else " (the run's header names no cylinder file)"))
+    return load_cylinder(default_config_path())
+
+
+def preflight_runs(cyl: Cylinder, runs: Sequence, estimate: Sequence[str] = ()):
+    """identify.preflight (refuses what it is sure of: exit status 2), its notes on stderr."""
+    from ..identify import preflight
+
+    found = preflight(cyl, runs, estimate)
+    for note in found.notes:
+        eprint(f"note: {note}.")
+    return found
 
 
 def parse_effects(specs: Sequence[str] | None) -> list:

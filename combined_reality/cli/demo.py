@@ -27,7 +27,7 @@ def run(args) -> int:
     from ..identify import IdentifyOptions, identify
     from ..live import simulate_run
 
-    cyl = load_config(args.config)
+    cyl = load_config(args.config, say=None)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     prog = progress_printer(args.quiet)

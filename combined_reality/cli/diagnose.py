@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import os
 
-from .common import UsageError, eprint, load_config, progress_printer, rerun_mode
+from .common import UsageError, cylinder_for_runs, eprint, preflight_runs, progress_printer, rerun_mode
 
 
 def add_parser(sub) -> None:
@@ -17,7 +17,8 @@ def add_parser(sub) -> None:
                                     "and where the gap lies (operating regimes, subsystems).")
     dg.add_argument("train", help="run CSV the models are identified on")
     dg.add_argument("--validate", required=True, help="run CSV the models are scored on (never fitted)")
-    dg.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
+    dg.add_argument("--config", help="cylinder TOML (default: the one TRAIN's header names, else the built-in "
+                                     "cylinder A)")
     dg.add_argument("--json", help="write the diagnosis (docs/formats.md)")
     dg.add_argument("--report", metavar="REPORT.html", help="write a self-contained HTML report with plots")
     dg.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
@@ -40,9 +41,10 @@ def run(args) -> int:
     from ..diagnose import DiagnoseOptions, diagnose
     from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
 
-    cyl = load_config(args.config)
     train, valid = read_run(args.train), read_run(args.validate)
-    check_train_and_valid(cyl, train, valid, args.train, args.validate, "diagnose")
+    cyl = cylinder_for_runs(args.config, [train, valid], None if args.quiet else eprint)
+    check_train_and_valid(cyl, train, valid, args.train, args.validate)
+    preflight_runs(cyl, [train, valid])
     names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:

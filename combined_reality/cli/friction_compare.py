@@ -15,7 +15,7 @@ import time
 
 from sim.friction_models import parameter_unit
 
-from .common import UsageError, eprint, load_config
+from .common import UsageError, eprint, load_config, preflight_runs
 
 _LOAD_MODELS = ("cv_load", "cvs_load")
 _PENALTY_PER_PARAM = 0.01
@@ -92,7 +92,8 @@ def run(args) -> int:
         raise UsageError(f"--workers must be at least 1, not {args.workers}.")
     cyl = load_config(args.config)
     train, valid = read_run(args.train), read_run(args.validate)
-    check_train_and_valid(cyl, train, valid, args.train, args.validate, "compare models on")
+    check_train_and_valid(cyl, train, valid, args.train, args.validate)
+    preflight_runs(cyl, [train, valid])
 
     say = (lambda msg: None) if args.quiet else eprint
     options = IdentifyOptions(max_iter=40)  # no wall-clock limit: the ranking must not depend on load

@@ -15,7 +15,7 @@ from pathlib import Path
 from sim.friction_models import parameter_unit
 
 from ..friction.map import FIT_SPECS, FrictionMap, FrictionMapError, SegmentOptions
-from .common import UsageError, default_config_path, eprint
+from .common import UsageError, cylinder_for_runs, eprint, preflight_runs
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -32,7 +32,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--model", action="append", metavar="NAME",
                    help=f"model to fit, repeatable or comma-separated (default: every model that the points "
                         f"allow; known: {', '.join(FIT_SPECS)})")
-    p.add_argument("--config", help="cylinder TOML for recorded runs (default: the built-in cylinder A)")
+    p.add_argument("--config", help="cylinder TOML for recorded runs (default: the one the first run's header names, "
+                                    "else the built-in cylinder A)")
     p.add_argument("--json", required=True, metavar="OUT.json", help="write the map and the fits")
     p.add_argument("--plot", metavar="OUT.png", help="plot the map with the fitted curves (needs matplotlib)")
     p.add_argument("--min-duration", type=float, default=SegmentOptions.min_duration,
@@ -61,9 +62,7 @@ def _model_names(args) -> tuple[list[str] | None, bool]:
 
 
 def run(args) -> int:
-    from sim.cylinder import load_cylinder
-
-    from ..files import check_run_against_cylinder, clean_json, read_run, write_json_atomic
+    from ..files import clean_json, read_run, write_json_atomic
     from ..friction.map import build_map, is_points_table, plot_map, points_from_run, read_points
 
     models, explicit = _model_names(args)
@@ -92,10 +91,10 @@ def run(args) -> int:
             raise UsageError(str(e)) from None
         if not Path(path).is_file():
             raise UsageError(f"{path}: file not found.")
-        if cyl is None:
-            cyl = load_cylinder(args.config if args.config else default_config_path())
         run_ = read_run(path)
-        check_run_against_cylinder(run_, cyl)
+        if cyl is None:
+            cyl = cylinder_for_runs(args.config, [run_], None if args.quiet else eprint)
+        preflight_runs(cyl, [run_])
         rp = points_from_run(cyl, run_, options, load=args.load)
         points.extend(rp.points)
         breakaways.extend(rp.breakaways)

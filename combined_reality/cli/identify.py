@@ -5,7 +5,7 @@ from pathlib import Path
 
 from sim.cylinder import ESTIMABLE, FLOW_CHARACTERISTIC, Cylinder
 
-from .common import UsageError, eprint, estimate_list, load_config, parse_effects, progress_printer
+from .common import UsageError, eprint, estimate_list, load_config, parse_effects, preflight_runs, progress_printer
 
 
 def add_parser(sub) -> None:
@@ -85,14 +85,12 @@ def not_determined(result) -> list[str]:
 
 
 def run(args) -> int:
-    from ..files import check_run_against_cylinder, clean_json, read_run, write_json_atomic
+    from ..files import clean_json, read_run, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import IdentificationError, IdentifyOptions, check_determinable, identify
+    from ..identify import IdentificationError, IdentifyOptions, identify
 
     cyl = load_config(args.config)
     runs = [read_run(p) for p in args.runs]
-    for r in runs:
-        check_run_against_cylinder(r, cyl)
     effects = parse_effects(args.effect)
     estimate = estimate_list(args.estimate, cyl)
     effect_params = {f"{e.name}.{n}" for e in effects for n in e.param_names()}
@@ -113,7 +111,7 @@ def run(args) -> int:
         raise UsageError(f"--interval must be positive, not {args.interval}.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
                            prefit=not args.no_prefit)
-    check_determinable(cyl, runs, estimate)  # before any progress line: a refusal is the only line on stderr
+    preflight_runs(cyl, runs, estimate)  # before any progress line: a refusal is the only line on stderr
     prog = progress_printer(args.quiet)
     if prog:
         prog(f"identifying {', '.join(estimate)} from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "

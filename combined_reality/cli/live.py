@@ -9,12 +9,13 @@ import signal
 import time
 from pathlib import Path
 
-from .common import (EFFECT_HELP, UsageError, estimate_list, load_config, open_rig, parse_effects, positive_float,
-                     rerun_mode)
+from .common import (EFFECT_HELP, UsageError, cylinder_for_runs, eprint, estimate_list, load_config, open_rig,
+                     parse_effects, positive_float, preflight_runs, rerun_mode)
 
 
 def _add_online_arguments(a) -> None:
-    a.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
+    a.add_argument("--config", help="cylinder TOML (default: for replay the one the run's header names; else the "
+                                    "built-in cylinder A, said so)")
     a.add_argument("--json", help="write the final online estimate (identify format, plus its history)")
     a.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
                    help="spawn | connect ADDR | save FILE | off (default off); spawn without a display (or when "
@@ -91,12 +92,12 @@ def run_live(args) -> int:
 
 
 def run_replay(args) -> int:
-    from ..files import check_run_against_cylinder, read_run
+    from ..files import read_run
     from ..live import Console, ReplayRig
 
-    cyl = load_config(args.config)
     run = read_run(args.run)
-    check_run_against_cylinder(run, cyl)
+    cyl = cylinder_for_runs(args.config, [run], None if args.quiet else eprint)
+    preflight_runs(cyl, [run])
     if run.n < 3:
         raise UsageError(f"{args.run}: a run needs at least 3 samples.")
     speed = math.inf if args.speed == "max" else positive_float(args.speed, "--speed")

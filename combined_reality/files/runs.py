@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
@@ -27,7 +28,8 @@ from .atomic import atomic_write
 from .plausibility import first_implausible, time_unit_problem
 
 __all__ = ["REQUIRED_COLUMNS", "MEASURED_CHANNELS", "RunFormatError", "Run", "read_run", "write_run", "RunRecorder",
-           "split_at_gaps", "cylinder_identity", "cylinder_tag", "recorded_cylinder", "recorded_elsewhere"]
+           "split_at_gaps", "cylinder_identity", "cylinder_tag", "recorded_cylinder", "recorded_elsewhere",
+           "recorded_geometry", "recorded_file", "GEOMETRY"]
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("t", "u", "x", "p1", "p2")
 # measured channels: an empty cell (not measured at that sample) is read as NaN
@@ -373,9 +375,8 @@ def cylinder_identity(cyl) -> str:
     return f"{cyl.name}; bore {g.bore:g} m, rod {g.rod:g} m, stroke {g.stroke:g} m"
 
 
-def _same_identity(recorded: str, identity: str) -> bool:
-    # tags written before calibration existed also name the mass, which calibration may change
-    return recorded.split(", mass ")[0] == identity
+GEOMETRY = ("bore", "rod", "stroke")  # what makes a run belong to a cylinder (a tag names it)
+_TAG_GEOMETRY = re.compile(r"; bore (\S+) m, rod (\S+) m, stroke (\S+) m(?:, mass [^;]*)?$")
 
 
 def cylinder_tag(cyl) -> str:
@@ -383,19 +384,47 @@ def cylinder_tag(cyl) -> str:
     return f"{CYLINDER_TAG} {cylinder_identity(cyl)}; file {cyl.source or '-'}"
 
 
+def _tag(run: Run) -> str | None:
+    return next((c[len(CYLINDER_TAG):].strip() for c in run.comments if c.startswith(CYLINDER_TAG)), None)
+
+
 def recorded_cylinder(run: Run) -> str | None:
     """The recorded cylinder's identity (the tag without its file), or None if not recorded."""
-    for c in run.comments:
-        if c.startswith(CYLINDER_TAG):
-            return c[len(CYLINDER_TAG):].split("; file ")[0].strip()
-    return None
+    tag = _tag(run)
+    return None if tag is None else tag.rsplit("; file ", 1)[0].strip()
+
+
+def recorded_geometry(run: Run) -> dict[str, float] | None:
+    """Bore, rod and stroke (m) of the cylinder the run's tag names, or None without a tag."""
+    identity = recorded_cylinder(run)
+    m = _TAG_GEOMETRY.search(identity or "")
+    if m is None:
+        return None
+    try:
+        return {k: float(v) for k, v in zip(GEOMETRY, m.groups())}
+    except ValueError:
+        return None
+
+
+def recorded_file(run: Run) -> str | None:
+    """The cylinder file the run's tag names (as it was given then), or None."""
+    tag = _tag(run)
+    if tag is None or "; file " not in tag:
+        return None
+    path = tag.rsplit("; file ", 1)[1].strip()
+    return None if path in ("", "-") else path
 
 
 def recorded_elsewhere(run: Run, cyl) -> str | None:
-    """The identity of the cylinder the run was recorded on if that is not `cyl`, else None
-    (also None for runs without a cylinder tag: other tools' files)."""
-    theirs = recorded_cylinder(run)
-    return theirs if theirs is not None and not _same_identity(theirs, cylinder_identity(cyl)) else None
+    """The identity of the cylinder the run was recorded on if its geometry (bore, rod, stroke)
+    is not `cyl`'s, else None: a cylinder renamed, re-identified or calibrated into a new
+    file is the same cylinder. Also None for runs without a cylinder tag (other tools' files)."""
+    theirs = recorded_geometry(run)
+    if theirs is None:
+        return None
+    g = cyl.geometry
+    same = all(math.isclose(theirs[k], getattr(g, k), rel_tol=1e-5, abs_tol=1e-9) for k in GEOMETRY)
+    return None if same else recorded_cylinder(run)
 
 
 def write_run(path: str | os.PathLike[str], run: Run, comments: Sequence[str] | None = None) -> None:

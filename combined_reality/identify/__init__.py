@@ -4,19 +4,19 @@
 - online: the same problem over a moving horizon of a live stream (`MovingHorizonEstimator`)
 - validation: scoring a model on a run it was not fitted to (`validate`)
 - newton: friction from Newton's law with the measured pressures (the identifier's start)
-- preflight: whether runs can determine the chosen friction parameters at all
+- preflight: whether runs can belong to the cylinder file and determine the chosen parameters at all
 - shooting, smoothing: the shared machinery (intervals, Gauss-Newton, covariance; derivatives)
 """
 from .newton import equation_error_friction, friction_from_newton
 from .offline import MISMATCH, Estimate, IdentifyOptions, IdentifyResult, identify
 from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
-from .preflight import check_determinable, motion_summary
+from .preflight import Preflight, check_determinable, motion_summary, preflight
 from .shooting import UNITS, IdentificationError, PriorRow, at_bounds, sensor_noise
 from .smoothing import derivative_kernels, savgol_kernels, velocity_estimate
 from .validation import Validation, validate, validation_gain, validation_segments
 
 __all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estimate", "IdentifyOptions", "IdentifyResult",
-           "identify", "check_determinable", "motion_summary", "MovingHorizonEstimator", "OnlineEstimate",
+           "identify", "check_determinable", "motion_summary", "Preflight", "preflight", "MovingHorizonEstimator", "OnlineEstimate",
            "OnlineOptions", "UNITS", "IdentificationError", "PriorRow",
            "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",
            "validate", "validation_gain", "validation_segments"]
