@@ -48,13 +48,14 @@ def first_implausible(columns: Mapping[str, np.ndarray]) -> Implausible | None:
         if p is not None:
             bad = np.flatnonzero(p < MIN_ABS_PRESSURE)
             if bad.size:
-                return Implausible(name, int(bad[0]), "looks like bar or gauge pressure; absolute Pa required")
+                return Implausible(name, int(bad[0]), "looks like bar or gauge pressure; absolute Pa required (bar: "
+                                                     "times 1e5; gauge: plus the atmosphere)")
     x = columns.get("x")
     if x is not None:
         bad = np.flatnonzero(np.abs(x) > MAX_ABS_POSITION)
         if bad.size:
             return Implausible("x", int(bad[0]), f"is beyond {MAX_ABS_POSITION:g} m, which looks like millimetres; "
-                                                 "metres required")
+                                                 "metres required (divide by 1000)")
     return None
 
 

@@ -272,7 +272,7 @@ def _air_with_command(u, x, p1, p2, cyl: Cylinder, W: int) -> tuple[float, float
     if not (s1 > 0 and s2 > 0):
         return 0.0, 0.0, 0
     z = U * (d1 / s1 - d2 / s2)
-    return float(np.maximum(z, 0.0).sum()), float(np.abs(z).sum()), int(np.sum(np.abs(U) > 0.02))
+    return float(np.maximum(z, 0.0).sum()), float(np.abs(z).sum()), int(np.sum(np.abs(U) > 0.01))
 
 
 def _judge_directions(run: Run, cyl: Cylinder, f: dict) -> list[str]:
