@@ -189,6 +189,17 @@ def test_a_written_cylinder_file_round_trips_and_keeps_defaults_out(cyl_a):
     assert cylinder_file_text(cyl_a) == (CONFIGS / "cyl_a_32x100.toml").read_text()
 
 
+def test_a_changed_value_loses_the_comment_that_restated_the_old_one(cyl_a):
+    """The README's `kp = 1.0e-5  # N/Pa  (= 1 N/bar)`: a new kp keeps its unit, not '(= 1 N/bar)';
+    unchanged values keep their comments as they are."""
+    template = ("[friction]\nFc = 10.0  # N (ISO 15552)\nFv = 50.0\nkp = 1.0e-5  # N/Pa  (= 1 N/bar)\n"
+                "[supply]\npressure = 7.013e5  # Pa absolute (6 bar gauge)\n")
+    text = cylinder_file_text(cyl_a.with_values({"kp": 2.89e-5, "Fc": 24.8}), template=template)
+    assert "kp = 2.89e-05 # N/Pa\n" in text
+    assert "Fc = 24.8 # N (ISO 15552)\n" in text  # a description stays
+    assert "pressure = 7.013e5  # Pa absolute (6 bar gauge)\n" in text  # unchanged: as written
+
+
 def test_runs_that_touch_the_end_stops_are_simulated_and_fitted(cyl_a):
     """The piston stops at the ends (never more than the pressure force over the stop's
     stiffness beyond), and identify fits such a run to the noise instead of refusing it."""

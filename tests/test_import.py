@@ -96,6 +96,18 @@ def test_the_example_imports_and_identifies_as_accurately_as_the_si_original(tmp
         assert abs(b.value - truth) < abs(a.value - truth) + 0.1 * a.std
 
 
+def test_imported_values_carry_the_recording_s_decimals_not_a_conversion_s_last_bit(tmp_path, capsys, short_run):
+    """9 ms is written 0.009 (not 0.009000000000000001), 0.8 bar gauge 181300.0, 6.1 V around 5 V 0.22."""
+    raw = write_lab_csv(tmp_path / "messung.csv", short_run)
+    code, err, out = do_import(tmp_path, capsys, raw, EXAMPLE_MAP)
+    assert code == 0, err
+    rows = [ln.split(",") for ln in out.read_text().splitlines() if ln[:1].isdigit()]
+    assert rows[8][0] == "0.009" and all(len(r[0]) <= 6 for r in rows)  # t: ms as the recording had them
+    for r in rows:  # u, x, p1, p2 with the recording's digits: 7 decimals of V / 5, 6 of mm, 7 of bar
+        assert len(r[1].lstrip("-")) <= 12 and len(r[2].lstrip("-")) <= 11, r
+        assert all(len(c) <= 12 for c in r[3:5]), r
+
+
 def test_the_example_mapping_needs_no_delimiter_or_decimal_when_they_can_be_found(tmp_path, capsys, short_run):
     raw = write_lab_csv(tmp_path / "messung.csv", short_run, preamble="", encoding="utf-8")
     mapping = EXAMPLE_MAP.replace('delimiter = ";"\n', "").replace('decimal = ","\n', "")

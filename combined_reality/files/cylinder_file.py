@@ -3,8 +3,11 @@ stated assumptions), order and layout stay; a changed value is replaced in place
 own line (its comment kept); a key the file did not have is added at the end of its table,
 with a comment saying where it came from; a missing table is added at the end.
 
-The values are written in the file's units (the angle in degrees) with at most 7
-significant digits; `load_cylinder` reads the result back (a test holds it to that)."""
+The values are written in the file's units (the angle in degrees), each as the shortest
+decimal that reads back as the same double (a written file loses nothing of what a fit
+found); `load_cylinder` reads the result back (a test holds it to that). A changed value's
+comment keeps what stays true (its unit, what it is) and loses what restated the old value
+("(= 1 N/bar)", "(6 bar gauge)"): the writer cannot keep such a restatement true."""
 from __future__ import annotations
 
 import math
@@ -31,6 +34,8 @@ _KEYS = {"geometry": ("bore", "rod", "stroke", "dead_volume_cap", "dead_volume_r
          "sensors": ("position_noise", "pressure_noise", "offset_p1", "offset_p2")}
 _HEADER = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\-]+)\s*\]\s*(#.*)?$")
 _KEY = re.compile(r"^(\s*)([A-Za-z0-9_\-]+)(\s*=\s*)")
+# in a value's comment, a restatement of the value: a parenthesis that opens with "=" or a number
+_RESTATED = re.compile(r"\s*\(\s*(?:=|[-+]?\.?\d)[^()]*\)")
 
 
 def _number(v: float) -> str:
@@ -123,6 +128,7 @@ def cylinder_file_text(cyl: Cylinder, template: str | None = None, note: str = "
             if _same(new, _parse_number_or_array(written)):
                 out.extend(lines[i:j + 1])
             else:
+                tail = _without_restatement(tail)
                 out.append(k.group(1) + key + k.group(3) + _render(new) + (" " + tail.lstrip() if tail.strip() else ""))
             last_key[table] = len(out) - 1
             i = j + 1
@@ -147,6 +153,13 @@ def cylinder_file_text(cyl: Cylinder, template: str | None = None, note: str = "
     if header:
         text = "".join(f"# {line}".rstrip() + "\n" for line in header) + "\n" + text
     return text
+
+
+def _without_restatement(comment: str) -> str:
+    """A changed value's trailing comment without what restated the old value; nothing left
+    of it but '#' drops it."""
+    kept = _RESTATED.sub("", comment).rstrip()
+    return "" if kept.strip() in ("", "#") else kept
 
 
 def _parse_number_or_array(text: str):

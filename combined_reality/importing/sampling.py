@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..files import Run
+from .units import decimal_clean
 
 __all__ = ["SamplingReport", "sampling_report", "resample"]
 
@@ -67,7 +68,7 @@ def resample(run: Run, rate: float) -> tuple[Run, int]:
     simulation bridges it. Returns the run and the number of grid instants left out."""
     t = run.t
     period = 1.0 / rate
-    grid = t[0] + period * np.arange(int(math.floor((t[-1] - t[0]) / period + 1e-9)) + 1)
+    grid = decimal_clean(t[0] + np.arange(int(math.floor((t[-1] - t[0]) / period + 1e-9)) + 1) / rate)
     dt = np.diff(t)
     slot = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 2)
     in_gap = (dt[slot] > GAP_FACTOR * np.median(dt)) & (grid > t[slot]) & (grid < t[slot + 1])

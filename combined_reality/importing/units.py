@@ -7,7 +7,7 @@ import functools
 
 import numpy as np
 
-__all__ = ["UnitProblem", "registry", "check_unit", "quantity_in", "convert_channel"]
+__all__ = ["UnitProblem", "registry", "check_unit", "quantity_in", "convert_channel", "decimal_clean"]
 
 # the run channels' SI units (extras: pint's base units)
 SI_UNITS = {"t": "s", "x": "m", "p1": "Pa", "p2": "Pa", "ps": "Pa"}
@@ -81,19 +81,48 @@ def quantity_in(text: str, target: str) -> float:
         raise UnitProblem(f"'{text}' is not in units convertible to {target} ({_first_line(e)}).") from None
 
 
+_DIGITS = 15  # a recording holds fewer significant digits than this; a double more (17)
+
+
+def decimal_clean(values: np.ndarray, magnitude: np.ndarray | None = None) -> np.ndarray:
+    """Each value as the double nearest to itself rounded to 15 significant digits (of
+    `magnitude` where given: a difference such as value - zero keeps the decimals of its
+    terms): a unit conversion's last-bit error is gone (9 ms is 0.009 s, not
+    0.009000000000000001) and the run file shows the decimals the recording had. Changes a
+    value by at most 5e-15 of itself (of `magnitude`)."""
+    v = np.asarray(values, dtype=float)
+    size = np.abs(v) if magnitude is None else np.broadcast_to(np.abs(np.asarray(magnitude, dtype=float)), v.shape)
+    out = v.copy()
+    ok = np.isfinite(v) & (v != 0) & np.isfinite(size) & (size > 0)
+    if not ok.any():
+        return out
+    keep = _DIGITS - 1 - np.floor(np.log10(size[ok])).astype(int)  # decimals to keep
+    up = (keep >= 0) & (keep <= 22)  # powers of ten up to 1e22 are exact doubles
+    down = (keep < 0) & (keep >= -22)
+    w = v[ok]
+    res = w.copy()
+    scale = 10.0 ** np.abs(keep)
+    res[up] = np.round(w[up] * scale[up]) / scale[up]  # an exact integer over an exact power: correctly rounded
+    res[down] = np.round(w[down] / scale[down]) * scale[down]
+    out[ok] = res
+    return out
+
+
 def convert_channel(channel, raw: np.ndarray, atmosphere: float | None) -> tuple[np.ndarray, str]:
     """The channel's values in SI (the command: dimensionless) and a line saying how they
     were converted (for the run's header comments)."""
     reg = registry()
     src = repr(channel.source) if channel.source is not None else f"the time track of {channel.time_of!r}"
     unit = channel.unit or "1"
-    shifted = raw - channel.zero if channel.zero else raw
+    raw = np.asarray(raw, dtype=float)
+    # value - zero keeps the recording's decimals (4.9747532 V - 5 is -0.0252468, not ...79999)
+    shifted = decimal_clean(raw - channel.zero, np.maximum(np.abs(raw), abs(channel.zero))) if channel.zero else raw
     zero = f" - {channel.zero:g}" if channel.zero else ""
     if channel.name == "u":
         if channel.span is not None:
-            return shifted / channel.span, f"u <- {src} [{unit}]: u = (value{zero}) / {channel.span:g}"
+            return decimal_clean(shifted / channel.span), f"u <- {src} [{unit}]: u = (value{zero}) / {channel.span:g}"
         factor = float(reg.Quantity(1.0, unit).to("dimensionless").magnitude) if channel.unit else 1.0
-        return shifted * factor, f"u <- {src} [{unit}]: u = (value{zero}) x {factor:g}"
+        return _cleaned(shifted * factor, raw), f"u <- {src} [{unit}]: u = (value{zero}) x {factor:g}"
     q = reg.Quantity(shifted, channel.unit) if channel.unit.strip() else reg.Quantity(shifted)
     if channel.scale is not None:
         q = q * _quantity(channel.scale)
@@ -109,4 +138,10 @@ def convert_channel(channel, raw: np.ndarray, atmosphere: float | None) -> tuple
     if channel.gauge:
         values = values + atmosphere
         how += f", gauge + atmosphere {atmosphere:g} Pa -> Pa absolute"
-    return values, how
+    return _cleaned(values, raw), how
+
+
+def _cleaned(values: np.ndarray, raw: np.ndarray) -> np.ndarray:
+    """decimal_clean where a conversion changed the values; values already in SI stay as
+    they were, bit for bit (a binary recording's doubles)."""
+    return values if np.array_equal(values, raw, equal_nan=True) else decimal_clean(values)
