@@ -122,3 +122,12 @@ def test_simulate_then_identify_end_to_end(tmp_path):
 
     written = load_cylinder(tmp_path / "identified.toml")
     assert written.friction.Fc == res["params"]["Fc"]["value"]
+
+
+def test_version(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"combined-reality {version('combined-reality')}"

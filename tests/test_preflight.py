@@ -171,9 +171,13 @@ def test_a_32_mm_run_with_the_40_mm_file_is_refused_naming_the_bore(argv, run32,
 def test_batch_refuses_the_32_mm_run_with_the_40_mm_file_naming_the_bore(run32, tmp_path, capsys):
     manifest = tmp_path / "m.toml"
     manifest.write_text(f'[[cylinder]]\nname = "wrong"\nconfig = "{CFG_40}"\nruns = ["{run32}"]\n')
-    code, err = call(["batch", manifest, "--out", tmp_path / "out", "--workers", "1", "--no-report"], capsys)
-    assert code == 1
+    assert main([str(a) for a in ("batch", manifest, "--out", tmp_path / "out", "--workers", "1", "--no-report")]) == 1
+    out, err = capsys.readouterr()
     assert "wrong: " in err and "recorded on a cylinder of another bore" in err and "bore 32 mm" in err
+    table = out.splitlines()  # the batch's table: the row FAILED, its reason wrapped within 100 columns
+    assert table[0].split() == ["cylinder", "model", "status", "rmse_x", "verdict"]
+    assert table[1].split() == ["wrong", "nominal", "FAILED"] and "another bore" in " ".join(table[2:])
+    assert max(map(len, table)) <= 100
 
 
 def test_the_same_cylinder_under_another_name_is_accepted_with_a_note(run32, tmp_path, capsys):

@@ -27,6 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
                                             "file only guesses, run the model beside a live rig, and diagnose why "
                                             "the simulation still differs.")
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    p.add_argument("--version", action="version", version=f"combined-reality {_version()}",
+                   help="show the installed version and exit")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     simulate.add_parser(sub)
     identify.add_parser(sub)
@@ -41,6 +43,15 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_parser(sub)
     import_run.add_parser(sub)
     return p
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("combined-reality")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "(not installed)"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -95,6 +95,49 @@ class _Progress:
             self.bar.close()
 
 
+def format_rows(rows: list[dict], width: int = 100) -> str:
+    """The batch as a table for the console: per cylinder its model, status, position fit and
+    verdict, and its parameters (value ± std in a unit for people) on lines of their own,
+    within `width` columns."""
+    import math
+    import textwrap
+
+    from sim.cylinder import PARAMETERS
+    from sim.friction_models import FRICTION_MODELS, parameter_unit
+
+    from ..report.text import format_value, um
+
+    skip = {"name", "status", "error", "model", "source", "n_runs", "cylinder", "config", "bore", "rod", "stroke",
+            "supply_pressure", "atmosphere", "duration_s", "mean_dp", "mean_pc", "max_speed", "rmse_x", "r2_x",
+            "rmse_p1", "rmse_p2", "solver_status", "iterations", "warning", "verdict", "verdict_shrink",
+            "baseline_rmse_x_validation", "diagnosis_error", "wall_s", "hash", "cached"}
+    name_w = min(28, max([len("cylinder")] + [len(str(r["name"])) for r in rows]))
+    lines = [f"{'cylinder':{name_w}s}  {'model':10s} {'status':10s} {'rmse_x':>10s}  verdict"]
+    for r in rows:
+        ok = r.get("status") == "ok"
+        rmse = um(r["rmse_x"]) if ok and r.get("rmse_x") is not None else ""
+        status = (r.get("solver_status") or "ok") if ok else "FAILED"
+        lines.append(f"{str(r['name'])[:name_w]:{name_w}s}  {str(r.get('model') or ''):10s} {status:10s} "
+                     f"{rmse:>10s}  {r.get('verdict') or ''}".rstrip())
+        if not ok:
+            lines += textwrap.wrap(str(r.get("error", "")), width, initial_indent="    ", subsequent_indent="    ")
+            continue
+        model = r.get("model") or "nominal"
+
+        def unit(k: str) -> str:
+            if model in FRICTION_MODELS:
+                base = k[:-4] if k.endswith(("_pos", "_neg")) else k
+                return parameter_unit(model, base)
+            return PARAMETERS[k].unit if k in PARAMETERS else ""
+
+        params = [k for k in r if k not in skip and not k.endswith("_std") and not k.startswith("truth_")
+                  and isinstance(r[k], (int, float)) and r[k] is not None]
+        cells = [f"{k} {format_value(r[k], r.get(f'{k}_std'), unit(k))}" for k in params
+                 if not (isinstance(r[k], float) and math.isnan(r[k]))]
+        lines += textwrap.wrap(", ".join(cells), width, initial_indent="    ", subsequent_indent="    ")
+    return "\n".join(lines)
+
+
 def _connect(address: str):
     try:
         from distributed import Client
@@ -148,6 +191,9 @@ def run(args) -> int:
         print()
     elif args.json:
         write_json_atomic(args.json, doc)
+        say(f"wrote {args.json}")
+    if args.json != "-":
+        print(format_rows(doc["rows"]))
     if not args.quiet:
         print(f"{summary.ok} of {summary.total} cylinders identified, {summary.failed} failed "
               f"({_fmt_s(summary.wall_s)}); results in {out / 'results.csv'}"

@@ -109,6 +109,8 @@ def run(args) -> int:
         print(line)
     if args.json:
         write_json_atomic(args.json, clean_json(out))
+        if say:
+            say(f"wrote {args.json}")
     if args.write_config:
         note = f"calibrated from {', '.join(args.runs)}"
         header = [f"Calibrated by combined-reality calibrate on {time.strftime('%Y-%m-%d %H:%M')} from "

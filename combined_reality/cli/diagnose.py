@@ -61,12 +61,14 @@ def run(args) -> int:
     print(format_summary(result, args.horizon))
     if args.json:
         write_json_atomic(args.json, clean_json(result))
+        if not args.quiet:
+            eprint(f"wrote {args.json}")
     if args.report:
         from ..diagnose.report import write_report
 
         write_report(diagnosis, args.report)
         if not args.quiet:
-            eprint(f"wrote the report {args.report}")
+            eprint(f"wrote {args.report}")
     if mode != "off":
         from ..diagnose.rerun import log_diagnosis
         from ..report.rerun import close_recording, fallback_path, open_recording

@@ -131,8 +131,12 @@ def run(args) -> int:
     out["inputs"] = [str(p) for p in args.runs]
     if args.json:
         write_json_atomic(args.json, clean_json(out))
+        if prog:
+            prog(f"wrote {args.json}")
     if args.write_config:
         write_cylinder_file(args.write_config, result.cylinder, note=f"identified from {', '.join(args.runs)}")
+        if prog:
+            prog(f"wrote {args.write_config} (the comments of {cyl.source} kept)")
     print(format_table(result))
     # a misfit says so first: its standard deviations do not tell what the run determines
     if unknown and result.explains_run:

@@ -62,4 +62,6 @@ def run(args) -> int:
             "input": str(args.raw), "mapping": str(args.map), "output": str(args.output),
             "samples": result.run.n, "sampling": result.sampling.to_json(), "resampled_hz": rate,
             "header": list(result.comments), "notes": list(result.notes)}))
+        if say:
+            say(f"wrote {args.json}")
     return 0

@@ -274,6 +274,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         print("no online estimate: fewer samples than one estimation window.")
     if args.json:
         write_json_atomic(args.json, clean_json(_session_json(result, options, wall, link_events or [])))
+        console.say(f"wrote {args.json}")
     if getattr(estimator, "error", None):
         return 1
     return 1 if result.stop_reason.startswith("no samples") else 0

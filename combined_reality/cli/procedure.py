@@ -242,7 +242,8 @@ def _write_outputs(args, cyl, result, comments, where: str, wall: float, error: 
     if not args.quiet:
         c = result.counters
         eprint(f"{c['samples']} samples in {wall:.1f} s, longest host pause {1e3 * c['longest_host_pause_s']:.0f} ms"
-                + (f"; recorded to {args.record}" if args.record else "") + f"; points in {args.out}")
+                + (f"; recorded to {args.record}" if args.record else "") + f"; wrote {args.out}"
+                + (f" and {args.json}" if args.json else ""))
 
 
 def _summary(kind: str, result) -> str:
