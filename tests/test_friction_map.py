@@ -8,6 +8,7 @@ a virtual-rig run lies on the true friction curve; bad tables are refused in one
 import argparse
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,8 +16,9 @@ from scipy.optimize import curve_fit
 
 from combined_reality.cli import friction_map as cli_friction
 from combined_reality.cli.common import UsageError
-from combined_reality.friction.map import (FIT_SPECS, MapPoint, PointsFormatError, SegmentOptions, TooFewPointsError,
-                                           build_map, fit_model, linear_fit, points_from_run, read_points)
+from combined_reality.friction.map import (FIT_SPECS, PARSIMONY, MapPoint, PointsFormatError, SegmentOptions,
+                                           TooFewPointsError, build_map, fit_model, linear_fit, points_from_run,
+                                           read_points)
 from combined_reality.files import Run, write_run
 from sim.friction_models import (CV, CVS, DIRECTIONS, Belforte, CVLoad, CVPressure, CVSLoad, Efficiency, Karnopp,
                                  LuGre, Threlfall, without_nominal_friction)
@@ -535,8 +537,8 @@ def test_parameters_the_points_do_not_pin_down_are_not_printed_and_not_ranked(tm
                 seen += 1
                 assert not fit.preferable and name != d.best
         assert d.best is not None and d.fits[d.best].preferable
-        # the best is the lowest AICc among the preferable fits only
-        assert d.fits[d.best].aicc == min(f.aicc for f in d.fits.values() if f.preferable)
+        # the best is among the preferable fits only, within PARSIMONY of their lowest AICc
+        assert d.fits[d.best].aicc <= min(f.aicc for f in d.fits.values() if f.preferable) + PARSIMONY
     assert seen >= 2  # cvs_delta, belforte_dp: several Stribeck and speed parameters on these points
     table = _cli_table(tmp_path, pts, capsys)
     rows = [line for line in table.splitlines() if line.strip().startswith(("cvs_delta", "belforte_dp"))]
@@ -581,3 +583,26 @@ def test_points_from_a_run_with_channels_not_measured(cyl_a, run_a):
     assert len(holey.points) >= 0.5 * len(full.points) > 0
     for pt in holey.points:
         assert not np.any((t_nan >= pt.t_start - 0.016) & (t_nan <= pt.t_end + 0.016)), pt
+
+
+def test_clean_nominal_points_rank_the_nominal_law_first_and_no_needless_parameter(tmp_path, capsys):
+    """A sweep and a breakaway test of the nominal virtual rig (tests/data, made by `procedure
+    sweep|breakaway --virtual`, cylinder A): extending, the product's own law cv_dp (its Fc, kp,
+    Fv near the truth) over Threlfall, whose scale only bends the curve through the slowest
+    point (its AICc was 0.8 lower); retracting, where |p1 - p2| follows the speed and cv_dp's Fc
+    and kp cannot be told apart, Coulomb-viscous, what the law reduces to there, not Threlfall
+    (2.7 lower). The console table fits 100 columns."""
+    data = Path(__file__).parent / "data"
+    sweep, brk = data / "nominal_cyl_a_sweep.csv", data / "nominal_cyl_a_breakaway.csv"
+    fmap = build_map(read_points(sweep) + read_points(brk))
+    ext, ret = fmap.directions["extension"], fmap.directions["retraction"]
+    assert ext.best == "cv_dp" and ret.best == "cv"
+    assert ext.fits["threlfall"].aicc < ext.fits["cv_dp"].aicc < ext.fits["threlfall"].aicc + PARSIMONY
+    assert ret.fits["threlfall"].aicc < ret.fits["cv"].aicc < ret.fits["threlfall"].aicc + PARSIMONY
+    law = ext.fits["cv_dp"].params
+    assert law["Fc"] == pytest.approx(24.8, abs=0.2) and law["kp"] == pytest.approx(2.89e-5, rel=0.15)
+    assert law["Fv"] == pytest.approx(13.45, rel=0.02)
+    assert _cli([sweep, brk, "--json", tmp_path / "m.json"]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert max(map(len, table)) <= 100
+    assert sum(" *  best" in line for line in table) == 2

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from sim.friction_models import parameter_unit
 
-from ..friction.map import FIT_SPECS, FrictionMap, FrictionMapError, SegmentOptions
+from ..friction.map import FIT_SPECS, PARSIMONY, FrictionMap, FrictionMapError, SegmentOptions
 from .common import UsageError, cylinder_for_runs, eprint, preflight_runs
 
 
@@ -183,9 +183,16 @@ def _verdict(name: str, f, best: str | None) -> str:
     return ""
 
 
-def format_table(fmap: FrictionMap) -> str:
-    """Per direction: the points, the stick band, what changed together, and every fit (metrics,
-    parameters, verdict, flags); the best fit is the lowest AICc among the preferable ones."""
+def format_table(fmap: FrictionMap, width: int = 100) -> str:
+    """Per direction: the points, the stick band, what changed together, and every fit (number
+    of parameters, metrics, verdict and flags on one line, its parameters wrapped below), all
+    within `width` columns; the best fit is starred (FrictionMap's parsimony rule)."""
+    import textwrap
+
+    def wrap(text: str, indent: str, first: str | None = None) -> list[str]:
+        return textwrap.wrap(text, width, initial_indent=indent if first is None else first,
+                             subsequent_indent=indent, break_on_hyphens=False)
+
     lines = []
     for direction, d in fmap.directions.items():
         band = d.stick_band
@@ -199,34 +206,44 @@ def format_table(fmap: FrictionMap) -> str:
         if band.breakaway_count:
             std = f" ± {band.breakaway_std:.2g}" if band.breakaway_std is not None else ""
             head += f"; {band.breakaway_count} breakaways, mean {band.breakaway_mean:.4g}{std} N"
-        lines.append(head)
+        lines += wrap(head, "    ", "")
         for c in d.confounded:
-            lines.append(f"  note: {c.sentence(direction)}.")
-        rows = [("model", "RMSE [N]", "R2", "MAE [N]", "AICc", "parameters (value±std)", "verdict", "flags")]
+            lines += wrap(f"note: {c.sentence(direction)}.", "    ", "  ")
+        rows = []  # (model, k, RMSE, R2, MAE, AICc, verdict, parameters)
         best = d.best
         lin = d.linear
         if lin is not None:
             pars = f"Fc={_value(lin.Fc, lin.std['Fc'])} N, B={_value(lin.B, lin.std['B'])} N s/m"
             verdict = "B < 0: not physical" + (" (speed stands in for another quantity)" if d.confounded else "") \
                 if lin.B < 0 else ""
-            rows.append(("linear", f"{lin.rmse:.3g}", f"{lin.r2:.5f}", f"{lin.mae:.3g}", "", pars, verdict, ""))
+            rows.append(("linear", "2", f"{lin.rmse:.3g}", f"{lin.r2:.5f}", f"{lin.mae:.3g}", "", verdict, pars))
         for name, f in d.fits.items():
-            flagged = ", ".join(dict.fromkeys(fl["param"] for fl in f.flags))
+            flagged = [p for p in dict.fromkeys(fl["param"] for fl in f.flags) if p not in f.not_determined]
+            verdict = _verdict(name, f, best) + (f"; flags: {', '.join(flagged)}" if flagged else "")
             aicc = "" if f.aicc is None else f"{f.aicc:.1f}" + (" *" if name == best else "")
-            rows.append((name, f"{f.rmse:.3g}", f"{f.r2:.5f}", f"{f.mae:.3g}", aicc, _parameters(f),
-                         _verdict(name, f, best), flagged))
-        if len(rows) > 1:
-            widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-            lines.extend("  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+            rows.append((name, str(len(f.free)), f"{f.rmse:.3g}", f"{f.r2:.5f}", f"{f.mae:.3g}", aicc,
+                         verdict.lstrip("; "), _parameters(f)))
+        if rows:
+            head_row = ("model", "k", "RMSE [N]", "R2", "MAE [N]", "AICc", "verdict")
+            widths = [max(len(r[i]) for r in [head_row, *rows]) for i in range(6)]
+            fmt = lambda r: "  " + "  ".join(c.ljust(w) for c, w in zip(r[:6], widths))  # noqa: E731
+            lines.append((fmt(head_row) + "  verdict").rstrip())
+            for r in rows:
+                lead = fmt(r) + "  "
+                lines += wrap(r[6], " " * len(lead), lead) if r[6] else [lead.rstrip()]
+                if r[7]:
+                    lines += wrap(r[7], "      ")
         lacking = {}
         for name, why in d.skipped.items():
             if why.startswith(f"model {name} needs "):
                 lacking.setdefault(why.split(" needs ")[1].split(" for every point")[0], []).append(name)
             else:
-                lines.append(f"  skipped {name}: {why}")
+                lines += wrap(f"skipped {name}: {why}", "    ", "  ")
         for what, names in lacking.items():
-            lines.append(f"  not fitted, the points carry no {what}: {', '.join(names)}")
-    lines.append("Per direction: RMSE, R2 (seed 000 Eq. 10), MAE (mean |F - F_model|, seed 003's mean error), AICc "
-                 "(* the best: lowest among the fits whose parameters the points determine and whose curve is sound); "
-                 "flags name the parameters the points do not determine well (reasons in the JSON).")
+            lines += wrap(f"not fitted, the points carry no {what}: {', '.join(names)}", "    ", "  ")
+    lines += wrap("Per direction: k the parameters fitted, RMSE, R2 (seed 000 Eq. 10), MAE (mean |F - F_model|, "
+                  "seed 003's mean error), AICc; * the best: among the fits whose parameters the points determine "
+                  "and whose curve is sound, the fewest parameters (then the product's own law cv_dp) within "
+                  f"{PARSIMONY:g} AICc of the lowest; flags name parameters the points determine poorly (reasons "
+                  "in the JSON).", "", "")
     return "\n".join(lines)

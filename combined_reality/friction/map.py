@@ -45,7 +45,7 @@ from ..identify import derivative_kernels, friction_from_newton
 __all__ = ["FrictionMapError", "PointsFormatError", "TooFewPointsError", "SegmentOptions", "MapPoint",
            "Breakaway", "RunPoints", "StickBand", "LinearFit", "ModelFit", "FitSpec", "FIT_SPECS", "Confounding",
            "confounded_quantities", "DirectionMap", "FrictionMap", "points_from_run", "read_points", "is_points_table",
-           "linear_fit", "fit_model", "build_map", "plot_map"]
+           "linear_fit", "fit_model", "build_map", "plot_map", "NOMINAL_LAW", "PARSIMONY"]
 
 
 class FrictionMapError(ValueError):
@@ -365,6 +365,9 @@ FIT_SPECS: dict[str, FitSpec] = {s.name: s for s in (
     FitSpec("cv_dp", "cv_dp", {}, "the product's own law per direction: (Fc + kp dp) + Fv v"),
     FitSpec("efficiency", "efficiency", {}, "friction proportional to dp (seed 004 Eq. 1, the efficiency factor)"),
 )}
+
+NOMINAL_LAW = "cv_dp"  # the product's own friction law (sim/plant.py), per direction
+PARSIMONY = 4.0  # AICc units a parameter more, or another law than the nominal one, must gain to be preferred
 
 # families whose Fs is the breakaway force itself (no load or pressure terms): breakaway rows fix it
 _FS_FROM_BREAKAWAY_ROWS = frozenset({"cvs", "lugre"})
@@ -842,10 +845,21 @@ class DirectionMap:
 
     @property
     def best(self) -> str | None:
-        """The fit with the lowest AICc among those that may be preferred (every parameter
-        determined, a sound curve), or None."""
-        ranked = {n: f.aicc for n, f in self.fits.items() if f.preferable and f.aicc is not None}
-        return min(ranked, key=ranked.get) if ranked else None
+        """Among the fits that may be preferred (every parameter determined, a sound curve), the
+        simplest whose AICc lies within PARSIMONY of the lowest: the fewest parameters, then the
+        product's own law (cv_dp), then the lower AICc. A parameter must buy more than
+        PARSIMONY AICc units (a likelihood ratio of e^2, about 7.4) to be preferred, and another
+        law as many over the nominal one: on a sweep of the nominal virtual rig, Threlfall's
+        scale bent the curve through the slowest point and won by 0.8 over cv_dp. None without
+        a preferable fit."""
+        ranked = {n: f for n, f in self.fits.items() if f.preferable and f.aicc is not None}
+        if not ranked:
+            return None
+        lowest = min(f.aicc for f in ranked.values())
+        order = list(FIT_SPECS)
+        near = [n for n, f in ranked.items() if f.aicc <= lowest + PARSIMONY]
+        return min(near, key=lambda n: (len(ranked[n].free), n != NOMINAL_LAW, ranked[n].aicc,
+                                        order.index(n) if n in order else len(order)))
 
     def to_json(self) -> dict:
         return {"models": {k: f.to_json() for k, f in self.fits.items()},
