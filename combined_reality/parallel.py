@@ -24,15 +24,18 @@ def runs_in_pool(workers: int, n_jobs: int) -> bool:
 
 
 def run_jobs(work: Callable[[Any], Any], jobs: list, workers: int,
-             enough: Callable[[Any], bool] | None = None) -> list:
+             enough: Callable[[Any], bool] | None = None, on_result: Callable[[Any], None] | None = None) -> list:
     """`work` of each of `jobs`, in job order. With `enough`, the results end at the first job
     (in job order, whatever finished first) for which it holds: the same work counts on any
-    machine and any number of workers; the later jobs still running are stopped."""
+    machine and any number of workers; the later jobs still running are stopped. `on_result`
+    hears of each result as it is taken (progress)."""
     results: list = []
     it = iter_jobs(work, jobs, workers)
     try:
         for r in it:
             results.append(r)
+            if on_result is not None:
+                on_result(r)
             if enough is not None and enough(r):
                 break
     finally:

@@ -131,3 +131,15 @@ def test_version(capsys):
         main(["--version"])
     assert e.value.code == 0
     assert capsys.readouterr().out.strip() == f"combined-reality {version('combined-reality')}"
+
+
+def test_rerun_without_the_viewer_extra_says_how_to_install_it(monkeypatch, capsys):
+    import importlib.util
+
+    from combined_reality.cli.common import UsageError, rerun_mode
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "rerun" else real(name, *a))
+    assert rerun_mode(["off"]) == ("off", None)  # off needs nothing
+    with pytest.raises(UsageError, match=r"--rerun spawn needs the Rerun SDK .* pip install 'combined-reality\[viewer\]'"):
+        rerun_mode(["spawn"])

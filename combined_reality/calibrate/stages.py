@@ -33,6 +33,7 @@ from sim.cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, VALVE_DIRECTIONS, Cy
 
 from ..files import Run
 from ..identify import Estimate, IdentificationError, IdentifyOptions, IdentifyResult, PriorRow, identify, validate
+from ..progress import stage_steps
 from .dead_band import dead_band_in_overlap
 from .identifiability import Identifiability, assess
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets
@@ -119,7 +120,7 @@ def _stage(name: str, cyl: Cylinder, runs: Sequence[Run], drive: str, estimate: 
     res = identify(cyl, runs, IdentifyOptions(drive=drive, estimate=tuple(estimate), interval_s=opts.interval_s,
                                               max_iter=opts.max_iter, prefit=False, threads=opts.threads,
                                               start_only=start_only, restart_misfit=not start_only),
-                   prior=smooth_valve_prior(), nodes=nodes)
+                   prior=smooth_valve_prior(), nodes=nodes, progress=stage_steps(say, name))
     say(f"  {name}: {res.solver['status']} after {res.solver['iterations']} iterations, "
         f"{time.perf_counter() - t0:.1f} s, residual {res.solver['residual_sigma']:.3g} x noise")
     return res

@@ -142,7 +142,8 @@ def _connect(address: str):
     try:
         from distributed import Client
     except ImportError:
-        raise UsageError("--scheduler needs dask.distributed (pip install 'dask[distributed]').") from None
+        raise UsageError("--scheduler needs dask.distributed, an extra of the install: "
+                         "pip install 'combined-reality[cluster]'.") from None
     try:
         return Client(address, timeout="10s")
     except (OSError, TimeoutError) as e:

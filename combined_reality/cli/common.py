@@ -8,15 +8,18 @@ Exit status of every subcommand: 0 success, 2 bad input (files, options: one sen
 """
 from __future__ import annotations
 
+import atexit
 import math
 import sys
+import threading
+import time
 from importlib import resources
 from pathlib import Path
 from typing import Callable, Sequence
 
 from sim.cylinder import Cylinder, load_cylinder
 
-__all__ = ["UsageError", "eprint", "progress_printer", "default_config_path", "load_config", "cylinder_for_runs",
+__all__ = ["UsageError", "eprint", "progress_printer", "ProgressView", "default_config_path", "load_config", "cylinder_for_runs",
            "preflight_runs", "parse_effects", "estimate_list", "positive_float", "rerun_mode", "open_rig", "EFFECT_HELP"]
 
 EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 (repeatable; any word of the "
@@ -34,8 +37,72 @@ def eprint(msg: str) -> None:
 
 
 def progress_printer(quiet: bool) -> Callable[[str], None] | None:
-    """Where progress lines go: stderr, or nowhere with -q."""
-    return None if quiet else eprint
+    """Where progress goes: stderr (ProgressView), or nowhere with -q."""
+    if quiet:
+        return None
+    view = ProgressView()
+    atexit.register(view.close)
+    return view
+
+
+def _duration(s: float) -> str:
+    s = max(0.0, s)
+    return f"{s:.0f} s" if s < 90 else f"{s / 60:.1f} min" if s < 5400 else f"{s / 3600:.1f} h"
+
+
+class ProgressView:
+    """Progress on stderr: a library's lines as they come; its Steps (lines that count) on a
+    terminal as a bar per task (tqdm: the count, the time left where the total is known, the
+    cost beside), elsewhere as their lines with the time left. A plain line clears the bars
+    and is printed above them."""
+
+    def __init__(self) -> None:
+        self.tty = sys.stderr.isatty()
+        self.bars: dict = {}
+        self.seen: dict[str, tuple[float, float]] = {}  # task -> (first time, count then)
+        self.lock = threading.Lock()  # a calibration's first two stages report from two threads
+
+    def __call__(self, line: str) -> None:
+        from ..progress import Step
+
+        with self.lock:
+            if isinstance(line, Step):
+                self._step(line)
+            else:
+                self._close_bars()
+                eprint(str(line))
+
+    def _step(self, s) -> None:
+        now = time.perf_counter()
+        t0, d0 = self.seen.setdefault(s.task, (now, s.done))
+        left = None
+        if s.total is not None and s.done < s.total and s.done > d0 and now > t0:
+            left = (s.total - s.done) * (now - t0) / (s.done - d0)
+        if not self.tty:
+            eprint(str(s) + (f" (about {_duration(left)} left)" if left is not None else ""))
+            return
+        from tqdm import tqdm
+
+        bar = self.bars.get(s.task)
+        if bar is None:
+            fmt = ("{desc}: {n_fmt}/{total_fmt} |{bar}| [{elapsed}<{remaining}]{postfix}" if s.total is not None
+                   else "{desc}: {n_fmt} [{elapsed}, {rate_fmt}]{postfix}")
+            bar = self.bars[s.task] = tqdm(total=s.total, desc=s.task.strip(), file=sys.stderr, leave=False,
+                                           dynamic_ncols=True, position=len(self.bars), bar_format=fmt,
+                                           unit="", mininterval=0.2)
+        bar.update(s.done - bar.n)
+        if "cost" in s.figures:
+            bar.set_postfix_str(f"cost {s.figures['cost']:.4g}", refresh=False)
+        bar.refresh()
+
+    def _close_bars(self) -> None:
+        for bar in self.bars.values():
+            bar.close()
+        self.bars.clear()
+
+    def close(self) -> None:
+        with self.lock:
+            self._close_bars()
 
 
 def default_config_path() -> Path:
@@ -133,6 +200,12 @@ def rerun_mode(words: Sequence[str]) -> tuple[str, str | None]:
         raise UsageError("--rerun save needs exactly one file name (--rerun save session.rrd).")
     if mode in ("spawn", "off") and rest or len(rest) > 1:
         raise UsageError(f"--rerun {' '.join(words)}: too many arguments.")
+    if mode != "off":
+        from importlib.util import find_spec
+
+        if find_spec("rerun") is None:
+            raise UsageError(f"--rerun {mode} needs the Rerun SDK and viewer, an extra of the install: "
+                             "pip install 'combined-reality[viewer]'.")
     return mode, (rest[0] if rest else None)
 
 

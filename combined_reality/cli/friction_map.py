@@ -15,7 +15,7 @@ from pathlib import Path
 from sim.friction_models import parameter_unit
 
 from ..friction.map import FIT_SPECS, PARSIMONY, FrictionMap, FrictionMapError, SegmentOptions
-from .common import UsageError, cylinder_for_runs, eprint, preflight_runs
+from .common import UsageError, cylinder_for_runs, eprint, preflight_runs, progress_printer
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -116,7 +116,8 @@ def run(args) -> int:
                          f"constant speed or relax --min-duration / --spread.")
     try:
         fmap = build_map(points, models, breakaways, stuck_speed=max(stuck_speeds) if stuck_speeds else None,
-                         stuck_time=stuck_time, min_speed=options.min_speed if runs_json else None, strict=explicit)
+                         stuck_time=stuck_time, min_speed=options.min_speed if runs_json else None, strict=explicit,
+                         progress=progress_printer(args.quiet))
     except FrictionMapError as e:
         raise UsageError(f"{inputs}: {e}") from None
     if not any(d.fits for d in fmap.directions.values()):

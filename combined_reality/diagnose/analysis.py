@@ -34,6 +34,7 @@ from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect, make_effect
 
 from ..files import Run
+from ..progress import counter, stage_steps
 from ..parallel import iter_jobs, run_jobs, runs_in_pool, workers_here
 from ..identify import (IdentificationError, IdentifyOptions, Validation, equation_error_friction,
                         friction_from_newton, identify, savgol_kernels, derivative_kernels, validate, validation_gain,
@@ -605,7 +606,7 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
                 f"{m['unit']} ({m['change']:+.1%})")
         cyl = cal.cylinder
     say("identifying the nominal model on TRAIN ...")
-    base = identify(cyl, [train], IdentifyOptions(restart_misfit=False))
+    base = identify(cyl, [train], IdentifyOptions(restart_misfit=False), progress=stage_steps(progress, "nominal"))
     nominal = base.cylinder
     segments = validation_segments(valid, opts.horizon_s)
     base_val = validate(nominal, (), valid, opts.horizon_s, segments=segments, workers=opts.workers)
@@ -627,7 +628,7 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
     first.append((subsystem_split, (cyl, nominal, train, valid, base_val, opts, segments)))
     say(f"re-identifying {len(order)} candidate effects on TRAIN from the nominal optimum "
         f"({min(opts.workers, len(first))} processes) ...")
-    done_first = run_jobs(_call, first, opts.workers)
+    done_first = run_jobs(_call, first, opts.workers, on_result=counter(progress, "first-pass fits", len(first)))
     subsystems = done_first.pop()
     fitted = [c for cs in done_first for c in cs]
     tried = {(c.effect, c.start) for c in fitted}

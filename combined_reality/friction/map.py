@@ -32,7 +32,7 @@ import math
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -41,6 +41,7 @@ from sim.friction_models import DIRECTIONS, FRICTION_MODELS, FrictionModel
 
 from ..files import Run, split_at_gaps
 from ..identify import derivative_kernels, friction_from_newton
+from ..progress import counter
 
 __all__ = ["FrictionMapError", "PointsFormatError", "TooFewPointsError", "SegmentOptions", "MapPoint",
            "Breakaway", "RunPoints", "StickBand", "LinearFit", "ModelFit", "FitSpec", "FIT_SPECS", "Confounding",
@@ -898,8 +899,9 @@ class FrictionMap:
 def build_map(points: Sequence[MapPoint], models: Sequence[str] | None = None,
               breakaways: Sequence[Breakaway] = (), stuck_speed: float | None = None,
               stuck_time: float | None = None, min_speed: float | None = None,
-              strict: bool = False) -> FrictionMap:
-    """Fit the models (default: all of FIT_SPECS) to each direction's points.
+              strict: bool = False, progress: Callable[[str], None] | None = None) -> FrictionMap:
+    """Fit the models (default: all of FIT_SPECS) to each direction's points; `progress`
+    hears of each fit done (of models x directions).
 
     strict: a model that cannot be fitted (too few points, missing conditions) is an
     error; otherwise it is skipped with the reason."""
@@ -908,6 +910,7 @@ def build_map(points: Sequence[MapPoint], models: Sequence[str] | None = None,
     if unknown:
         raise FrictionMapError(f"unknown model {', '.join(unknown)} (known: {', '.join(FIT_SPECS)}).")
     dirs = {}
+    tick = counter(progress, "model fits", len(names) * len(DIRECTIONS))
     for direction in DIRECTIONS:
         pts = tuple(sorted((p for p in points if p.direction == direction), key=lambda p: abs(p.v)))
         slide = [p for p in pts if not p.breakaway]
@@ -951,6 +954,8 @@ def build_map(points: Sequence[MapPoint], models: Sequence[str] | None = None,
                 if strict:
                     raise
                 skipped[name] = str(e)
+            if tick:
+                tick()
         dirs[direction] = DirectionMap(direction=direction, points=pts, stick_band=band, linear=linear,
                                        fits=fits, skipped=skipped, confounded=confounded_quantities(pts))
     return FrictionMap(directions=dirs)

@@ -31,6 +31,7 @@ from sim.integrator import IntegratorOptions
 from sim.plant import plant_for
 
 from ..files import Run, split_at_gaps
+from ..progress import Step
 from .newton import equation_error_friction
 from .preflight import check_determinable
 from .shooting import (IdentificationError, PriorRow, RunLayout, ShootingProblem, at_bounds, condense,
@@ -455,8 +456,8 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         history.append({"iteration": it, "cost": cost, "defect": viol, "alpha": alpha, "lm": lam,
                         "theta": theta.tolist()})
         if progress:
-            progress(f"  iteration {it:2d}: cost {cost:.6g}  defects {viol:.3g}  step {alpha:.3g}  "
-                     + "  ".join(f"{n}={v:.5g}" for n, v in zip(estimate, theta)))
+            progress(Step(f"  iteration {it:2d}: cost {cost:.6g}  defects {viol:.3g}  step {alpha:.3g}  "
+                          + "  ".join(f"{n}={v:.5g}" for n, v in zip(estimate, theta)), "iterations", it, cost=cost))
         ev = evaluate(S, p, True)
         if ev is None:
             raise IdentificationError(f"the simulation stopped being finite at iteration {it} "

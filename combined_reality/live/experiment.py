@@ -12,6 +12,7 @@ from sim.cylinder import Cylinder
 from sim.extension import Effect
 
 from ..files import Run
+from ..progress import Step
 from .programs import PositionProgram
 
 
@@ -53,7 +54,8 @@ def simulate_run(cyl: Cylinder, duration: float, seed: int, rate: float = 1000.0
     rig = VirtualRig(cyl, effects, rate=rate, seed=seed, noise=noise, progress=progress)
     program = PositionProgram(cyl, duration, seed=seed)
     n = int(round(duration * rate))
-    report = (lambda k: progress(f"  simulated {k / rate:5.1f} / {duration:g} s")) if progress else None
+    report = (lambda k: progress(Step(f"  simulated {k / rate:5.1f} / {duration:g} s", "s simulated", k / rate,
+                                      duration))) if progress else None
     lost = None
     if drop:
         lost = np.random.default_rng([seed, 7]).random(n) < drop
