@@ -50,6 +50,8 @@ def stage_steps(say: Say | None, stage: str) -> Say | None:
 
     def forward(line: str) -> None:
         if isinstance(line, Step):
-            say(Step(f"  {stage}: {line.strip()}", f"{stage}: {line.task}", line.done, line.total, **line.figures))
+            text = f"{line.task[:-1] if line.task.endswith('s') else line.task} {line.done:g}" + "".join(
+                f", {k} {v:.6g}" for k, v in line.figures.items())  # the stage's line, short: its figures only
+            say(Step(f"  {stage}: {text}", f"{stage}: {line.task}", line.done, line.total, **line.figures))
 
     return forward

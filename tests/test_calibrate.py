@@ -14,11 +14,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from browser import NO_BROWSER, browser
 from conftest import CONFIGS
+from test_reports import check_report
 
 from combined_reality.calibrate import CALIBRATED, calibrate, flow_coverage
 from combined_reality.cli import main
-from combined_reality.files import cylinder_tag, write_run
+from combined_reality.files import Run, cylinder_tag, write_run
 from combined_reality.files.cylinder_file import cylinder_file_text
 from combined_reality.identify import IdentifyOptions, identify
 from combined_reality.live import run_program
@@ -70,7 +72,7 @@ def calibrated(cyl_a, truth, train, tmp_path_factory):
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
         code = main(["calibrate", "--config", str(CONFIGS / "cyl_a_32x100.toml"), str(tr), "--validate", str(va),
-                     "--json", str(out), "--write-config", str(cal_toml), "-q"])
+                     "--json", str(out), "--write-config", str(cal_toml), "--report", str(d / "cal.html"), "-q"])
     assert code == 0, printed.getvalue()
     return json.loads(out.read_text()), cal_toml, va
 
@@ -276,3 +278,39 @@ def test_the_stages_give_the_same_estimates_beside_each_other_as_one_after_the_o
             assert v == pytest.approx(b["params"][n], rel=1e-9, abs=1e-12), (a["stage"], n)
     for n, e in beside.result.params.items():
         assert e.value == pytest.approx(in_turn.result.params[n].value, rel=1e-9, abs=1e-12), n
+
+
+def test_the_advice_says_what_the_runs_lacked_by_stretch_of_the_valve_and_keeps_a_zero_overlap(cyl_a):
+    """A run whose commands stay below a third of full opening: the undetermined segments of each
+    direction's characteristic in one line each, saying how long the runs held those commands and
+    which motion would give more, never a program by name; an overlap the data put at 0 is the
+    valve opening at once, not a parameter left undetermined."""
+    from types import SimpleNamespace
+
+    from combined_reality.calibrate.identifiability import assess
+    from combined_reality.identify import Estimate
+
+    t = np.arange(20000) * 1e-3
+    run = Run(t=t, u=0.3 * np.sin(2 * np.pi * 0.5 * t), x=np.full(t.size, 0.05), p1=np.full(t.size, 4e5),
+              p2=np.full(t.size, 4e5))
+    params = {n: Estimate(n, 0.5, 0.01, "1", 0.5) for n in CALIBRATED if n.startswith("flow_")}
+    params.update(overlap_extend=Estimate("overlap_extend", 0.0, 1e-6, "1", 0.02, at_bound=True),
+                  overlap_retract=Estimate("overlap_retract", 0.0, 1e-6, "1", 0.02, at_bound=True))
+    ident = assess(SimpleNamespace(params=params, cylinder=cyl_a, correlation=None), [run])
+    assert "overlap_extend" in ident.determined and "overlap_retract" in ident.determined
+    lines = ident.lines()
+    flow = [line for line in lines if "flow_" in line]
+    assert [line.split(":")[0].strip() for line in flow] == ["flow_extend_10..15", "flow_retract_10..15"]
+    assert "commands at 34% to 100% of the opening beyond the overlap for 0 s in all" in flow[0]
+    assert "more and longer moves or pulses at positive commands of 34% to 100%" in flow[0]
+    assert not any("--program" in line or "calibration program" in line for line in lines)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(browser() is None, reason=NO_BROWSER)
+def test_the_calibration_report_renders_in_a_browser(calibrated, tmp_path):
+    _, cal_toml, _ = calibrated
+    check_report(cal_toml.parent / "cal.html", tmp_path / "calibrate_report.png",
+                 ["The calibrated values against the cylinder file's", "The valve characteristic per direction",
+                  "Not determined, and what to record", "The stages", "Measured and simulated: train.csv",
+                  "The calibrated model on VALID"])

@@ -21,7 +21,7 @@ def test_a_step_is_a_line_that_counts():
     staged = stage_steps(heard.append, "1/3 force balance")
     staged("  start from the equation-error fit: ...")  # a fit's own lines: left out
     staged(s)
-    assert heard == ["  1/3 force balance: iteration  3: cost 12.5"] and heard[0].task == "1/3 force balance: iterations"
+    assert heard == ["  1/3 force balance: iteration 3, cost 12.5"] and heard[0].task == "1/3 force balance: iterations"
     tick = counter(heard.append, "candidate fits", 4)
     tick("a result")
     tick()

@@ -36,7 +36,7 @@ _ADVICE = {
     "dead_volume_cap": "moves into the retracted end (x = 0: the cap chamber is then its dead volume alone)",
     "dead_volume_rod": "moves into the extended end (x = stroke: the rod chamber is then its dead volume alone)",
     "critical_ratio": "fast moves from rest (choked flow) and slow ones near the end pressures (subsonic flow)",
-    "overlap": "slow commands creeping through zero in that direction (`--program calibration` creeps)",
+    "overlap": "slow commands creeping through zero in that direction",
     "conductance": "moves at several command levels",
 }
 
@@ -53,11 +53,13 @@ class Identifiability:
                 "flow_coverage": self.coverage}
 
     def lines(self) -> list[str]:
-        """The report for people, a sentence per line."""
+        """The report for people, a sentence per line: what the runs lacked (neighbouring
+        segments of a flow characteristic that the runs reached too little, together) and
+        which motion would give it."""
         out = []
         if self.undetermined:
             out.append("Not determined by these runs:")
-            out += [f"  {u['name']}: {u['why']}; to determine it, record {u['advice']}." for u in self.undetermined]
+            out += [f"  {u['name']}: {u['why']}; to determine it, record {u['advice']}." for u in grouped(self.undetermined)]
         if self.correlated:
             out.append("Not separated by these runs (their estimates trade off against each other):")
             out += [f"  {c['a']} and {c['b']} (correlation {c['r']:+.2f})" for c in self.correlated]
@@ -66,14 +68,45 @@ class Identifiability:
         return out
 
 
-def _advice(name: str) -> str:
+def _segment(name: str) -> tuple[str, int]:
+    _, direction, k = name.split("_")
+    return direction, int(k)
+
+
+def _openings(k1: int, k2: int) -> str:
+    lo = 0.0 if k1 == 1 else OPENING_GRID[k1 - 2]
+    return f"{lo:.0%} to {OPENING_GRID[k2 - 1]:.0%} of the opening beyond the overlap"
+
+
+def grouped(undetermined: list[dict]) -> list[dict]:
+    """The undetermined entries with neighbouring flow segments of one direction that the runs
+    reached too little merged into one ('flow_extend_11..15'): one line per stretch of the
+    characteristic the runs lacked."""
+    out: list[dict] = []
+    for u in undetermined:
+        prev = out[-1] if out else None
+        if (prev is not None and u["name"].startswith("flow_") and "reached" in u
+                and prev.get("direction") == _segment(u["name"])[0] and prev.get("last") == _segment(u["name"])[1] - 1):
+            d, k = _segment(u["name"])
+            first = prev["first"]
+            seconds = prev["seconds"] + u["seconds"]
+            sign = "positive" if d == "extend" else "negative"
+            out[-1] = {**prev, "name": f"flow_{d}_{first}..{k}", "last": k, "seconds": seconds,
+                       "why": (f"the runs held {sign} commands at {_openings(first, k)} for {seconds:.2g} s in all, "
+                               "too little to measure, so the characteristic there follows its neighbours (a smooth "
+                               "valve) rather than the data"),
+                       "advice": _advice(f"flow_{d}_{first}", last=k)}
+        else:
+            out.append(u)
+    return out
+
+
+def _advice(name: str, last: int | None = None) -> str:
     if name.startswith("flow_"):
-        _, direction, k = name.split("_")
-        lo = 0.0 if k == "1" else OPENING_GRID[int(k) - 2]
-        hi = OPENING_GRID[int(k) - 1]
+        direction, k = _segment(name)
         sign = "positive" if direction == "extend" else "negative"
-        return (f"{sign} commands between {lo:.0%} and {hi:.0%} of the opening beyond the overlap "
-                "(pulses or moves at that command)")
+        return (f"more and longer moves or pulses at {sign} commands of {_openings(k, last or k)} "
+                f"(at least {MIN_COVERAGE:.1%} of the samples there)")
     if name.startswith("overlap_"):
         return _ADVICE["overlap"]
     return _ADVICE.get(name, "motion that excites it")
@@ -98,6 +131,7 @@ def flow_coverage(cyl: Cylinder, runs: Sequence[Run]) -> dict[str, float]:
 def assess(result: IdentifyResult, runs: Sequence[Run]) -> Identifiability:
     """The identifiability of the estimates of a fit on these runs (module docstring)."""
     rep = Identifiability(coverage=flow_coverage(result.cylinder, runs))
+    duration = sum(r.duration for r in runs)
     names = list(result.params)
     for n in names:
         e = result.params[n]
@@ -105,12 +139,20 @@ def assess(result: IdentifyResult, runs: Sequence[Run]) -> Identifiability:
         span = (spec.upper - spec.lower) if spec else math.inf
         why = None
         if n in rep.coverage and rep.coverage[n] < MIN_COVERAGE:
-            why = (f"only {rep.coverage[n]:.1%} of the samples open the valve in this segment, so it follows its "
-                   "neighbours (a smooth valve) rather than the data")
-        elif not math.isfinite(e.std):
+            d, k = _segment(n)
+            seconds = rep.coverage[n] * duration
+            sign = "positive" if d == "extend" else "negative"
+            why = (f"the runs held {sign} commands at {_openings(k, k)} for {seconds:.2g} s in all, too little to "
+                   "measure, so the characteristic there follows its neighbours (a smooth valve) rather than the data")
+            rep.undetermined.append({"name": n, "why": why, "advice": _advice(n), "reached": rep.coverage[n],
+                                     "seconds": seconds, "direction": d, "first": k, "last": k})
+            continue
+        if not math.isfinite(e.std):
             why = "the data do not constrain it at all"
         elif e.std > _UNDETERMINED * max(abs(e.value), 1e-3 * span):
             why = f"its standard deviation ({e.std:.3g} {e.unit}) is as large as the value itself ({e.value:.3g})"
+        elif e.at_bound and n.startswith("overlap_") and e.value <= spec.lower:
+            why = None  # the data want no overlap, which is the least there is: the valve opens at once
         elif e.at_bound:
             why = "the fit ended at a bound of its range"
         if why:

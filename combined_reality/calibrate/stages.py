@@ -100,10 +100,11 @@ class Calibration:
         return out
 
 
-def validation_figures(cyl: Cylinder, valid: Run, horizon_s: float = 1.0) -> dict:
+def validation_figures(cyl: Cylinder, valid: Run, horizon_s: float = 1.0, val=None) -> dict:
     """The calibrated model scored on a run no fit saw: open-loop segments of about
-    `horizon_s` from initial states fitted per segment (as the diagnosis scores)."""
-    val = validate(cyl, (), valid, horizon_s)
+    `horizon_s` from initial states fitted per segment (as the diagnosis scores); `val`: that
+    validation, where it was made already."""
+    val = val if val is not None else validate(cyl, (), valid, horizon_s)
     return {"rmse_x": val.rmse("x"), "rmse_p1": val.rmse("p1"), "rmse_p2": val.rmse("p2"),
             "normalized_rms": val.normalized_rms(), "horizon_s": horizon_s, "segments": len(val.segments),
             "status": val.status}

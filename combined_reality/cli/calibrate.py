@@ -24,6 +24,10 @@ def add_parser(sub) -> None:
                    help="a run of the same cylinder no fit sees: the calibrated model is scored on it")
     c.add_argument("--json", metavar="OUT.json", help="write the result (identify format plus valve, stages, "
                                                       "identifiability and validation)")
+    c.add_argument("--report", metavar="REPORT.html",
+                   help="write a self-contained HTML report: the values against the file's, the valve characteristic "
+                        "per direction with its band, the fit of every run, VALID's traces, what the runs could not "
+                        "determine and what to record")
     c.add_argument("--write-config", metavar="CAL.toml",
                    help="write the calibrated cylinder file (every other subcommand accepts it; comments kept)")
     c.add_argument("--estimate", help="comma-separated subset of the calibrated parameters (default: all)")
@@ -58,7 +62,7 @@ def run(args) -> int:
     from ..calibrate import CALIBRATED, CalibrateOptions, calibrate, validation_figures
     from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import IdentificationError
+    from ..identify import IdentificationError, validate
 
     start = load_config(args.config)
     runs = [read_run(p) for p in args.runs]
@@ -79,6 +83,8 @@ def run(args) -> int:
             raise UsageError(f"{name} must be a positive number of seconds, not {v}.")
     if args.max_iter < 1:
         raise UsageError(f"--max-iter must be at least 1, not {args.max_iter}.")
+    if args.report and not args.report.lower().endswith((".html", ".htm")):
+        raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     say = progress_printer(args.quiet)
     if say:
         say(f"calibrating {len(estimate)} parameters from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
@@ -99,8 +105,10 @@ def run(args) -> int:
     print(f"fit: rmse_x {f['rmse_x'] * 1e6:.2f} um, rmse_p1 {f['rmse_p1']:.0f} Pa, rmse_p2 {f['rmse_p2']:.0f} Pa; "
           f"solver: {s['status']}, residual sigma {s['residual_sigma']:.3g} x noise, "
           f"{time.perf_counter() - t0:.1f} s in all")
+    validation = None
     if valid is not None:
-        val = validation_figures(cal.cylinder, valid, args.horizon)
+        validation = validate(cal.cylinder, (), valid, args.horizon)
+        val = validation_figures(cal.cylinder, valid, args.horizon, validation)
         out["validation"] = val
         print(f"validation on {args.validate}: rmse_x {val['rmse_x'] * 1e6:.2f} um, rmse_p1 {val['rmse_p1']:.0f} Pa, "
               f"rmse_p2 {val['rmse_p2']:.0f} Pa; all outputs {val['normalized_rms']:.2f} x the sensor noise "
@@ -111,6 +119,13 @@ def run(args) -> int:
         write_json_atomic(args.json, clean_json(out))
         if say:
             say(f"wrote {args.json}")
+    if args.report:
+        from ..calibrate.report import write_calibration_report
+
+        write_calibration_report(cal, start, runs, args.report, valid=valid, validation=validation,
+                                 inputs=args.runs)
+        if say:
+            say(f"wrote {args.report}")
     if args.write_config:
         note = f"calibrated from {', '.join(args.runs)}"
         header = [f"Calibrated by combined-reality calibrate on {time.strftime('%Y-%m-%d %H:%M')} from "

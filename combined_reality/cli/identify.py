@@ -19,6 +19,9 @@ def add_parser(sub) -> None:
     i.add_argument("--config", required=True, help="cylinder TOML file (its values are the starting point)")
     i.add_argument("runs", nargs="+", metavar="RUN.csv", help="recorded runs")
     i.add_argument("--json", help="write the result as JSON (docs/formats.md)")
+    i.add_argument("--report", metavar="REPORT.html",
+                   help="write a self-contained HTML report: measured vs simulated per run, the errors against time, "
+                        "velocity and position, the friction law found, the iterations")
     i.add_argument("--estimate", help=f"comma-separated parameters (default from the config, else Fc,Fv,kp; "
                                       f"estimable: {', '.join(ESTIMABLE)})")
     i.add_argument("--drive", choices=["command", "pressure", "chambers"],
@@ -109,6 +112,8 @@ def run(args) -> int:
             raise UsageError(f"--drive {drive} uses {given}, so it cannot estimate {', '.join(bad)}.")
     if not args.interval > 0:
         raise UsageError(f"--interval must be positive, not {args.interval}.")
+    if args.report and not args.report.lower().endswith((".html", ".htm")):
+        raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
                            prefit=not args.no_prefit)
     preflight_runs(cyl, runs, estimate)  # before any progress line: a refusal is the only line on stderr
@@ -137,6 +142,14 @@ def run(args) -> int:
         write_cylinder_file(args.write_config, result.cylinder, note=f"identified from {', '.join(args.runs)}")
         if prog:
             prog(f"wrote {args.write_config} (the comments of {cyl.source} kept)")
+    if args.report:
+        from ..identify.report import write_fit_report
+
+        why = {n: ("a standard deviation as large as the value; record moves that excite it (both directions, several "
+                   "speeds and pressure differences) or leave it out of --estimate") for n in unknown}
+        write_fit_report(result, runs, args.report, inputs=args.runs, not_determined=why)
+        if prog:
+            prog(f"wrote {args.report}")
     print(format_table(result))
     # a misfit says so first: its standard deviations do not tell what the run determines
     if unknown and result.explains_run:
