@@ -143,3 +143,13 @@ def test_rerun_without_the_viewer_extra_says_how_to_install_it(monkeypatch, caps
     assert rerun_mode(["off"]) == ("off", None)  # off needs nothing
     with pytest.raises(UsageError, match=r"--rerun spawn needs the Rerun SDK .* pip install 'combined-reality\[viewer\]'"):
         rerun_mode(["spawn"])
+
+
+def test_live_help_lists_every_program(capsys):
+    from combined_reality.live.programs import PROGRAMS
+
+    with pytest.raises(SystemExit):
+        main(["live", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in [*PROGRAMS, "file:CMD.csv"]:
+        assert name in text, name

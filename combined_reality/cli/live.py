@@ -41,7 +41,9 @@ def add_parsers(sub) -> None:
     lv.add_argument("--interface", default="socketcan",
                     help="python-can interface for --can (default socketcan; slcan, ...)")
     lv.add_argument("--program", default="mixed",
-                    help="mixed | steps | ramps | sines (closed-loop position) | pulses (open loop) | file:CMD.csv")
+                    help="mixed (default) | steps | ramps | sines: closed-loop position control; pulses: open-loop pulses; "
+                         "calibration: what `calibrate` needs (creeps through the valve's overlap, holds against both "
+                         "end stops, pulses, position control); file:CMD.csv: your own command (columns t,u)")
     lv.add_argument("--duration", type=float, required=True, help="seconds of rig time")
     lv.add_argument("--record", required=True, help="run CSV written as samples arrive")
     lv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
