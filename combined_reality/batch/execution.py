@@ -60,7 +60,7 @@ def _load_inputs(job: CylinderJob):
         raise _RowError(f"cylinder file {job.config} not found") from None
     except (ConfigError, OSError, ValueError) as e:
         raise _RowError(f"cylinder file: {e}") from None
-    runs, truth = [], {}
+    runs, truth, notes = [], {}, []
     if job.simulate is not None:
         s = job.simulate
         try:
@@ -87,14 +87,14 @@ def _load_inputs(job: CylinderJob):
             except (RunFormatError, OSError, ValueError) as e:
                 raise _RowError(str(e)) from None
             try:
-                preflight(cyl, [run])
+                notes += preflight(cyl, [run]).notes
             except (RunFormatError, ConfigError) as e:
                 raise _RowError(str(e)) from None
             runs.append(run)
         rates = {round(r.sample_period, 9) for r in runs}
         if len(rates) > 1:
             raise _RowError("the runs have different sample rates; identify runs of one rig and rate together")
-    return cyl, runs, truth
+    return cyl, runs, truth, notes
 
 
 def _run_statistics(cyl, runs) -> dict:
@@ -132,7 +132,7 @@ def run_job(job: CylinderJob) -> dict:
 
 
 def _identify_row(job: CylinderJob, row: dict) -> dict:
-    cyl, runs, truth = _load_inputs(job)
+    cyl, runs, truth, notes = _load_inputs(job)
     if job.simulate is not None:
         row[SIMULATED_RUNS] = runs  # kept also when the identification fails: they show why
     g = cyl.geometry
@@ -147,8 +147,10 @@ def _identify_row(job: CylinderJob, row: dict) -> dict:
     out.update({"rmse_x": res.fit.get("rmse_x"), "r2_x": res.fit.get("r2_x"), "rmse_p1": res.fit.get("rmse_p1"),
                 "rmse_p2": res.fit.get("rmse_p2"), "solver_status": res.solver["status"],
                 "iterations": res.solver["iterations"]})
-    if res.solver["status"] != "converged":
-        out["warning"] = f"the solver stopped with status {res.solver['status']}"
+    warnings = notes + ([f"the solver stopped with status {res.solver['status']}"]
+                        if res.solver["status"] != "converged" else [])
+    if warnings:
+        out["warning"] = "; ".join(warnings)  # the preflight's notes (what it was not sure of) first
     if job.diagnose:
         out.update(_diagnose_row(cyl, runs))
     return out
