@@ -141,7 +141,7 @@ def test_rerun_without_the_viewer_extra_says_how_to_install_it(monkeypatch, caps
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "rerun" else real(name, *a))
     assert rerun_mode(["off"]) == ("off", None)  # off needs nothing
-    with pytest.raises(UsageError, match=r"--rerun spawn needs the Rerun SDK .* pip install 'combined-reality\[viewer\]'"):
+    with pytest.raises(UsageError, match=r"--rerun spawn needs the Rerun SDK .* 'combined-reality\[viewer\]'"):
         rerun_mode(["spawn"])
 
 

@@ -18,7 +18,7 @@ from conftest import CONFIGS, ROOT, assert_refused
 from combined_reality.cli import main
 from combined_reality.files import Run, RunFormatError, cylinder_tag, read_run, write_run
 from combined_reality.identify import preflight
-from sim.cylinder import ConfigError, load_cylinder
+from sim.cylinder import load_cylinder
 
 CFG_A = CONFIGS / "cyl_a_32x100.toml"
 CFG_40 = CONFIGS / "ind3_norgren_40x250.toml"
@@ -200,14 +200,20 @@ def test_without_config_the_cylinder_file_the_header_names_is_used(files, tmp_pa
     run = tmp_path / "r40.csv"
     write_run(run, simulate_run(cyl, 3.0, seed=1), comments=[cylinder_tag(cyl)])
     code, err = call(["friction-map", run, "--json", tmp_path / "m.json"], capsys)
-    assert err.splitlines()[0] == f"no --config: the cylinder file {cfg} that {run} names in its header is used"
+    assert err.splitlines()[0] == f"no --config: the cylinder file {cfg} that {run} names is used"
     assert code in (0, 2) and "another bore" not in err  # (a 3 s run may hold no constant-speed stretch)
-    # a file named in the header that is not here: the built-in cylinder, said so, then refused by geometry
+    # a file named in the header that is not here: the built-in cylinder A, whose geometry it is not
     cfg.unlink()
     code, err = call(["friction-map", run, "--json", tmp_path / "m.json"], capsys)
-    first, second = err.strip().splitlines()
-    assert first.startswith("no --config: the built-in cylinder A (32 mm x 100 mm") and str(cfg) in first
-    assert "recorded on a cylinder of another bore" in second
+    assert_refused(code, err, "r40.csv was recorded on a cylinder of another bore",
+                   "bore 40 mm, rod 16 mm, stroke 250 mm in its header",
+                   "bore 32 mm, rod 12 mm, stroke 100 mm in", "cyl_a_32x100.toml")
+    from combined_reality.cli.common import cylinder_for_runs
+
+    cyl, which = cylinder_for_runs(None, [read_run(run)])
+    assert cyl.geometry.bore == 0.032
+    assert which == f"no --config: the built-in cylinder A (32 mm x 100 mm) is used (the run's header names {cfg}, " \
+                    "which is not here)"
 
 
 # ------------------------------------------------------------------ no false alarm

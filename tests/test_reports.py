@@ -48,5 +48,6 @@ def test_the_identify_report_renders_in_a_browser(cyl_a, run_a, tmp_path, capsys
 
 def test_a_report_must_be_html(cyl_a, run_a, tmp_path, capsys):
     write_run(tmp_path / "r.csv", run_a.slice(0, 3000))
-    code = main(["identify", "--config", str(cyl_a.source), str(tmp_path / "r.csv"), "--report", str(tmp_path / "r.png")])
+    code = main(["identify", "--config", str(cyl_a.source), str(tmp_path / "r.csv"), "--report",
+                 str(tmp_path / "r.png")])
     assert code == 2 and "the report is HTML" in capsys.readouterr().err

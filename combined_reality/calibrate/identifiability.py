@@ -59,7 +59,8 @@ class Identifiability:
         out = []
         if self.undetermined:
             out.append("Not determined by these runs:")
-            out += [f"  {u['name']}: {u['why']}; to determine it, record {u['advice']}." for u in grouped(self.undetermined)]
+            out += [f"  {u['name']}: {u['why']}; to determine it, record {u['advice']}."
+                    for u in grouped(self.undetermined)]
         if self.correlated:
             out.append("Not separated by these runs (their estimates trade off against each other):")
             out += [f"  {c['a']} and {c['b']} (correlation {c['r']:+.2f})" for c in self.correlated]

@@ -130,7 +130,8 @@ def _identifiability_html(cal: Calibration) -> str:
     if ident.correlated:
         items = "".join(f"<li><code>{escape(c['a'])}</code> and <code>{escape(c['b'])}</code> (correlation "
                         f"{c['r']:+.2f})</li>" for c in ident.correlated)
-        parts.append(f"<p>Not separated by these runs (their estimates trade off against each other):</p><ul>{items}</ul>")
+        parts.append("<p>Not separated by these runs (their estimates trade off against each other):</p>"
+                     f"<ul>{items}</ul>")
     if not parts:
         parts.append("<p>Every calibrated parameter is determined by these runs.</p>")
     return "".join(parts)

@@ -70,7 +70,6 @@ def run(args) -> int:
     if args.validate:
         valid = read_run(args.validate)
         check_train_and_valid(start, runs[0], valid, args.runs[0], args.validate)
-    preflight_runs(start, runs + ([valid] if valid is not None else []))
     estimate = CALIBRATED
     if args.estimate is not None:
         estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
@@ -85,6 +84,7 @@ def run(args) -> int:
         raise UsageError(f"--max-iter must be at least 1, not {args.max_iter}.")
     if args.report and not args.report.lower().endswith((".html", ".htm")):
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
+    preflight_runs(start, runs + ([valid] if valid is not None else []))  # last: its notes follow no refusal
     say = progress_printer(args.quiet)
     if say:
         say(f"calibrating {len(estimate)} parameters from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "

@@ -19,8 +19,9 @@ from typing import Callable, Sequence
 
 from sim.cylinder import Cylinder, load_cylinder
 
-__all__ = ["UsageError", "eprint", "progress_printer", "ProgressView", "default_config_path", "load_config", "cylinder_for_runs",
-           "preflight_runs", "parse_effects", "estimate_list", "positive_float", "rerun_mode", "open_rig", "EFFECT_HELP"]
+__all__ = ["UsageError", "eprint", "progress_printer", "ProgressView", "default_config_path", "load_config",
+           "BUILT_IN", "cylinder_for_runs", "preflight_runs", "parse_effects", "estimate_list", "positive_float", "rerun_mode",
+           "open_rig", "EFFECT_HELP"]
 
 EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 (repeatable; any word of the "
                "vocabulary, see docs/effects.md), or a friction model of the family as the friction, e.g. "
@@ -110,35 +111,31 @@ def default_config_path() -> Path:
     return Path(str(resources.files("combined_reality") / "data" / "cyl_a_32x100.toml"))
 
 
-def load_config(path: str | None, say: Callable[[str], None] | None = eprint) -> Cylinder:
-    """The cylinder file given with --config, else the built-in one (said in one line)."""
-    if path:
-        return load_cylinder(path)
-    if say:
-        say(f"no --config: the built-in cylinder A (32 mm x 100 mm, {default_config_path().name}) is used")
-    return load_cylinder(default_config_path())
+def load_config(path: str | None) -> Cylinder:
+    """The cylinder file given with --config, else the built-in one (BUILT_IN says so)."""
+    return load_cylinder(path if path else default_config_path())
 
 
-def cylinder_for_runs(path: str | None, runs: Sequence, say: Callable[[str], None] | None = eprint) -> Cylinder:
+BUILT_IN = "no --config: the built-in cylinder A (32 mm x 100 mm) is used"
+
+
+def cylinder_for_runs(path: str | None, runs: Sequence) -> tuple[Cylinder, str | None]:
     """The cylinder file given with --config; else the one the first run's header names, where
-    it exists; else the built-in one. Without --config, says which in one line."""
+    it exists; else the built-in one. With the line that says which, when --config is left
+    out (to print once the input is accepted: a refusal stays the only line)."""
     if path:
-        return load_cylinder(path)
-    from ..files import run_name
+        return load_cylinder(path), None
+    from ..files import recorded_file, run_name
     from ..files.checks import header_cylinder_file
-    from ..files.runs import recorded_file
 
     for run in runs:
         named = header_cylinder_file(run)
         if named is not None:
-            if say:
-                say(f"no --config: the cylinder file {named} that {run_name(run)} names in its header is used")
-            return load_cylinder(named)
+            return load_cylinder(named), f"no --config: the cylinder file {named} that {run_name(run)} names is used"
     missing = next((recorded_file(r) for r in runs if recorded_file(r)), None)
-    if say:
-        say(f"no --config: the built-in cylinder A (32 mm x 100 mm, {default_config_path().name}) is used"
-            + (f" (the header's {missing} is not here)" if missing else " (the run's header names no cylinder file)"))
-    return load_cylinder(default_config_path())
+    return load_cylinder(default_config_path()), BUILT_IN + (
+        f" (the run's header names {missing}, which is not here)" if missing else
+        " (the run's header names no cylinder file)")
 
 
 def preflight_runs(cyl: Cylinder, runs: Sequence, estimate: Sequence[str] = ()):

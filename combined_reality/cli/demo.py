@@ -27,7 +27,7 @@ def run(args) -> int:
     from ..identify import IdentifyOptions, identify
     from ..live import simulate_run
 
-    cyl = load_config(args.config, say=None)
+    cyl = load_config(args.config)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     prog = progress_printer(args.quiet)

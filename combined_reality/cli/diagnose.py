@@ -42,9 +42,8 @@ def run(args) -> int:
     from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
 
     train, valid = read_run(args.train), read_run(args.validate)
-    cyl = cylinder_for_runs(args.config, [train, valid], None if args.quiet else eprint)
+    cyl, which = cylinder_for_runs(args.config, [train, valid])
     check_train_and_valid(cyl, train, valid, args.train, args.validate)
-    preflight_runs(cyl, [train, valid])
     names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:
@@ -56,6 +55,9 @@ def run(args) -> int:
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers),
                            calibrate=args.calibrate)
+    preflight_runs(cyl, [train, valid])  # last: its notes follow no refusal
+    if which and not args.quiet:
+        eprint(which)
     diagnosis = diagnose(cyl, train, valid, opts, progress=progress_printer(args.quiet))
     result = diagnosis.to_json()
     print(format_summary(result, args.horizon))

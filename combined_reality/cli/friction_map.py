@@ -74,7 +74,7 @@ def run(args) -> int:
         raise UsageError(f"--load must be a non-negative force in N, not {args.load}.")
     say = (lambda msg: None) if args.quiet else eprint
 
-    cyl = None
+    cyl, which = None, None
     points, breakaways, runs_json = [], [], []
     stuck_time = None
     stuck_speeds = []
@@ -93,8 +93,11 @@ def run(args) -> int:
             raise UsageError(f"{path}: file not found.")
         run_ = read_run(path)
         if cyl is None:
-            cyl = cylinder_for_runs(args.config, [run_], None if args.quiet else eprint)
+            cyl, which = cylinder_for_runs(args.config, [run_])
         preflight_runs(cyl, [run_])
+        if which:  # once the run is accepted: a refusal stays the only line
+            say(which)
+            which = None
         rp = points_from_run(cyl, run_, options, load=args.load)
         points.extend(rp.points)
         breakaways.extend(rp.breakaways)

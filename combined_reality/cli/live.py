@@ -9,8 +9,8 @@ import signal
 import time
 from pathlib import Path
 
-from .common import (EFFECT_HELP, UsageError, cylinder_for_runs, eprint, estimate_list, load_config, open_rig,
-                     parse_effects, positive_float, preflight_runs, rerun_mode)
+from .common import (BUILT_IN, EFFECT_HELP, UsageError, cylinder_for_runs, eprint, estimate_list, load_config,
+                     open_rig, parse_effects, positive_float, preflight_runs, rerun_mode)
 
 
 def _add_online_arguments(a) -> None:
@@ -41,9 +41,10 @@ def add_parsers(sub) -> None:
     lv.add_argument("--interface", default="socketcan",
                     help="python-can interface for --can (default socketcan; slcan, ...)")
     lv.add_argument("--program", default="mixed",
-                    help="mixed (default) | steps | ramps | sines: closed-loop position control; pulses: open-loop pulses; "
-                         "calibration: what `calibrate` needs (creeps through the valve's overlap, holds against both "
-                         "end stops, pulses, position control); file:CMD.csv: your own command (columns t,u)")
+                    help="mixed (default) | steps | ramps | sines: closed-loop position control; pulses: open-loop "
+                         "pulses; calibration: what `calibrate` needs (creeps through the valve's overlap, holds "
+                         "against both end stops, pulses, position control); file:CMD.csv: your own command "
+                         "(columns t,u)")
     lv.add_argument("--duration", type=float, required=True, help="seconds of rig time")
     lv.add_argument("--record", required=True, help="run CSV written as samples arrive")
     lv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
@@ -88,7 +89,11 @@ def run_live(args) -> int:
         link_events.append(msg)
         console.warn(msg)
 
+    _online_options(args, cyl)  # the options refused before anything is said
+    rerun_mode(args.rerun)
     rig = open_rig(args, cyl, effects, rate=args.rate, paced=True, on_event=link_event)
+    if not args.config:
+        console.warn(BUILT_IN)
     return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, pipelined=False,
                         console=console, link_events=link_events)
 
@@ -98,11 +103,15 @@ def run_replay(args) -> int:
     from ..live import Console, ReplayRig
 
     run = read_run(args.run)
-    cyl = cylinder_for_runs(args.config, [run], None if args.quiet else eprint)
-    preflight_runs(cyl, [run])
+    cyl, which = cylinder_for_runs(args.config, [run])
     if run.n < 3:
         raise UsageError(f"{args.run}: a run needs at least 3 samples.")
     speed = math.inf if args.speed == "max" else positive_float(args.speed, "--speed")
+    _online_options(args, cyl)  # the options refused before anything is said
+    rerun_mode(args.rerun)
+    preflight_runs(cyl, [run])
+    if which and not args.quiet:
+        eprint(which)
     return _run_session(args, cyl, ReplayRig(run, speed), None, None, None, run.sample_period,
                         pipelined=speed == math.inf, console=Console(status=not args.quiet))
 

@@ -15,7 +15,7 @@ import threading
 import time
 from pathlib import Path
 
-from .common import UsageError, eprint, load_config, open_rig, parse_effects
+from .common import BUILT_IN, UsageError, eprint, load_config, open_rig, parse_effects
 
 KINDS = ("breakaway", "sweep")
 _DIRECTIONS = {"both": (1, -1), "extension": (1,), "retraction": (-1,)}
@@ -88,6 +88,8 @@ def run(args) -> int:
                          "--virtual.")
     _check_paths(args)
     rig = open_rig(args, cyl, effects, paced=args.realtime)
+    if not args.config:
+        eprint(BUILT_IN)
     where = f"serial {args.serial}" if args.serial else f"CAN {args.can} ({args.interface})" if args.can \
         else "virtual rig" + (f" with {', '.join(args.effect)}" if args.effect else "")
     comments = [cylinder_tag(cyl), f"combined-reality procedure {args.kind}: cylinder {cyl.name!r} ({cyl.source}), {where}",

@@ -60,7 +60,7 @@ def run(args) -> int:
     from hw.links import FaultSpec
     from hw.rig_server import RigServer, ServerOptions
 
-    cyl = load_config(args.config, say=None)
+    cyl = load_config(args.config)
     effects = parse_effects(args.effect)
     if args.duration is not None and not (args.duration >= 0 and math.isfinite(args.duration)):
         raise UsageError(f"--duration must be a non-negative number of seconds, not {args.duration}.")

@@ -16,7 +16,7 @@ from .smoothing import derivative_kernels, savgol_kernels, velocity_estimate
 from .validation import Validation, validate, validation_gain, validation_segments
 
 __all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estimate", "IdentifyOptions", "IdentifyResult",
-           "identify", "check_determinable", "motion_summary", "Preflight", "preflight", "MovingHorizonEstimator", "OnlineEstimate",
-           "OnlineOptions", "UNITS", "IdentificationError", "PriorRow",
+           "identify", "check_determinable", "motion_summary", "Preflight", "preflight", "MovingHorizonEstimator",
+           "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError", "PriorRow",
            "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",
            "validate", "validation_gain", "validation_segments"]

@@ -152,7 +152,8 @@ class Preflight:
 
 def preflight(cyl: Cylinder, runs: Sequence[Run], estimate: Sequence[str] = ()) -> Preflight:
     """Check that every run can belong to `cyl` (files.checks: channels, header, stroke, gauge
-    chambers; the motion's directions; then the supply, which needs the directions right) and, with `estimate`, that the runs can determine those parameters (check_determinable).
+    chambers; the motion's directions; then the supply, which needs the directions right)
+    and, with `estimate`, that the runs can determine those parameters (check_determinable).
     Raises RunFormatError / ConfigError on what it is sure of; returns the notes."""
     notes: list[str] = []
     figures = []
@@ -315,7 +316,8 @@ def _judge_directions(run: Run, cyl: Cylinder, f: dict) -> list[str]:
                      f"near 0.6 to 0.75: if the pressures are gauge, {GAUGE_FIX}")
     elif rest > _REST_HIGH:
         notes.append(f"{name}: at rest the chambers sit {rest:.2f} of the way from the atmosphere to the supply "
-                     f"({cyl.supply.atmosphere:g} to {cyl.supply.pressure:g} Pa of {cyl.source or 'the cylinder file'}), "
+                     f"({cyl.supply.atmosphere:g} to {cyl.supply.pressure:g} Pa of "
+                     f"{cyl.source or 'the cylinder file'}), "
                      f"where a centred valve holds them near 0.6 to 0.75: if the file's supply is gauge, give it "
                      f"absolute (gauge + {cyl.supply.atmosphere:g} Pa)")
     return notes

@@ -339,13 +339,14 @@ def headline(result: IdentifyResult) -> tuple[list[str], bool]:
     sigma = s["residual_sigma"]
     ok = result.explains_run
     lines = [f"The model explains the runs to {sigma:.2f} × the sensor noise." if ok else
-             f"The model does not explain the runs: the residual is {sigma:.3g} × the sensor noise (above {MISMATCH:g})."]
-    lines.append(f"Solver: {s['status']} after {s['iterations']} iterations, {s['wall_s']:.1f} s, {result.drive} drive, "
-                 f"{s['n_samples']} samples.")
+             f"The model does not explain the runs: the residual is {sigma:.3g} × the sensor noise (above "
+             f"{MISMATCH:g})."]
+    lines.append(f"Solver: {s['status']} after {s['iterations']} iterations, {s['wall_s']:.1f} s, {result.drive} "
+                 f"drive, {s['n_samples']} samples.")
     if not ok:
         lines.append("The values below describe a misfit: if the cylinder file's valve, dead volumes, mass or sensor "
-                     "offsets are guesses, calibrate them (combined-reality calibrate); if an effect the model lacks is "
-                     "at work, diagnose it (combined-reality diagnose).")
+                     "offsets are guesses, calibrate them (combined-reality calibrate); if an effect the model lacks "
+                     "is at work, diagnose it (combined-reality diagnose).")
     return lines, ok
 
 
