@@ -91,9 +91,9 @@ class ProgressView:
             bar = self.bars[s.task] = tqdm(total=s.total, desc=s.task.strip(), file=sys.stderr, leave=False,
                                            dynamic_ncols=True, position=len(self.bars), bar_format=fmt,
                                            unit="", mininterval=0.2)
-        bar.update(s.done - bar.n)
         if "cost" in s.figures:
             bar.set_postfix_str(f"cost {s.figures['cost']:.4g}", refresh=False)
+        bar.update(s.done - bar.n)
         bar.refresh()
 
     def _close_bars(self) -> None:
