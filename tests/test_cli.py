@@ -133,7 +133,7 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"combined-reality {version('combined-reality')}"
 
 
-def test_rerun_without_the_viewer_extra_says_how_to_install_it(monkeypatch, capsys):
+def test_rerun_without_the_sdk_says_how_to_install_it(monkeypatch, capsys):
     import importlib.util
 
     from combined_reality.cli.common import UsageError, rerun_mode
@@ -141,7 +141,7 @@ def test_rerun_without_the_viewer_extra_says_how_to_install_it(monkeypatch, caps
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "rerun" else real(name, *a))
     assert rerun_mode(["off"]) == ("off", None)  # off needs nothing
-    with pytest.raises(UsageError, match=r"--rerun spawn needs the Rerun SDK .* 'combined-reality\[viewer\]'"):
+    with pytest.raises(UsageError, match=r"--rerun spawn needs the Rerun SDK .* pip install rerun-sdk\."):
         rerun_mode(["spawn"])
 
 

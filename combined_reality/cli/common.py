@@ -201,8 +201,8 @@ def rerun_mode(words: Sequence[str]) -> tuple[str, str | None]:
         from importlib.util import find_spec
 
         if find_spec("rerun") is None:
-            raise UsageError(f"--rerun {mode} needs the Rerun SDK and viewer, an extra of the install: "
-                             "pip install 'combined-reality[viewer]'.")
+            raise UsageError(f"--rerun {mode} needs the Rerun SDK and viewer, which this installation lacks: "
+                             "pip install rerun-sdk.")
     return mode, (rest[0] if rest else None)
 
 
