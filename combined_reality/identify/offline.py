@@ -181,6 +181,22 @@ class IdentifyResult:
 
 # ------------------------------------------------------------------ problem layout
 
+# A run longer than this is fitted as pieces of at most this long, each from its own initial state,
+# like the stretches between lost samples. A Gauss-Newton step closes every continuity defect of
+# a piece at once: over an hour the position integrates the defects of 36 000 intervals into
+# node states no cylinder can have, and the first line search failed (a 600 s piece converged).
+LONG_PIECE_S = 60.0
+
+
+def long_run_pieces(run: Run, M: int) -> list[Run]:
+    """`run` in equal pieces of whole intervals (M samples), none longer than LONG_PIECE_S."""
+    if run.duration <= LONG_PIECE_S:
+        return [run]
+    intervals = math.ceil(run.n / M)
+    n_pieces = math.ceil(run.duration / LONG_PIECE_S)
+    per = math.ceil(intervals / n_pieces) * M
+    return [run.slice(a, min(a + per, run.n)) for a in range(0, run.n, per) if min(a + per, run.n) - a >= 3]
+
 
 # ------------------------------------------------------------------ the solver
 
@@ -228,6 +244,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         raise IdentificationError("no runs to identify from.")
     check_determinable(cyl, runs, options.estimate)  # no "converged" on runs that cannot say
     n_runs = len(runs)
+    runs_given = runs
     # the measured pressures drive the pressure-driven plant: where one was not measured, that
     # plant has no input, so the run is cut there like at lost samples
     inputs = ("p1", "p2") if options.drive == "pressure" else ()
@@ -264,6 +281,10 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     sf = shooting_functions(plant, M, free, options.integrator, progress=progress, with_sens=True)
     nx, nth = plant.nx, len(free)
 
+    runs = [part for r in runs for part in long_run_pieces(r, M)]
+    if progress and any(r.duration > LONG_PIECE_S for r in runs_given):
+        progress(f"  runs longer than {LONG_PIECE_S:g} s fitted as {len(runs)} pieces of at most {LONG_PIECE_S:g} s, "
+                 "each from its own initial state")
     layouts: list[RunLayout] = []
     node0 = 0
     for r in runs:
