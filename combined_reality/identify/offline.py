@@ -244,7 +244,6 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         raise IdentificationError("no runs to identify from.")
     check_determinable(cyl, runs, options.estimate)  # no "converged" on runs that cannot say
     n_runs = len(runs)
-    runs_given = runs
     # the measured pressures drive the pressure-driven plant: where one was not measured, that
     # plant has no input, so the run is cut there like at lost samples
     inputs = ("p1", "p2") if options.drive == "pressure" else ()
@@ -281,10 +280,11 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     sf = shooting_functions(plant, M, free, options.integrator, progress=progress, with_sens=True)
     nx, nth = plant.nx, len(free)
 
-    runs = [part for r in runs for part in long_run_pieces(r, M)]
-    if progress and any(r.duration > LONG_PIECE_S for r in runs_given):
-        progress(f"  runs longer than {LONG_PIECE_S:g} s fitted as {len(runs)} pieces of at most {LONG_PIECE_S:g} s, "
-                 "each from its own initial state")
+    cut = [part for r in runs for part in long_run_pieces(r, M)]
+    if progress and len(cut) > len(runs):
+        progress(f"  {len(cut) - len(runs)} cut(s) where a run is longer than {LONG_PIECE_S:g} s: {len(cut)} pieces "
+                 "identified jointly, each from its own initial state")
+    runs = cut
     layouts: list[RunLayout] = []
     node0 = 0
     for r in runs:
