@@ -4,8 +4,10 @@ length of the run.
     python benchmarks/long_run.py [--durations 60 600 3600] [--cache DIR] [--baseline CHECKOUT]
                                   [--cli] [--replay 60 600] [--calibrate 60 600]
 
-Every figure comes from a fresh process: its wall time and its peak resident memory (the
-kernel's maximum RSS of that child, os.wait4), so nothing of one case stays in another.
+Every figure comes from a fresh process: its wall time, its CPU time (user + system, all
+threads: less at the mercy of other work on a shared machine than the wall time) and its peak
+resident memory (the kernel's maximum RSS of that child, os.wait4), so nothing of one case
+stays in another.
 
 For each duration (at 1 kHz, cylinder A, the virtual rig under closed-loop position control):
 
@@ -22,7 +24,7 @@ caps the durations it is run for). --replay and --calibrate measure `replay --sp
 `calibrate` on runs of those durations.
 
 The targets: peak memory of identify at 3600 s <= 1 GB, time growing no worse than linearly
-(time / duration relative to the shortest case <= 1, allowing for load), and the estimates of
+(CPU time / duration relative to the shortest case <= 1, allowing for load), and the estimates of
 the longest run within a few std of the truth. It is a report: it exits 0 whatever the figures
 are (non-zero only on a crash).
 """
@@ -53,7 +55,8 @@ def measured(cmd: list[str], env: dict | None = None, cwd: Path | None = None) -
         wall = time.perf_counter() - t0
         out.seek(0)
         err.seek(0)
-        return {"wall_s": wall, "peak_mb": usage.ru_maxrss / 1024.0, "rc": proc.returncode,
+        return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_mb": usage.ru_maxrss / 1024.0,
+                "rc": proc.returncode,
                 "stdout": out.read().decode(errors="replace"), "stderr": err.read().decode(errors="replace")}
 
 
@@ -106,12 +109,12 @@ def ensure_run(cache: Path, duration: float, seed: int) -> tuple[Path, Path, dic
                            "-o", str(csv), "-q"), cwd=REPO)
         if sim["rc"] != 0:
             raise SystemExit(f"simulate failed: {sim['stderr']}")
-        known["simulate"] = {k: sim[k] for k in ("wall_s", "peak_mb")}
+        known["simulate"] = {k: sim[k] for k in ("wall_s", "cpu_s", "peak_mb")}
     if not npz.exists():
         rd = measured([sys.executable, __file__, "--child-read", str(csv), str(npz)], cwd=REPO)
         if rd["rc"] != 0:
             raise SystemExit(f"reading failed: {rd['stderr']}")
-        known["read"] = {k: rd[k] for k in ("wall_s", "peak_mb")}
+        known["read"] = {k: rd[k] for k in ("wall_s", "cpu_s", "peak_mb")}
     figs.write_text(json.dumps(known))
     return csv, npz, known.get("simulate", {}), known.get("read", {})
 
@@ -159,7 +162,7 @@ def main() -> int:
             row["baseline"] = identify_case(npz, args.baseline)
         if args.cli:
             c = measured(cli("identify", "--config", str(CFG), str(csv)), cwd=REPO)
-            row["cli"] = {k: c[k] for k in ("wall_s", "peak_mb", "rc")}
+            row["cli"] = {k: c[k] for k in ("wall_s", "cpu_s", "peak_mb", "rc")}
         rows.append(row)
     extra = []
     for kind, lengths in (("replay", args.replay), ("calibrate", args.calibrate)):
@@ -174,24 +177,24 @@ def main() -> int:
     print()
     print("identify (default options) of runs at 1 kHz, each in a fresh process; the run loaded from .npz")
     first = rows[0]["identify"]
-    print(f"{'duration':>9} {'samples':>9} {'wall s':>8} {'s per s':>8} {'vs first':>9} {'peak MB':>8} "
+    print(f"{'duration':>9} {'samples':>9} {'wall s':>8} {'cpu s':>8} {'cpu/s':>7} {'vs first':>9} {'peak MB':>8} "
           f"{'iter':>5} {'status':>10} {'sigma':>6}  estimates (truth; error in std)")
     for r in rows:
         i = r["identify"]
         if "error" in i:
             print(f"{r['duration']:>9g} failed: {i['error'][0]}  (peak {i['peak_mb']:.0f} MB)")
             continue
-        per = i["wall_s"] / r["duration"]
-        rel = per / (first["wall_s"] / rows[0]["duration"])
+        per = i["cpu_s"] / r["duration"]
+        rel = per / (first["cpu_s"] / rows[0]["duration"])
         est = "  ".join(f"{n} {v:.5g}+-{s:.2g} ({i['truth'][n]:.4g}; {(v - i['truth'][n]) / s:+.2f})"
                         for n, (v, s) in i["params"].items())
-        print(f"{r['duration']:>9g} {int(r['duration'] * 1000):>9d} {i['wall_s']:>8.1f} {per:>8.3f} {rel:>9.2f} "
+        print(f"{r['duration']:>9g} {int(r['duration'] * 1000):>9d} {i['wall_s']:>8.1f} {i['cpu_s']:>8.1f} {per:>7.3f} {rel:>9.2f} "
               f"{i['peak_mb']:>8.0f} {i['iterations']:>5d} {i['status']:>10} {i['residual_sigma']:>6.3f}  {est}")
     last = rows[-1]["identify"]
     if "error" not in last:
         worst = max(abs(v - last["truth"][n]) / s for n, (v, s) in last["params"].items())
         print(f"\nlongest ({rows[-1]['duration']:g} s): peak {last['peak_mb']:.0f} MB (target <= {TARGET_PEAK_MB:.0f}), "
-              f"time per second of data {last['wall_s'] / rows[-1]['duration'] / (first['wall_s'] / rows[0]['duration']):.2f}"
+              f"CPU time per second of data {last['cpu_s'] / rows[-1]['duration'] / (first['cpu_s'] / rows[0]['duration']):.2f}"
               f" x the shortest's (<= 1: linear or better), estimates within {worst:.2f} std of the truth")
     base = [r for r in rows if "baseline" in r]
     if base:
@@ -201,19 +204,21 @@ def main() -> int:
             if "error" in b:
                 print(f"{r['duration']:>9g} s: baseline failed ({b['error'][0]}; peak {b['peak_mb']:.0f} MB)")
                 continue
-            same = b.get("params") == i.get("params")
+            rel = max(abs(i["params"][n][k] / b["params"][n][k] - 1) for n in i["params"] for k in (0, 1))
+            same = "identical" if rel == 0 else f"equal to {rel:.1e} (relative)"
             print(f"{r['duration']:>9g} s: wall {i['wall_s']:.2f} / {b['wall_s']:.2f} s = {i['wall_s'] / b['wall_s']:.2f}, "
+                  f"cpu {i['cpu_s']:.2f} / {b['cpu_s']:.2f} s = {i['cpu_s'] / b['cpu_s']:.2f}, "
                   f"fit {i['fit_s']:.2f} / {b['fit_s']:.2f} s = {i['fit_s'] / b['fit_s']:.2f}, peak {i['peak_mb']:.0f} / "
-                  f"{b['peak_mb']:.0f} MB; estimates and std {'identical' if same else 'DIFFER'}")
+                  f"{b['peak_mb']:.0f} MB; estimates and std {same}")
     print("\nthe other steps (fresh processes; {} where the run came from the cache):")
     for r in rows:
         parts = []
         for k in ("simulate", "read", "cli"):
             if r.get(k):
-                parts.append(f"{k} {r[k]['wall_s']:.1f} s {r[k]['peak_mb']:.0f} MB")
+                parts.append(f"{k} {r[k]['wall_s']:.1f} s (cpu {r[k].get('cpu_s', float('nan')):.1f} s) {r[k]['peak_mb']:.0f} MB")
         print(f"{r['duration']:>9g} s: " + ("; ".join(parts) or "{}"))
     for kind, d, m in extra:
-        print(f"{d:>9g} s: {kind} {m['wall_s']:.1f} s {m['peak_mb']:.0f} MB (exit {m['rc']})")
+        print(f"{d:>9g} s: {kind} {m['wall_s']:.1f} s (cpu {m['cpu_s']:.1f} s) {m['peak_mb']:.0f} MB (exit {m['rc']})")
     return 0
 
 

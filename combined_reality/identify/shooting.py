@@ -62,7 +62,7 @@ class RunLayout:
     W: np.ndarray  # (nw, K*(M+1)) inputs at both ends of every sample step
     H: np.ndarray  # (1, K*M) step lengths (0 = padding)
     Y: np.ndarray  # (K, M, ny) measured outputs (0 where not measured)
-    mask: np.ndarray  # (K, M, ny) 1 where a sample exists and that output was measured
+    mask: np.ndarray  # (K, M, ny) True where a sample exists and that output was measured (1 byte a value)
     S0: np.ndarray  # (nx, K) initial node states
 
 
@@ -136,7 +136,7 @@ def run_layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> Run
     ys = np.where(mask, ys, 0.0)
     nodes = np.arange(K) * M
     S0 = np.array([plant.initial_state(cyl, x[i], p1[i], p2[i], v[i]) for i in nodes]).T
-    return RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask.astype(float).reshape(K, M, -1), S0)
+    return RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask.reshape(K, M, -1), S0)
 
 
 
