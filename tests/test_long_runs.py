@@ -115,3 +115,23 @@ def test_a_fit_holds_no_more_per_sample_than_the_data(cyl_a, monkeypatch):
             tracemalloc.stop()
     per_sample = (peaks[12.0] - peaks[3.0]) / 9000
     assert per_sample < 400, peaks
+
+
+def test_a_run_longer_than_a_minute_is_fitted_in_equal_pieces_of_whole_intervals():
+    """A run over LONG_PIECE_S is cut into the fewest equal pieces of whole intervals that are
+    none longer, every sample in exactly one; a run up to it is left whole."""
+    from combined_reality.files import Run
+    from combined_reality.identify.offline import LONG_PIECE_S, long_run_pieces
+
+    def run(n):
+        t = np.arange(n) * 1e-3
+        return Run(t=t, u=np.zeros(n), x=np.zeros(n), p1=np.full(n, 2e5), p2=np.full(n, 2e5))
+
+    short = run(int(LONG_PIECE_S * 1000) + 1)  # exactly LONG_PIECE_S long
+    assert long_run_pieces(short, 100) == [short]
+    long = run(150_001)  # 150 s
+    pieces = long_run_pieces(long, 100)
+    assert len(pieces) == 3
+    assert all(p.duration <= LONG_PIECE_S for p in pieces)
+    assert all(p.n % 100 == 0 for p in pieces[:-1])
+    assert np.array_equal(np.concatenate([p.t for p in pieces]), long.t)
