@@ -583,7 +583,7 @@ class NormalEquations:
         nred = R * nx + nth
         self.N = np.zeros((nred, nred))
         self.g = np.zeros(nred)
-        self._JE, self._Jc = np.zeros(nred), np.zeros(nred)  # J'E, J'c
+        self._Jc = np.zeros(nred)  # J'c (J'E = g - J'c: one product less per chunk)
         self._Ec, self._cc = 0.0, 0.0  # E'c, c'c
         self.cost2: float | None = None  # sum of squared weighted residuals
         self.P = np.empty((self.Ktot, nx, nx))
@@ -636,7 +636,6 @@ class NormalEquations:
             js = Js[lo:hi].reshape(-1, nx)
             jt = Jt[lo:hi].reshape(js.shape[0], nth)
             sa = slice(ri * nx, (ri + 1) * nx)
-            add_gradient(self._JE, js, jt, E[lo:hi].reshape(-1), sa, th)
             add_gradient(self._Jc, js, jt, c[lo:hi].reshape(-1), sa, th)
         params = np.einsum("kmoi,kmo->ki", Jt, r0)
         cl = self._cluster_of[a:b]
@@ -654,7 +653,7 @@ class NormalEquations:
         """(gdir, quad) of a step z in (ds0, dtheta): the residuals' linearised change is
         l = J z + c, gdir = E'l and quad = l'l (the cost changes by gdir + quad / 2)."""
         z = np.asarray(step, float)
-        gdir = float(self._JE @ z) + self._Ec
+        gdir = float((self.g - self._Jc) @ z) + self._Ec
         quad = float(z @ self.N @ z) + 2.0 * float(self._Jc @ z) + self._cc
         return gdir, quad
 
