@@ -294,8 +294,9 @@ class ShootingFunctions:
     sens: ca.Function | None
     stats: BuildStats = field(default_factory=BuildStats)
 
-    def simulate(self, s0, w, p, h) -> np.ndarray:
-        """States (nx, n+1) at the samples 0..n of a trajectory from s0 (sample 0).
+    def simulate(self, s0, w, p, h, rows: Sequence[int] | None = None) -> np.ndarray:
+        """States (nx, n+1) at the samples 0..n of a trajectory from s0 (sample 0); with `rows`,
+        only those states (the outputs of a long run, without the whole state held).
 
         w: inputs at the n+1 sample instants (nw, n+1), a 1-D array for a single input
         (a held input's last column is not used); h: the n step lengths, or one for all.
@@ -308,11 +309,14 @@ class ShootingFunctions:
         pad = K * M - n
         w = np.hstack([w, np.repeat(w[:, -1:], pad, axis=1)])
         h = np.concatenate([np.broadcast_to(np.asarray(h, float), (n,)), np.zeros(pad)])
-        X = np.empty((self.plant.nx, K * M + 1))
-        X[:, 0] = s0
+        rows = list(range(self.plant.nx)) if rows is None else list(rows)
+        X = np.empty((len(rows), K * M + 1))
+        s = np.asarray(s0, float).ravel()
+        X[:, 0] = s[rows]
         for k in range(K):
-            X[:, k * M + 1:(k + 1) * M + 1] = np.asarray(
-                self.interval(X[:, k * M], w[:, k * M:(k + 1) * M + 1], p, h[None, k * M:(k + 1) * M]))
+            Xk = np.asarray(self.interval(s, w[:, k * M:(k + 1) * M + 1], p, h[None, k * M:(k + 1) * M]))
+            X[:, k * M + 1:(k + 1) * M + 1] = Xk[rows]
+            s = Xk[:, -1]
         return X[:, :n + 1]
 
 

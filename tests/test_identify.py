@@ -379,7 +379,7 @@ def test_an_overflowing_linearisation_gives_no_step_and_no_warning():
     condensed normal equations are not finite, no step comes of them, and numpy stays silent."""
     import warnings
 
-    from combined_reality.identify.shooting import RunLayout, condense, solve_bounded
+    from combined_reality.identify.shooting import NormalEquations, solve_bounded
 
     K, M, ny, nx, nth = 400, 3, 1, 2, 1
     G = np.ones((K, M, ny, nx))
@@ -389,10 +389,13 @@ def test_an_overflowing_linearisation_gives_no_step_and_no_warning():
     E = np.ones((K, M, ny))
     has_next = np.ones(K, bool)
     has_next[-1] = False
-    layout = RunLayout(None, K, 0, None, None, None, None, None)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        N, g, *_ = condense((G, Hth, A, B), E, np.zeros((nx, K - 1)), [layout], has_next, nx, nth)
+        eqs = NormalEquations([(0, K)], nx, nth, 10)
+        for a in range(0, K, 100):  # in chunks, the transitions carried from one to the next
+            D = np.zeros((nx, min(100, K - 1 - a)))
+            eqs.add((G[a:a + 100], Hth[a:a + 100], A[a:a + 100], B[a:a + 100]), E[a:a + 100], D, D, has_next)
+        N, g = eqs.N, eqs.g
         assert not np.all(np.isfinite(N))
         assert solve_bounded(N, g, np.zeros(nth), np.full(nth, -1.0), np.full(nth, 1.0), nx, 0.0) is None
 
@@ -440,15 +443,15 @@ def test_a_trial_step_given_up_part_way_changes_nothing_but_the_work(cyl_a, monk
     import combined_reality.identify.shooting as shooting
 
     given_up = []
-    whole = shooting.ShootingProblem._simulate_unless
+    whole = shooting.ShootingProblem.merit_terms
 
-    def watched(self, S, p, give_up):
+    def watched(self, S, p, give_up=None):
         out = whole(self, S, p, give_up)
-        if out is None and self.allows(S) and self.simulate(S, p, False) is not None:
+        if out is None and give_up is not None and whole(self, S, p) is not None:
             given_up.append(S)  # a finite trial given up part way
         return out
 
-    monkeypatch.setattr(shooting.ShootingProblem, "_simulate_unless", watched)
+    monkeypatch.setattr(shooting.ShootingProblem, "merit_terms", watched)
     opts = IdentifyOptions(prefit=False, restart_misfit=False)
     run = simulate_run(cyl_a, 6.0, seed=3)
     far = cyl_a.with_values({"Fc": 3 * cyl_a.friction.Fc, "Fv": 0.2 * cyl_a.friction.Fv, "kp": 3 * cyl_a.friction.kp})

@@ -8,19 +8,22 @@ import math
 import os
 import secrets
 from pathlib import Path
+from typing import Iterable
 
 __all__ = ["atomic_write", "write_text_atomic", "write_json_atomic", "clean_json", "fsync_dir"]
 
 
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write via a temporary file, fsync and rename: readers see the old file or the whole new one."""
+def atomic_write(path: Path, data: bytes | Iterable[bytes]) -> None:
+    """Write via a temporary file, fsync and rename: readers see the old file or the whole new one.
+    `data` may come in parts (written as they are made: a long run's CSV is never held whole)."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
     # os.open with 0o666 lets the umask decide the permissions, as for an ordinary new file
     # (tempfile would leave the result readable by its owner only).
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            for part in (data,) if isinstance(data, bytes) else data:
+                f.write(part)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -431,10 +431,19 @@ def write_run(path: str | os.PathLike[str], run: Run, comments: Sequence[str] | 
     """Write ``run`` as CSV atomically (readers never see a partial file); round-trips exactly."""
     path = Path(path)
     names, cols = _columns_of(run)
-    parts: list[str] = [_comment_lines(comments or ()), _join(names) + "\n"]
-    formatted = [_format_column(name, col) for name, col in zip(names, cols)]
-    parts.append("".join(",".join(row) + "\n" for row in zip(*formatted)))
-    atomic_write(path, "".join(parts).encode("utf-8"))
+
+    def parts():
+        yield (_comment_lines(comments or ()) + _join(names) + "\n").encode("utf-8")
+        for a in range(0, run.n, _WRITE_ROWS):
+            formatted = [_format_column(name, col[a:a + _WRITE_ROWS]) for name, col in zip(names, cols)]
+            yield "".join(",".join(row) + "\n" for row in zip(*formatted)).encode("utf-8")
+
+    atomic_write(path, parts())
+
+
+# rows formatted at a time: with the text of the whole run held, simulate --duration 3600 peaked at
+# 2.66 GB (273 MB so)
+_WRITE_ROWS = 1 << 16
 
 
 def _columns_of(run: Run) -> tuple[list[str], list[np.ndarray]]:

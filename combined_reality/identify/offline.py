@@ -34,11 +34,11 @@ from ..files import Run, split_at_gaps
 from ..progress import Step
 from .newton import equation_error_friction
 from .preflight import check_determinable
-from .shooting import (IdentificationError, PriorRow, RunLayout, ShootingProblem, at_bounds, condense,
-                       drives_with_measured_inputs, fit_metrics, free_parameters, interval_residual_sigma,
-                       line_search, linearize, parameter_bounds, parameter_unit, pooled_fit, prior_matrix,
-                       reported_covariance, residual_scales, run_layout, simulate_layout, solve_bounded,
-                       standard_deviations, warm_nodes, with_effect_values)
+from .shooting import (IdentificationError, NormalEquations, PriorRow, RunLayout, ShootingProblem, at_bounds,
+                       concatenated_layouts, drives_with_measured_inputs, fit_metrics, free_parameters,
+                       interval_residual_sigma, line_search, parameter_bounds, parameter_unit, pooled_fit,
+                       prior_matrix, reported_covariance, residual_scales, run_layout, simulate_layout,
+                       solve_bounded, standard_deviations, warm_nodes, with_effect_values)
 
 
 # a model whose residual is this many times the sensor noise does not explain the run: its
@@ -182,6 +182,22 @@ class IdentifyResult:
 
 # ------------------------------------------------------------------ problem layout
 
+# A run longer than this is fitted as pieces of at most this long, each from its own initial state,
+# like the stretches between lost samples. A Gauss-Newton step closes every continuity defect of
+# a piece at once: over an hour the position integrates the defects of 36 000 intervals into
+# node states no cylinder can have, and the first line search failed (a 600 s piece converged).
+LONG_PIECE_S = 60.0
+
+
+def long_run_pieces(run: Run, M: int) -> list[Run]:
+    """`run` in equal pieces of whole intervals (M samples), none longer than LONG_PIECE_S."""
+    if run.duration <= LONG_PIECE_S:
+        return [run]
+    intervals = math.ceil(run.n / M)
+    n_pieces = math.ceil(run.duration / LONG_PIECE_S)
+    per = math.ceil(intervals / n_pieces) * M
+    return [run.slice(a, min(a + per, run.n)) for a in range(0, run.n, per) if min(a + per, run.n) - a >= 3]
+
 
 # ------------------------------------------------------------------ the solver
 
@@ -263,9 +279,13 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     M = max(5, int(round(options.interval_s / dt0)))
     cluster = max(1, int(round(1.0 / (M * dt0))))  # intervals per second: the robust std's clusters
     sf = shooting_functions(plant, M, free, options.integrator, progress=progress, with_sens=True)
-    nx, ny, nth = plant.nx, len(plant.output_names), len(free)
-    out_idx = [plant.state_names.index(n) for n in plant.output_names]
+    nx, nth = plant.nx, len(free)
 
+    cut = [part for r in runs for part in long_run_pieces(r, M)]
+    if progress and len(cut) > len(runs):
+        progress(f"  {len(cut) - len(runs)} cut(s) where a run is longer than {LONG_PIECE_S:g} s: {len(cut)} pieces "
+                 "identified jointly, each from its own initial state")
+    runs = cut
     layouts: list[RunLayout] = []
     node0 = 0
     for r in runs:
@@ -275,11 +295,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         layouts.append(lay)
         node0 += lay.K
     Ktot = node0
-    W = np.hstack([l.W for l in layouts])
-    H = np.hstack([l.H for l in layouts])
-    Y = np.concatenate([l.Y for l in layouts])  # (Ktot, M, ny)
-    mask = np.concatenate([l.mask for l in layouts])  # (Ktot, M, ny)
-    S = np.hstack([l.S0 for l in layouts])  # (nx, Ktot)
+    layouts, (W, H, Y, mask, S) = concatenated_layouts(layouts)
     if nodes is not None:
         S = warm_nodes(plant, cyl, S, np.asarray(nodes, float))
     wts, sscale = residual_scales(plant, cyl, dt0)
@@ -292,7 +308,14 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
 
     threads = max(1, min(options.threads, Ktot))
     problem = ShootingProblem(sf, Ktot, threads, W, H, Y, mask, wts, sscale, nxt, plant.possible_states(cyl))
-    evaluate = problem.evaluate
+    nres = float(np.sum(mask))
+    pieces = [(l.node0, l.K) for l in layouts]
+
+    def linearise(S_, p_) -> NormalEquations | None:
+        return problem.linearise(S_, p_, NormalEquations(pieces, nx, nth, cluster))
+
+    def evaluate(S_, p_, _with_sens, give_up=None):
+        return problem.merit_terms(S_, p_, give_up)
 
     def out_of_time() -> bool:
         return time.perf_counter() - t_start > options.time_limit_s
@@ -303,11 +326,11 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         rp = Gp @ th - tp
         return 0.5 * float(rp @ rp)
 
-    def merit(E, D, mu, th):
+    def merit(sq, D, mu, th):
         # a trial step so far off that its squared residuals overflow has an infinite merit,
-        # which the line search rejects: no warning for the user
+        # which the line search rejects: no warning for the user (sq: the residuals' sum of squares)
         with np.errstate(over="ignore"):
-            return 0.5 * float(np.sum(E * E)) + prior_cost(th) + mu * float(np.sum(np.abs(D)))
+            return 0.5 * sq + prior_cost(th) + mu * float(np.sum(np.abs(D)))
 
     def merit_part(E, D, mu) -> float:
         """merit's share of some intervals' residuals and defects (without the prior)"""
@@ -323,7 +346,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         g[n0:] += Gp.T @ (Gp @ th - tp)
         return Nmat, g
 
-    ev = evaluate(S, p, True)
+    ev = linearise(S, p)
     if ev is None:
         raise IdentificationError("the simulation from the initial guess is not finite, or starts where this "
                                   "cylinder cannot be (a position beyond a stroke outside its travel, pressures "
@@ -331,7 +354,6 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
                                   "(units, dead volumes, supply pressure) against the run.")
     lam, mu = 0.0, 0.0
     creeping = 0  # accepted steps in a row that were backtracked to 1/8 or less
-    linearized_at = None
     status = "max_iterations"
     history = []
     it = 0
@@ -339,15 +361,11 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         if out_of_time():
             status = "time_limit"
             break
-        E, D, X, Sens = ev
-        lin_ = linearize(ev, out_idx, wts, mask, M, nx, ny, nth)
-        G, Hth = lin_[0], lin_[1]
-        Nmat, g, P, Q, q, scores = condense(lin_, E, D * sscale[:, None], layouts, has_next, nx, nth)
-        Nmat, g = with_prior(Nmat, g, theta)
-        linearized_at = (ev, Nmat, scores)
+        P, Q, q, scores = ev.P, ev.Q, ev.q, ev.clusters
+        Nmat, g = with_prior(ev.N, ev.g, theta)
         R = len(layouts)
-        cost = 0.5 * float(np.sum(E * E)) + prior_cost(theta)
-        viol = float(np.sum(np.abs(D)))
+        cost = 0.5 * ev.cost2 + prior_cost(theta)
+        viol = float(np.sum(np.abs(ev.D)))
 
         accepted = converged_here = False
         predicted = math.inf
@@ -378,10 +396,10 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
             for ri, l in enumerate(layouts):
                 sl = slice(l.node0, l.node0 + l.K)
                 dS[sl] = P[sl] @ ds0[ri] + Q[sl] @ dth + q[sl]
-            lin = np.einsum("kmoi,ki->kmo", G, dS) + np.einsum("kmoi,i->kmo", Hth, dth)
+            gdir, quad = ev.predicted(step)
             lin_prior = Gp @ dth
-            gdir = float(np.sum(E * lin)) + float((Gp @ theta - tp) @ lin_prior)
-            quad = float(np.sum(lin * lin)) + float(lin_prior @ lin_prior)
+            gdir += float((Gp @ theta - tp) @ lin_prior)
+            quad += float(lin_prior @ lin_prior)
             predicted = -(gdir + 0.5 * quad)  # decrease of the cost the Gauss-Newton model expects
             if predicted < max(1e-2, 1e-10 * cost) and viol < 1e-2 * max(1, Ktot):
                 converged_here = True  # nothing left to gain, statistically or numerically
@@ -394,7 +412,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
             reference = cost + mu * viol
             if creeping >= NONMONOTONE:
                 reference = max([reference] + [h["cost"] + mu * h["defect"] for h in history[-NONMONOTONE:]])
-            found = line_search(evaluate, lambda ev_, th_: merit(ev_[0], ev_[1], mu, th_), S, dS.T, theta, dth, p,
+            found = line_search(evaluate, lambda tr, th_: merit(tr[0], tr[1], mu, th_), S, dS.T, theta, dth, p,
                                 free, lower, upper, reference, min(gdir - mu * viol, 0.0), 1.0 / 64,
                                 part=lambda E_, D_: merit_part(E_, D_, mu))
             if found:
@@ -412,30 +430,30 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
             # data determine (a noisy rig's cost surface is rough at that scale)
             noise_floor = step is not None and predicted < 1.0 and viol < 1e-2 * max(1, Ktot)
             if first_step is not None and nth:
-                std_here = standard_deviations(Nmat, R * nx, cost, mask.sum())
+                std_here = standard_deviations(Nmat, R * nx, cost, nres)
                 ok = np.isfinite(std_here) & (std_here > 0)
                 tiny = np.abs(first_step[R * nx:])[ok] <= 0.1 * std_here[ok]
                 # nor when the last steps (short ones, in a curved valley of the node states)
                 # moved no parameter by a quarter of its std and the cost no longer falls: a defect
                 # left at an end stop's stiff contact (where the piston leaves the stop is all
                 # but discontinuous in the node state) is one the data cannot resolve
-                settled = parameters_settled(history, theta, std_here, cost, mask.sum())
+                settled = parameters_settled(history, theta, std_here, cost, nres)
                 # the raw residual of a drive by measured (noisy) signals stays above the sensor
                 # noise however good the model, so it is judged against that drive's floor; and
                 # its Gauss-Newton std understates what the data leave open (the std it reports
                 # is the cluster-robust one, here ~30 times larger)
                 by_floor = (not settled and ok.all() and options.noise_floor
                             and drives_with_measured_inputs(plant))
-                at_noise = ok.all() and 2 * cost <= SETTLED_SIGMA ** 2 * mask.sum()
-                cov_rep = (reported_covariance(Nmat, scores, layouts, R * nx, cost, mask.sum(), cluster)
+                at_noise = ok.all() and 2 * cost <= SETTLED_SIGMA ** 2 * nres
+                cov_rep = (reported_covariance(Nmat, scores, R * nx, cost, nres)
                            if by_floor or at_noise else None)
                 std_rep = None if cov_rep is None else np.sqrt(np.maximum(np.diag(cov_rep), 0.0))
                 if by_floor and std_rep is not None:
                     def at_floor() -> bool:
-                        return interval_residual_sigma(problem, layouts, cyl, S, p, G, E,
-                                                       mask.sum() - Ktot * nx - nth)[0] <= SETTLED_SIGMA
+                        return interval_residual_sigma(problem, layouts, cyl, S, p, ev,
+                                                       nres - Ktot * nx - nth)[0] <= SETTLED_SIGMA
 
-                    settled = parameters_settled(history, theta, std_rep, cost, mask.sum(), at_noise=at_floor)
+                    settled = parameters_settled(history, theta, std_rep, cost, nres, at_noise=at_floor)
                 closed = viol < 1e-2 * max(1, Ktot)
                 # nor, at the sensor noise, when that step would move no parameter by half the std
                 # the fit reports: the data cannot tell the two apart (a lossy live recording, 303
@@ -448,7 +466,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         lam = lam / 10 if lam > 1e-6 else 0.0
         creeping = creeping + 1 if alpha <= 0.125 else 0
         S, theta, p = S_try, th_try, p_try
-        std = standard_deviations(Nmat, R * nx, cost, mask.sum())
+        std = standard_deviations(Nmat, R * nx, cost, nres)
         # a step small against what the data determine; an undetermined parameter (std not
         # finite) must itself stop moving
         yardstick = np.where(np.isfinite(std), std, 1e-6 * (upper - lower))
@@ -458,27 +476,27 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
         if progress:
             progress(Step(f"  iteration {it:2d}: cost {cost:.6g}  defects {viol:.3g}  step {alpha:.3g}  "
                           + "  ".join(f"{n}={v:.5g}" for n, v in zip(estimate, theta)), "iterations", it, cost=cost))
-        ev = evaluate(S, p, True)
+        ev = linearise(S, p)
         if ev is None:
             raise IdentificationError(f"the simulation stopped being finite at iteration {it} "
                                       f"({', '.join(f'{n}={v:.4g}' for n, v in zip(estimate, theta))}); "
                                       "check the cylinder file against the run.")
-        new_viol = float(np.sum(np.abs(ev[1])))
+        new_viol = float(np.sum(np.abs(ev.D)))
         if rel_step < 1e-3 and new_viol < 1e-2 * max(1, Ktot) and alpha == 1.0:
             status = "converged"
             break
-        if new_viol < 1e-2 * max(1, Ktot) and parameters_settled(history, theta, std, cost, mask.sum()):
+        if new_viol < 1e-2 * max(1, Ktot) and parameters_settled(history, theta, std, cost, nres):
             status = "converged"  # short steps that only polish node states (e.g. around gaps)
             break
         if not nth and states_settled(history):
             status = "converged"
             break
         if options.start_only and nth and len(history) >= 2 * NONMONOTONE:
-            cov_rep = reported_covariance(Nmat, scores, layouts, R * nx, cost, mask.sum(), cluster)
+            cov_rep = reported_covariance(Nmat, scores, R * nx, cost, nres)
             if cov_rep is not None and start_settled(history, theta, np.sqrt(np.maximum(np.diag(cov_rep), 0.0))):
                 status = "converged"
                 break
-        if (abs(cost - 0.5 * float(np.sum(ev[0] ** 2)) - prior_cost(theta)) < 1e-12 * cost
+        if (abs(cost - 0.5 * ev.cost2 - prior_cost(theta)) < 1e-12 * cost
                 and new_viol < 1e-2 * max(1, Ktot)):
             status = "converged"
             break
@@ -488,17 +506,10 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
             status = "above_reference"
             break
 
-    # final statistics at the solution (evaluated with sensitivities in ev)
-    E, D, X, Sens = ev
-    cost = 0.5 * float(np.sum(E * E))
-    nres = float(mask.sum())
-    if linearized_at is not None and linearized_at[0] is ev:  # converged where the loop linearised
-        Nfinal, scores = linearized_at[1], linearized_at[2]
-    else:
-        Nfinal, gfinal, _, _, _, scores = condense(linearize(ev, out_idx, wts, mask, M, nx, ny, nth), E,
-                                                    D * sscale[:, None], layouts, has_next, nx, nth)
-        Nfinal, _ = with_prior(Nfinal, gfinal, theta)
-    cov = reported_covariance(Nfinal, scores, layouts, len(layouts) * nx, cost, nres, cluster)
+    # final statistics at the solution (linearised in ev)
+    cost = 0.5 * ev.cost2
+    Nfinal, _ = with_prior(ev.N, ev.g, theta)
+    cov = reported_covariance(Nfinal, ev.clusters, len(layouts) * nx, cost, nres)
     at_bound = at_bounds(theta, lower, upper)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(nth, np.nan)
     corr = None
@@ -523,8 +534,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     if options.noise_floor and drives_with_measured_inputs(plant):
         # measured inputs carry noise that drives the model too: the residual is told in units of
         # what that noise alone leaves, so that 1 means a perfect model in every drive
-        G_final = linearize(ev, out_idx, wts, mask, M, nx, ny, nth)[0]
-        residual_sigma, floor = interval_residual_sigma(problem, layouts, cyl, S, p, G_final, E,
+        residual_sigma, floor = interval_residual_sigma(problem, layouts, cyl, S, p, ev,
                                                         nres - Ktot * nx - nth)
     solver = {"status": status, "iterations": it, "wall_s": round(time.perf_counter() - t_start, 4),
               "cost": cost, "residual_sigma": residual_sigma, "noise_floor": floor,

@@ -62,8 +62,26 @@ class RunLayout:
     W: np.ndarray  # (nw, K*(M+1)) inputs at both ends of every sample step
     H: np.ndarray  # (1, K*M) step lengths (0 = padding)
     Y: np.ndarray  # (K, M, ny) measured outputs (0 where not measured)
-    mask: np.ndarray  # (K, M, ny) 1 where a sample exists and that output was measured
+    mask: np.ndarray  # (K, M, ny) True where a sample exists and that output was measured (1 byte a value)
     S0: np.ndarray  # (nx, K) initial node states
+
+
+def concatenated_layouts(layouts: Sequence[RunLayout]) -> tuple[list[RunLayout], tuple[np.ndarray, ...]]:
+    """The runs' W, H, Y, mask and S0 side by side (intervals in the order of the runs), and the
+    layouts again with views of them: each run's data are held once."""
+    if len(layouts) == 1:
+        l = layouts[0]
+        return list(layouts), (l.W, l.H, l.Y, l.mask, l.S0)
+    M = layouts[0].Y.shape[1]
+    W = np.hstack([l.W for l in layouts])
+    H = np.hstack([l.H for l in layouts])
+    Y = np.concatenate([l.Y for l in layouts])  # (Ktot, M, ny)
+    mask = np.concatenate([l.mask for l in layouts])  # (Ktot, M, ny)
+    S = np.hstack([l.S0 for l in layouts])  # (nx, Ktot)
+    views = [replace(l, W=W[:, l.node0 * (M + 1):(l.node0 + l.K) * (M + 1)], H=H[:, l.node0 * M:(l.node0 + l.K) * M],
+                     Y=Y[l.node0:l.node0 + l.K], mask=mask[l.node0:l.node0 + l.K], S0=S[:, l.node0:l.node0 + l.K])
+             for l in layouts]
+    return views, (W, H, Y, mask, S)
 
 
 def free_parameters(plant: Plant, estimate: Sequence[str]) -> list[int]:
@@ -118,13 +136,19 @@ def run_layout(run: Run, plant: Plant, cyl: Cylinder, M: int, node0: int) -> Run
     ys = np.where(mask, ys, 0.0)
     nodes = np.arange(K) * M
     S0 = np.array([plant.initial_state(cyl, x[i], p1[i], p2[i], v[i]) for i in nodes]).T
-    return RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask.astype(float).reshape(K, M, -1), S0)
+    return RunLayout(run, K, node0, W, H, ys.reshape(K, M, -1), mask.reshape(K, M, -1), S0)
 
 
 
 # a line search's trial is simulated in this many pieces of its intervals, so that one whose
 # merit the first pieces already put above the acceptance bound is given up early
 TRIAL_CHUNKS = 8
+
+# The intervals of a fit are simulated and linearised a chunk of about this many samples at a
+# time: what a fit holds then grows with the run only by the data and a few numbers per interval,
+# never by the sensitivities (1.2 kB per sample with Fc, Fv, kp free: a 1000 s run at 1 kHz
+# passed 2 GiB). A 20 s run at 1 kHz is one chunk, fitted as a whole.
+CHUNK_SAMPLES = 1 << 15
 
 
 class ShootingProblem:
@@ -135,63 +159,113 @@ class ShootingProblem:
         plant = sf.plant
         # node states outside this range (Plant.possible_states) are not simulated
         self.possible = None if possible is None else (possible[0][:, None], possible[1][:, None])
-        self.f_sens = NumpyCall(sf.sens.map(K, "thread", threads) if threads > 1 else sf.sens.map(K))
-        self.f_sim = NumpyCall(sf.interval.map(K, "thread", threads) if threads > 1 else sf.interval.map(K))
         self.W, self.H, self.Y, self.mask, self.wts, self.sscale, self.nxt = W, H, Y, mask, wts, sscale, nxt
         self.K, self.M = K, sf.interval_len
         self.plant = plant
-        self._interval, self._threads = sf.interval, threads
+        self._sf, self._threads = sf, threads
         self.nx, self.nth = plant.nx, len(sf.free)
         self.out_idx = [plant.state_names.index(n) for n in plant.output_names]
+        self._maps: dict[tuple[bool, int], NumpyCall] = {}
+        size = max(TRIAL_CHUNKS, CHUNK_SAMPLES // self.M // TRIAL_CHUNKS * TRIAL_CHUNKS)
+        # (first, end) intervals of each chunk: linearised, and a trial's merit summed, a chunk at a time
+        self.spans = [(a, min(a + size, K)) for a in range(0, K, size)]
 
-    def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool,
-                 give_up: Callable[[np.ndarray, np.ndarray], bool] | None = None):
-        """(E, D, X, Sens) or None when the simulation is not finite or a node state impossible.
+    @functools.cached_property
+    def f_sens(self) -> NumpyCall:
+        """The sensitivities of all K intervals in one call (the online window's)."""
+        return self._map(True, self.K)
 
-        `give_up(E, D)` (without sensitivities): called with the residuals and defects of each
-        piece of the intervals as it is simulated, in order; True ends the simulation there
-        (None). A line search's trial whose merit the first pieces already put above the
-        acceptance bound is rejected at a fraction of a whole simulation; one that is not
-        given up is simulated and returned exactly as without."""
-        if give_up is not None and not with_sens:
-            sim = self._simulate_unless(S, p, give_up)
-        else:
-            sim = self.simulate(S, p, with_sens)
+    @functools.cached_property
+    def f_sim(self) -> NumpyCall:
+        return self._map(False, self.K)
+
+    def _map(self, with_sens: bool, n: int) -> NumpyCall:
+        """The interval function (or its sensitivities) over n intervals, on the problem's threads."""
+        if (with_sens, n) not in self._maps:
+            f = self._sf.sens if with_sens else self._sf.interval
+            threads = min(self._threads, n)
+            self._maps[with_sens, n] = NumpyCall(f.map(n, "thread", threads) if threads > 1 else f.map(n))
+        return self._maps[with_sens, n]
+
+    def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
+        """(E, D, X, Sens) of all intervals at once, or None when the simulation is not finite or a
+        node state impossible."""
+        sim = self.simulate(S, p, with_sens)
         if sim is None:
             return None
         E, D = self.residuals(S, sim[0])
         return E, D, *sim
 
-    @functools.cached_property
-    def chunks(self) -> list[tuple[int, int, NumpyCall]]:
-        """The intervals in TRIAL_CHUNKS pieces (first, end, their simulation), for trials that
-        may be given up part way; built on first use (a simulation without a fit never needs them)."""
-        K, size = self.K, -(-self.K // TRIAL_CHUNKS)
-        f, threads = self._interval, self._threads
-        maps = {n: NumpyCall(f.map(n, "thread", threads) if threads > 1 else f.map(n))
-                for n in {min(size, K - a) for a in range(0, K, size)}}
-        return [(a, min(a + size, K), maps[min(size, K - a)]) for a in range(0, K, size)]
+    def span_simulation(self, S: np.ndarray, p: np.ndarray, a: int, b: int, with_sens: bool,
+                        W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """(X, Sens) of intervals a..b-1 (with the inputs W, default the problem's), or None when
+        not finite. The node states must be possible (allows)."""
+        nx, M = self.nx, self.M
+        W = self.W if W is None else W
+        out = self._map(with_sens, b - a)(S[:, a:b], W[:, a * (M + 1):b * (M + 1)], p, self.H[:, a * M:b * M])
+        X = out[0].reshape(nx, b - a, M)
+        if not np.all(np.isfinite(X)):
+            return None
+        return X, out[1].reshape(nx, b - a, M, nx + self.nth) if with_sens else None
 
-    def _simulate_unless(self, S: np.ndarray, p: np.ndarray, give_up) -> tuple[np.ndarray, None] | None:
-        """simulate(S, p, False) piece by piece (the same numbers: one interval function), or None
-        once `give_up` holds for the pieces so far (the last piece is never asked: it is whole)."""
+    def span_residuals(self, S: np.ndarray, X: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """E (b-a, M, ny) and the defects D of the links from intervals a..b-1 (their successors'
+        node states are known), as `residuals` gives them for those intervals."""
+        E = shooting_residuals(S[:, a:b], X, self.Y[a:b], self.mask[a:b], self.wts, self.sscale, self.nxt[:0],
+                               self.out_idx)[0]
+        links = self.nxt[(self.nxt >= a) & (self.nxt < b)]
+        D = (X[:, links - a, self.M - 1] - S[:, links + 1]) / self.sscale[:, None]
+        return E, D
+
+    def merit_terms(self, S: np.ndarray, p: np.ndarray,
+                    give_up: Callable[[np.ndarray, np.ndarray], bool] | None = None
+                    ) -> tuple[float, np.ndarray] | None:
+        """(sum of the squared residuals, defects D) of a trial, or None when its simulation is not
+        finite or a node state impossible.
+
+        Each chunk is simulated in pieces (TRIAL_CHUNKS for the whole run): `give_up(E, D)` is
+        called with the residuals and defects of each piece as it is simulated, in order (never
+        with the last: that one is whole); True ends the simulation there (None). A line search's
+        trial whose merit the first pieces already put above the acceptance bound is rejected at
+        a fraction of a whole simulation; one that is not given up gives the same numbers."""
         nx, M = self.nx, self.M
         if not self.allows(S):
             return None
-        X = np.empty((nx, self.K, M))
-        for a, b, f in self.chunks:
-            Xc = f(S[:, a:b], self.W[:, a * (M + 1):b * (M + 1)], p, self.H[:, a * M:b * M])[0].reshape(nx, b - a, M)
-            if not np.all(np.isfinite(Xc)):
-                return None
-            X[:, a:b] = Xc
-            if b < self.K:
-                E = shooting_residuals(S[:, a:b], Xc, self.Y[a:b], self.mask[a:b], self.wts, self.sscale,
-                                       self.nxt[:0], self.out_idx)[0]
-                links = self.nxt[(self.nxt >= a) & (self.nxt < b)]  # their successors' nodes are known
-                D = (Xc[:, links - a, M - 1] - S[:, links + 1]) / self.sscale[:, None]
-                if give_up(E, D):
+        piece = -(-self.K // TRIAL_CHUNKS)
+        total, defects = None, []
+        for a0, b0 in self.spans:
+            X = np.empty((nx, b0 - a0, M))
+            for a in range(a0, b0, piece):
+                b = min(a + piece, b0)
+                sim = self.span_simulation(S, p, a, b, False)
+                if sim is None:
                     return None
-        return X, None
+                X[:, a - a0:b - a0] = sim[0]
+                if give_up is not None and b < self.K and give_up(*self.span_residuals(S, sim[0], a, b)):
+                    return None
+            E, D = self.span_residuals(S, X, a0, b0)
+            part = float(np.sum(E * E))
+            total = part if total is None else total + part
+            defects.append(D)
+        return total, np.hstack(defects)
+
+    def linearise(self, S: np.ndarray, p: np.ndarray, eqs: "NormalEquations") -> "NormalEquations | None":
+        """The condensed normal equations at (S, p), accumulated into `eqs` (fresh) a chunk of
+        intervals at a time; None when the simulation is not finite or a node state impossible."""
+        if not self.allows(S):
+            return None
+        has_next = np.zeros(self.K, bool)
+        has_next[self.nxt] = True
+        for a, b in self.spans:
+            sim = self.span_simulation(S, p, a, b, True)
+            if sim is None:
+                return None
+            X, Sens = sim
+            E, D = self.span_residuals(S, X, a, b)
+            lin = linearize((E, D, X, Sens), self.out_idx, self.wts, self.mask[a:b], self.M, self.nx,
+                            len(self.out_idx), self.nth)
+            eqs.add(lin, E, D * self.sscale[:, None], D, has_next, keep=len(self.spans) == 1)
+        return eqs
 
     def allows(self, S: np.ndarray) -> bool:
         """Whether every node state in S is a possible state of the plant."""
@@ -298,7 +372,7 @@ def line_search(evaluate, merit, S, dS, theta, dth, p, free, lower, upper, m0: f
 
     With `part(E, D)`, the merit's share of some intervals' residuals and defects (the rest,
     a prior, is >= 0), a trial whose first intervals already put the merit above m0 is given
-    up there (ShootingProblem.evaluate): such a trial could not be accepted, so the steps are
+    up there (ShootingProblem.merit_terms): such a trial could not be accepted, so the steps are
     the same, found with less simulation."""
     bound = m0 + 1e-9 * max(abs(m0), 1.0)  # above it neither the Armijo test nor a tie can hold
     alpha = 1.0
@@ -397,10 +471,11 @@ def linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
 # normal equations are then not finite, solve_bounded returns no step and the fit ends saying
 # so; numpy's overflow warnings would only alarm the user.
 @np.errstate(over="ignore", invalid="ignore")
-def node_transitions(A, B, Draw, has_next):
+def node_transitions(A, B, Draw, has_next, start=None):
     """P, Q, q of ds_k = P_k ds0 + Q_k dtheta + q_k: every node increment in terms of the
     start state of its run (or gap-free piece), from the intervals' transition Jacobians A, B
-    and the defects Draw (one column per link)."""
+    and the defects Draw (one column per link). `start`: (P, Q, q) of the first interval where
+    it continues a piece begun in an earlier chunk of intervals (next_transition of its last)."""
     Ktot, nx, nth = B.shape
     P = np.empty((Ktot, nx, nx))
     Q = np.empty((Ktot, nx, nth))
@@ -408,15 +483,33 @@ def node_transitions(A, B, Draw, has_next):
     eye = np.eye(nx)
     link = 0
     for k in range(Ktot):
-        if k == 0 or not has_next[k - 1]:
+        if k == 0 and start is not None:
+            P[k], Q[k], q[k] = start
+        elif k == 0 or not has_next[k - 1]:
             P[k], Q[k], q[k] = eye, 0.0, 0.0
         else:
             j = k - 1
-            P[k] = A[j] @ P[j]
-            Q[k] = A[j] @ Q[j] + B[j]
-            q[k] = A[j] @ q[j] + Draw[:, link]
+            P[k], Q[k], q[k] = next_transition(A[j], B[j], Draw[:, link], P[j], Q[j], q[j])
             link += 1
     return P, Q, q
+
+
+def next_transition(A, B, d, P, Q, q):
+    """(P, Q, q) of the interval after one with transition Jacobians A, B, defect d and (P, Q, q)."""
+    return A @ P, A @ Q + B, A @ q + d
+
+
+@np.errstate(over="ignore", invalid="ignore")  # see node_transitions
+def reduced_jacobians(G, Hth, P, Q, q):
+    """Js = dr/ds0, Jt = dr/dtheta and the residuals' change c = G q by the constant part of the
+    node increments (the linearised residual is E + c), per interval."""
+    Ktot, nx = G.shape[0], G.shape[-1]
+    # batched matrix products (BLAS) rather than einsum: the same sums, several times faster
+    Gf = G.reshape(Ktot, -1, nx)
+    Js = (Gf @ P).reshape(G.shape[:3] + (nx,))
+    Jt = (Gf @ Q).reshape(G.shape[:3] + (Q.shape[-1],)) + Hth
+    c = (Gf @ q[:, :, None]).reshape(G.shape[:3])
+    return Js, Jt, c
 
 
 @np.errstate(over="ignore", invalid="ignore")  # see node_transitions
@@ -426,22 +519,16 @@ def reduce_nodes(lin, E, Draw, has_next, nx, nth):
     Returns P, Q, q and the reduced residual Jacobians Js = dr/ds0, Jt = dr/dtheta and the
     linearised residual r0 (all per interval)."""
     G, Hth, A, B = lin
-    Ktot = G.shape[0]
     P, Q, q = node_transitions(A, B, Draw, has_next)
-    # batched matrix products (BLAS) rather than einsum: the same sums, several times faster
-    Gf = G.reshape(Ktot, -1, nx)
-    Js = (Gf @ P).reshape(G.shape[:3] + (nx,))
-    Jt = (Gf @ Q).reshape(G.shape[:3] + (Q.shape[-1],)) + Hth
-    r0 = E + (Gf @ q[:, :, None]).reshape(E.shape)
-    return P, Q, q, Js, Jt, r0
+    Js, Jt, c = reduced_jacobians(G, Hth, P, Q, q)
+    return P, Q, q, Js, Jt, E + c
 
 
-def condense(lin, E, Draw, layouts, has_next, nx, nth):
-    """The reduced normal equations (N, g) in (ds0 per run, dtheta), with P, Q, q of `reduce_nodes`
-    and the per-interval gradient contributions."""
-    P, Q, q, Js, Jt, r0 = reduce_nodes(lin, E, Draw, has_next, nx, nth)
-    N, g, scores = normal_equations(Js, Jt, r0, layouts, nx, nth)
-    return N, g, P, Q, q, scores
+@np.errstate(over="ignore", invalid="ignore")  # see node_transitions
+def add_gradient(g, js, jt, r, a, th):
+    """g[a] += js' r (the run's start state), g[th] += jt' r (the parameters)."""
+    g[a] += js.T @ r
+    g[th] += jt.T @ r
 
 
 @np.errstate(over="ignore", invalid="ignore")  # see node_transitions
@@ -460,18 +547,115 @@ def normal_equations(Js, Jt, r0, layouts, nx, nth):
         scores[sl, ri * nx:(ri + 1) * nx] = np.einsum("kmoi,kmo->ki", Js[sl], r0[sl])
     scores[:, R * nx:] = np.einsum("kmoi,kmo->ki", Jt, r0)
     for ri, l in enumerate(layouts):
-        sl = slice(l.node0, l.node0 + l.K)
-        js = Js[sl].reshape(-1, nx)
-        jt = Jt[sl].reshape(js.shape[0], nth)  # explicit rows: nth may be 0 (states only)
-        rr = r0[sl].reshape(-1)
-        a = slice(ri * nx, (ri + 1) * nx)
-        N[a, a] = js.T @ js
-        N[a, R * nx:] = js.T @ jt
-        N[R * nx:, a] = N[a, R * nx:].T
-        N[R * nx:, R * nx:] += jt.T @ jt
-        g[a] = js.T @ rr
-        g[R * nx:] += jt.T @ rr
+        add_normal_block(N, g, Js[l.node0:l.node0 + l.K], Jt[l.node0:l.node0 + l.K], r0[l.node0:l.node0 + l.K],
+                         ri, R, nx, nth)
     return N, g, scores
+
+
+def add_normal_block(N, g, Js, Jt, r0, ri, R, nx, nth):
+    """Add the intervals (Js, Jt, r0) of piece ri to N and g (R pieces)."""
+    js = Js.reshape(-1, nx)
+    jt = Jt.reshape(js.shape[0], nth)  # explicit rows: nth may be 0 (states only)
+    a, th = slice(ri * nx, (ri + 1) * nx), slice(R * nx, None)
+    N[a, a] += js.T @ js
+    N[a, th] += js.T @ jt
+    N[th, a] = N[a, th].T
+    N[th, th] += jt.T @ jt
+    add_gradient(g, js, jt, r0.reshape(-1), a, th)
+
+
+class NormalEquations:
+    """The condensed Gauss-Newton model of a fit at one point, accumulated chunk by chunk of
+    intervals in their order (node transitions carried from one chunk to the next), so that no
+    sensitivity of the whole run is ever held: the reduced normal equations N, g in (ds0 of every
+    run or gap-free piece, dtheta), the node transitions P, Q, q, the defects, the sum of squared
+    residuals, the gradient contributions summed by cluster (the cluster-robust covariance) and
+    what the decrease a step predicts needs (`predicted`).
+
+    `pieces`: (first interval, intervals) of each run or gap-free piece, in order; `block`:
+    intervals per cluster. Summed in one chunk, everything is the same to the last digit as the
+    whole problem condensed at once; in several, to rounding."""
+
+    def __init__(self, pieces: Sequence[tuple[int, int]], nx: int, nth: int, block: int):
+        R = len(pieces)
+        self.nx, self.nth, self.R = nx, nth, R
+        self.Ktot = sum(K for _, K in pieces)
+        nred = R * nx + nth
+        self.N = np.zeros((nred, nred))
+        self.g = np.zeros(nred)
+        self._Jc = np.zeros(nred)  # J'c (J'E = g - J'c: one product less per chunk)
+        self._Ec, self._cc = 0.0, 0.0  # E'c, c'c
+        self.cost2: float | None = None  # sum of squared weighted residuals
+        self.P = np.empty((self.Ktot, nx, nx))
+        self.Q = np.empty((self.Ktot, nx, nth))
+        self.q = np.empty((self.Ktot, nx))
+        self._pieces = list(pieces)
+        # clusters: `block` consecutive intervals of one piece
+        self._cluster_of = np.empty(self.Ktot, int)
+        n = 0
+        for k0, K in pieces:
+            self._cluster_of[k0:k0 + K] = n + np.arange(K) // block
+            n += -(-K // block)
+        self.clusters = np.zeros((n, nred))
+        self.kept: tuple[np.ndarray, np.ndarray] | None = None  # (G, E) of a run linearised as one chunk
+        self._defects: list[np.ndarray] = []
+        self._next, self._start = 0, None
+
+    @property
+    def D(self) -> np.ndarray:
+        """The scaled defects of every link, in order."""
+        if len(self._defects) > 1:
+            self._defects = [np.hstack(self._defects)]
+        return self._defects[0]
+
+    @np.errstate(over="ignore", invalid="ignore")  # see node_transitions
+    def add(self, lin, E, Draw, D, has_next, keep: bool = False) -> None:
+        """Add the next chunk of intervals: `lin` = (G, Hth, A, B) of linearize, residuals E,
+        defects Draw (unscaled) and D (scaled) of its links, `has_next` of every interval of the
+        problem; `keep` holds G and E (a run linearised as one chunk)."""
+        G, Hth, A, B = lin
+        nx, nth, R = self.nx, self.nth, self.R
+        a, b = self._next, self._next + G.shape[0]
+        P, Q, q = node_transitions(A, B, Draw, has_next[a:b], self._start)
+        self.P[a:b], self.Q[a:b], self.q[a:b] = P, Q, q
+        self._start = next_transition(A[-1], B[-1], Draw[:, -1], P[-1], Q[-1], q[-1]) if has_next[b - 1] else None
+        Js, Jt, c = reduced_jacobians(G, Hth, P, Q, q)
+        r0 = E + c
+        part = float(np.sum(E * E))
+        self.cost2 = part if self.cost2 is None else self.cost2 + part
+        self._Ec += float(np.sum(E * c))
+        self._cc += float(np.sum(c * c))
+        th = slice(R * nx, None)
+        states = np.empty((b - a, nx))  # per-interval gradient contributions (scores)
+        for ri, (k0, K) in enumerate(self._pieces):
+            lo, hi = max(k0, a) - a, min(k0 + K, b) - a
+            if lo >= hi:
+                continue
+            states[lo:hi] = np.einsum("kmoi,kmo->ki", Js[lo:hi], r0[lo:hi])
+            add_normal_block(self.N, self.g, Js[lo:hi], Jt[lo:hi], r0[lo:hi], ri, R, nx, nth)
+            js = Js[lo:hi].reshape(-1, nx)
+            jt = Jt[lo:hi].reshape(js.shape[0], nth)
+            sa = slice(ri * nx, (ri + 1) * nx)
+            add_gradient(self._Jc, js, jt, c[lo:hi].reshape(-1), sa, th)
+        params = np.einsum("kmoi,kmo->ki", Jt, r0)
+        cl = self._cluster_of[a:b]
+        for ci in np.unique(cl):
+            rows = np.flatnonzero(cl == ci)
+            ri = int(np.searchsorted([k0 for k0, _ in self._pieces], a + rows[0], side="right")) - 1
+            self.clusters[ci, ri * nx:(ri + 1) * nx] += states[rows[0]:rows[-1] + 1].sum(axis=0)
+            self.clusters[ci, th] += params[rows[0]:rows[-1] + 1].sum(axis=0)
+        self._defects.append(D)
+        self.kept = (G, E) if keep else None
+        self._next = b
+
+    @np.errstate(over="ignore", invalid="ignore")  # see node_transitions
+    def predicted(self, step: np.ndarray) -> tuple[float, float]:
+        """(gdir, quad) of a step z in (ds0, dtheta): the residuals' linearised change is
+        l = J z + c, gdir = E'l and quad = l'l (the cost changes by gdir + quad / 2)."""
+        z = np.asarray(step, float)
+        gdir = float((self.g - self._Jc) @ z) + self._Ec
+        quad = float(z @ self.N @ z) + 2.0 * float(self._Jc @ z) + self._cc
+        return gdir, quad
 
 
 def covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndarray | None:
@@ -483,14 +667,11 @@ def covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndar
     return (sigma2 * inv)[n_state:, n_state:]
 
 
-def cluster_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int, block: int) -> np.ndarray | None:
-    """Sandwich covariance N^-1 (sum_b s_b s_b') N^-1 with clusters of `block` consecutive
-    intervals (about one second): honest when residuals are correlated in time."""
-    sums = []
-    for l in layouts:
-        for k0 in range(l.node0, l.node0 + l.K, block):
-            sums.append(scores[k0:min(k0 + block, l.node0 + l.K)].sum(axis=0))
-    S = np.array(sums)
+def cluster_covariance(N: np.ndarray, clusters: np.ndarray, n_state: int) -> np.ndarray | None:
+    """Sandwich covariance N^-1 (sum_b s_b s_b') N^-1 with the gradient contributions s_b summed
+    over clusters of consecutive intervals (about one second; NormalEquations.clusters): honest
+    when residuals are correlated in time."""
+    S = clusters
     nb = len(S)
     if nb < 5:
         return None
@@ -504,13 +685,13 @@ def cluster_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int,
     return cov if np.all(np.isfinite(cov)) else None
 
 
-def reported_covariance(N: np.ndarray, scores: np.ndarray, layouts, n_state: int, cost: float, nres: float,
-                        block: int) -> np.ndarray | None:
+def reported_covariance(N: np.ndarray, clusters: np.ndarray, n_state: int, cost: float,
+                        nres: float) -> np.ndarray | None:
     """The parameter covariance a fit reports: residuals of real rigs (and of a drive by noisy
     measured signals) are not white, so each variance is the larger of the Gauss-Newton and
-    the cluster-robust one (clusters of `block` intervals), correlations as Gauss-Newton's."""
+    the cluster-robust one (NormalEquations.clusters), correlations as Gauss-Newton's."""
     cov_gn = covariance(N, n_state, cost, nres)
-    cov_robust = cluster_covariance(N, scores, layouts, n_state, block)
+    cov_robust = cluster_covariance(N, clusters, n_state)
     if cov_gn is None or cov_robust is None:
         return cov_gn
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
@@ -533,7 +714,7 @@ def simulate_layout(sf: ShootingFunctions, s0: np.ndarray, p: np.ndarray, l: Run
     nw = l.W.shape[0]
     # the layout holds M+1 inputs per interval (both ends of each step): back to one per sample
     w = np.hstack([l.W.reshape(nw, l.K, M + 1)[:, :, :M].reshape(nw, l.K * M), l.W[:, -1:]])
-    return sf.simulate(s0, w, p, l.H[0])[out_idx, : l.run.n]
+    return sf.simulate(s0, w, p, l.H[0], rows=out_idx)[:, : l.run.n]
 
 
 def rmse_r2(meas: np.ndarray, sim: np.ndarray) -> tuple[float, float]:
@@ -583,7 +764,7 @@ def _beyond_node_states(G: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 
 def interval_residual_sigma(problem: "ShootingProblem", layouts: Sequence[RunLayout], cyl: Cylinder,
-                            S: np.ndarray, p: np.ndarray, G: np.ndarray, E: np.ndarray, dof: float,
+                            S: np.ndarray, p: np.ndarray, eqs: "NormalEquations", dof: float,
                             reps: int = 4, seed: int = 0) -> tuple[float, float]:
     """The residual of a drive that takes measured signals as inputs, in units of what their
     noise alone leaves: (residual sigma, the noise floor it was divided by).
@@ -591,31 +772,61 @@ def interval_residual_sigma(problem: "ShootingProblem", layouts: Sequence[RunLay
     Noisy inputs drive the model too: a position driven by noisy pressures wanders off like a
     random walk, so over a whole run the residual says little. Here each shooting interval is
     judged on its own: what its own initial state cannot remove (a projection on the state
-    sensitivities G of the last evaluation), divided by the same for `reps` simulations with
-    the inputs perturbed by their sensors' noise (seeded: the same figure on every machine)."""
+    sensitivities G at (S, p), linearised in `eqs`), divided by the same for `reps` simulations
+    with the inputs perturbed by their sensors' noise (seeded: the same figure on every machine).
+    A run of several chunks (problem.spans) is taken a chunk at a time, its sensitivities
+    computed again for each simulation with noise (none is held for the whole run)."""
     plant = problem.plant
-    raw = math.sqrt(float(np.sum(_beyond_node_states(G, E) ** 2)) / max(dof, 1.0))
+    spans = problem.spans
+    if not problem.allows(S):
+        return math.nan, 1.0
+
+    def state_sensitivities(a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(G, E) of intervals a..b-1 at (S, p)."""
+        if eqs.kept is not None:
+            return eqs.kept
+        sim = problem.span_simulation(S, p, a, b, True)
+        if sim is None:
+            return None
+        E = problem.span_residuals(S, sim[0], a, b)[0]
+        return linearize((E, None, *sim), problem.out_idx, problem.wts, problem.mask[a:b], problem.M, problem.nx,
+                         len(problem.out_idx), problem.nth)[0], E
+
+    raw2 = 0.0
+    for a, b in spans:
+        GE = state_sensitivities(a, b)
+        if GE is None:
+            return math.nan, 1.0
+        raw2 += float(np.sum(_beyond_node_states(*GE) ** 2))
+    raw = math.sqrt(raw2 / max(dof, 1.0))
     rng = np.random.default_rng(seed)
-    base = problem.evaluate(S, p, False)
-    if base is None:
-        return raw, 1.0
     saved, dev2 = problem.W, 0.0
-    try:
-        for _ in range(reps):
-            noisy = []
-            for lay in layouts:
-                r = lay.run
-                kw = {n: getattr(r, n) + getattr(cyl.sensors, _MEASURED_INPUTS[n]) * rng.standard_normal(r.n)
-                      for n in ("p1", "p2", "x") if n in plant.input_names}
-                noisy.append(run_layout(replace(r, **kw), plant, cyl, problem.M, lay.node0).W)
-            problem.W = np.hstack(noisy)
-            ev = problem.evaluate(S, p, False)
-            if ev is None:
+
+    def simulated(a: int, b: int, W: np.ndarray) -> np.ndarray | None:
+        sim = problem.span_simulation(S, p, a, b, False, W)
+        return None if sim is None else problem.span_residuals(S, sim[0], a, b)[0]
+
+    base = simulated(0, problem.K, saved) if len(spans) == 1 else None
+    if len(spans) == 1 and base is None:
+        return raw, 1.0
+    for _ in range(reps):
+        noisy = []
+        for lay in layouts:
+            r = lay.run
+            kw = {n: getattr(r, n) + getattr(cyl.sensors, _MEASURED_INPUTS[n]) * rng.standard_normal(r.n)
+                  for n in ("p1", "p2", "x") if n in plant.input_names}
+            noisy.append(run_layout(replace(r, **kw), plant, cyl, problem.M, lay.node0).W)
+        W_noisy = np.hstack(noisy) if len(noisy) > 1 else noisy[0]
+        dev2_rep = 0.0
+        for a, b in spans:
+            GE = state_sensitivities(a, b)
+            base_ab = base if base is not None else simulated(a, b, saved)
+            E_noisy = simulated(a, b, W_noisy)
+            if GE is None or base_ab is None or E_noisy is None:
                 return raw, 1.0
-            dev2 += float(np.sum(_beyond_node_states(G, ev[0] - base[0]) ** 2)) / reps
-    finally:
-        problem.W = saved
-    floor = math.sqrt(1.0 + dev2 / max(float(problem.mask.sum()), 1.0))
+            dev2_rep += float(np.sum(_beyond_node_states(GE[0], E_noisy - base_ab) ** 2))
+        dev2 += dev2_rep / reps
+    floor = math.sqrt(1.0 + dev2 / max(float(np.sum(problem.mask)), 1.0))
     return raw / floor, floor
 
 

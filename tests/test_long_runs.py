@@ -1,0 +1,137 @@
+"""Long recordings: the fit is linearised a chunk of intervals at a time, so that what it holds
+grows with the run only by the data, and the result is the one of the whole problem."""
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from combined_reality.identify import IdentifyOptions, identify
+from combined_reality.live import simulate_run
+
+
+def _problem(cyl, runs, chunk_intervals=None):
+    """The shooting problem of `runs` as identify lays it out (nominal plant, Fc, Fv, kp free),
+    with chunks of `chunk_intervals` intervals (None: the default)."""
+    import combined_reality.identify.shooting as sh
+    from sim.compiled import shooting_functions
+    from sim.plant import plant_for
+
+    plant = plant_for(cyl)
+    free = sh.free_parameters(plant, ("Fc", "Fv", "kp"))
+    M = 100
+    sf = shooting_functions(plant, M, free, with_sens=True)
+    layouts, node0 = [], 0
+    for r in runs:
+        layouts.append(sh.run_layout(r, plant, cyl, M, node0))
+        node0 += layouts[-1].K
+    layouts, (W, H, Y, mask, S) = sh.concatenated_layouts(layouts)
+    has_next = np.ones(node0, bool)
+    for lay in layouts:
+        has_next[lay.node0 + lay.K - 1] = False
+    wts, sscale = sh.residual_scales(plant, cyl, runs[0].sample_period)
+    saved = sh.CHUNK_SAMPLES
+    if chunk_intervals is not None:
+        sh.CHUNK_SAMPLES = chunk_intervals * M
+    try:
+        prob = sh.ShootingProblem(sf, node0, 2, W, H, Y, mask, wts, sscale, np.flatnonzero(has_next),
+                                  plant.possible_states(cyl))
+    finally:
+        sh.CHUNK_SAMPLES = saved
+    p = np.array(plant.parameter_vector(cyl), float)
+    return prob, layouts, S, p, free
+
+
+def test_the_normal_equations_accumulated_chunk_by_chunk_are_those_of_the_whole_problem(cyl_a):
+    """Two runs (3.3 s and 2.05 s: 54 intervals) linearised in chunks of 8 intervals (a chunk
+    holds the end of one run and the start of the next, clusters straddle chunks) give the
+    normal equations, the step, the decrease it predicts and the reported covariance of the
+    whole problem linearised at once, to 1e-10; the predicted decrease is the one of the
+    linearised residuals themselves."""
+    import combined_reality.identify.shooting as sh
+
+    runs = [simulate_run(cyl_a, 3.3, seed=11), simulate_run(cyl_a, 2.05, seed=12)]
+    whole, layouts, S, p, free = _problem(cyl_a, runs)
+    chunked = _problem(cyl_a, runs, chunk_intervals=8)[0]
+    assert len(whole.spans) == 1 and len(chunked.spans) == 7
+    pieces = [(lay.node0, lay.K) for lay in layouts]
+    S = S.copy()
+    S[:, 1::3] *= 1.0 + 1e-3  # open defects: the constant part q of the node increments matters
+    one = whole.linearise(S, p, sh.NormalEquations(pieces, whole.nx, whole.nth, 10))
+    many = chunked.linearise(S, p, sh.NormalEquations(pieces, whole.nx, whole.nth, 10))
+    assert one.kept is not None and many.kept is None
+
+    def close(a, b, tol=1e-10):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        return np.max(np.abs(a - b)) <= tol * np.max(np.abs(a))
+
+    for name in ("N", "g", "P", "Q", "q", "clusters", "D"):
+        assert close(getattr(one, name), getattr(many, name)), name
+    assert many.cost2 == pytest.approx(one.cost2, rel=1e-12)
+    theta = p[free]
+    lo, hi = sh.parameter_bounds(whole.plant, ("Fc", "Fv", "kp"))
+    n_state = len(pieces) * whole.nx
+    step = sh.solve_bounded(one.N, one.g, theta, lo, hi, n_state, 0.0)
+    assert close(step, sh.solve_bounded(many.N, many.g, theta, lo, hi, n_state, 0.0), 1e-8)
+    # the decrease predicted from the accumulated sums is that of the residuals linearised whole
+    E, D, X, Sens = whole.evaluate(S, p, True)
+    G, Hth, _, _ = sh.linearize((E, D, X, Sens), whole.out_idx, whole.wts, whole.mask, whole.M, whole.nx,
+                                len(whole.out_idx), whole.nth)
+    ds0, dth = step[:n_state].reshape(-1, whole.nx), step[n_state:]
+    dS = np.concatenate([one.P[k0:k0 + K] @ ds0[i] + one.Q[k0:k0 + K] @ dth + one.q[k0:k0 + K]
+                         for i, (k0, K) in enumerate(pieces)])
+    lin = np.einsum("kmoi,ki->kmo", G, dS) + np.einsum("kmoi,i->kmo", Hth, dth)
+    for eqs in (one, many):
+        gdir, quad = eqs.predicted(step)
+        assert gdir == pytest.approx(float(np.sum(E * lin)), rel=1e-9)
+        assert quad == pytest.approx(float(np.sum(lin * lin)), rel=1e-9)
+    nres = float(np.sum(whole.mask))
+    cov1 = sh.reported_covariance(one.N, one.clusters, n_state, 0.5 * one.cost2, nres)
+    cov2 = sh.reported_covariance(many.N, many.clusters, n_state, 0.5 * many.cost2, nres)
+    assert close(cov1, cov2)
+    # a trial's merit terms are summed a chunk at a time too
+    sq1, D1 = whole.merit_terms(S, p)
+    sq2, D2 = chunked.merit_terms(S, p)
+    assert sq2 == pytest.approx(sq1, rel=1e-12) and np.array_equal(D1, D2)
+
+
+def test_a_fit_holds_no_more_per_sample_than_the_data(cyl_a, monkeypatch):
+    """What a fit allocates at its peak grows with the run by less than 400 bytes per sample
+    (its layout of the data: measured 75), not by its sensitivities (a whole run's
+    sensitivities, Jacobians and reduced Jacobians took 1.6 kB per sample)."""
+    import combined_reality.identify.shooting as sh
+
+    # chunks of 16 intervals, so that these short runs are linearised in several
+    monkeypatch.setattr(sh, "CHUNK_SAMPLES", 16 * 100)
+    opts = IdentifyOptions(max_iter=2, restart_misfit=False, threads=1)
+    peaks = {}
+    for duration in (3.0, 12.0):
+        run = simulate_run(cyl_a, duration, seed=5)
+        identify(cyl_a, [run], opts)  # model functions loaded: not part of what is measured
+        tracemalloc.start()
+        try:
+            identify(cyl_a, [run], opts)
+            peaks[duration] = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    per_sample = (peaks[12.0] - peaks[3.0]) / 9000
+    assert per_sample < 400, peaks
+
+
+def test_a_run_longer_than_a_minute_is_fitted_in_equal_pieces_of_whole_intervals():
+    """A run over LONG_PIECE_S is cut into the fewest equal pieces of whole intervals that are
+    none longer, every sample in exactly one; a run up to it is left whole."""
+    from combined_reality.files import Run
+    from combined_reality.identify.offline import LONG_PIECE_S, long_run_pieces
+
+    def run(n):
+        t = np.arange(n) * 1e-3
+        return Run(t=t, u=np.zeros(n), x=np.zeros(n), p1=np.full(n, 2e5), p2=np.full(n, 2e5))
+
+    short = run(int(LONG_PIECE_S * 1000) + 1)  # exactly LONG_PIECE_S long
+    assert long_run_pieces(short, 100) == [short]
+    long = run(150_001)  # 150 s
+    pieces = long_run_pieces(long, 100)
+    assert len(pieces) == 3
+    assert all(p.duration <= LONG_PIECE_S for p in pieces)
+    assert all(p.n % 100 == 0 for p in pieces[:-1])
+    assert np.array_equal(np.concatenate([p.t for p in pieces]), long.t)
