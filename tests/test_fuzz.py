@@ -185,7 +185,9 @@ def test_crashes_found_by_hand_are_located_in_a_batch_row(tmp_path, capsys, what
     run = _unclosed_quote_run(tmp_path / "quoted.csv") if what == "unclosed quote" else tmp_path / "run.csv"
     if what != "unclosed quote":
         run.write_text(STILL)
-    cfg = _latin1_cylinder(tmp_path / "latin1.toml") if what == "not UTF-8" else CFG
+    cfg = _latin1_cylinder(tmp_path / "latin1.toml") if what == "not UTF-8" else tmp_path / "cyl.toml"
+    if what != "not UTF-8":
+        cfg.write_text(CFG.read_text())
     (tmp_path / "fleet.toml").write_text(f'[[cylinder]]\nname = "c"\nconfig = "{cfg}"\nruns = ["{run}"]\n')
     code, err = _call(["batch", tmp_path / "fleet.toml", "--out", tmp_path / "out", "--workers", "1", "--no-report",
                        "-q"], capsys)

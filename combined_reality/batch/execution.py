@@ -82,7 +82,7 @@ def _load_inputs(job: CylinderJob):
     else:
         for p in job.runs:
             try:
-                run = read_run(p)
+                run = read_run(p, job.max_rows)
             except FileNotFoundError:
                 raise _RowError(f"run {p} not found") from None
             except (RunFormatError, OSError, ValueError) as e:
@@ -291,7 +291,7 @@ class _Cache:
 
     def __init__(self, out_dir: Path):
         self.dir = out_dir / "cache"
-        self.dir.mkdir(parents=True, exist_ok=True)
+        self.dir.mkdir(exist_ok=True)
 
     def _path(self, job: CylinderJob, key: str) -> Path:
         return self.dir / f"{job.stem}.{key}.json"
@@ -337,7 +337,7 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
         nonlocal done
         simulated = row.pop(SIMULATED_RUNS, None)
         if simulated:
-            (out_dir / RUNS_DIR).mkdir(parents=True, exist_ok=True)
+            (out_dir / RUNS_DIR).mkdir(exist_ok=True)
             for run in simulated:  # the client writes every file, under out_dir
                 write_run(out_dir / run.source, run, comments=run.comments)
             row["run_files"] = "; ".join(str(run.source) for run in simulated)

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import argparse
 import math
-from pathlib import Path
+import os
 
 from sim.friction_models import parameter_unit
 
-from ..friction.map import FIT_SPECS, FrictionMap, FrictionMapError, SegmentOptions
-from .common import UsageError, default_config_path, eprint
+from ..friction.map import FIT_SPECS, PLOT_FORMATS, FrictionMap, FrictionMapError, SegmentOptions
+from .common import UsageError, add_max_rows, check_paths, default_config_path, eprint
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -44,6 +44,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         f"(default {SegmentOptions.spread:g})")
     p.add_argument("--load", type=float, metavar="N",
                    help="constant normal load of the runs, N (for the load models cv_load, cvs_load)")
+    add_max_rows(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
     return p
@@ -67,6 +68,10 @@ def run(args) -> int:
     from ..friction.map import build_map, is_points_table, plot_map, points_from_run, read_points
 
     models, explicit = _model_names(args)
+    if args.plot and os.path.splitext(args.plot)[1].lstrip(".").lower() not in PLOT_FORMATS:
+        raise UsageError(f"--plot {args.plot}: name the plot with one of the suffixes "
+                         f"{', '.join('.' + f for f in PLOT_FORMATS)} (it says the image format).")
+    check_paths({"--json": args.json, "--plot": args.plot}, inputs=[args.config, *args.inputs])
     try:
         options = SegmentOptions(min_duration=args.min_duration, min_speed=args.min_speed, spread=args.spread)
     except FrictionMapError as e:
@@ -90,11 +95,9 @@ def run(args) -> int:
                 continue
         except FrictionMapError as e:
             raise UsageError(str(e)) from None
-        if not Path(path).is_file():
-            raise UsageError(f"{path}: file not found.")
         if cyl is None:
             cyl = load_cylinder(args.config if args.config else default_config_path())
-        run_ = read_run(path)
+        run_ = read_run(path, args.max_rows)
         check_run_against_cylinder(run_, cyl)
         rp = points_from_run(cyl, run_, options, load=args.load)
         points.extend(rp.points)
@@ -138,7 +141,6 @@ def run(args) -> int:
     say(f"wrote {args.json}")
     if args.plot:
         try:
-            Path(args.plot).parent.mkdir(parents=True, exist_ok=True)  # as the JSON writer does
             plot_map(fmap, args.plot, title=f"friction map: {inputs}")
         except FrictionMapError as e:
             eprint(f"combined-reality friction-map: {e}")

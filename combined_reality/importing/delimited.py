@@ -13,10 +13,10 @@ import numpy as np
 from .mapping import ImportMapping, MappingError
 from .raw import RawTable, require_column_time
 
-__all__ = ["read_delimited", "DELIMITERS"]
+__all__ = ["read_delimited", "DELIMITERS", "HEADER_SEARCH_LINES"]
 
 DELIMITERS = (";", "\t", ",", "|")
-_HEADER_SEARCH_LINES = 500  # the column names must be within the first lines
+HEADER_SEARCH_LINES = 500  # the column names must be within the first lines
 _COMMA_DECIMAL = re.compile(r"^\s*[-+]?\d*,\d+([eE][-+]?\d+)?\s*$")
 
 
@@ -102,7 +102,7 @@ def _find_header(path: Path, lines: list[str], wanted: list[str], header_line: i
             raise MappingError(f"{path}: [source] header_line = {header_line}, but the file has {len(lines)} lines.")
         indices = [header_line - 1]
     else:
-        indices = range(min(len(lines), _HEADER_SEARCH_LINES))
+        indices = range(min(len(lines), HEADER_SEARCH_LINES))
     best: tuple[int, int, str] | None = None  # (names found, index, delimiter)
     for i in indices:
         for d in candidates:
