@@ -73,10 +73,10 @@ def run_live(args) -> int:
     from ..live import Console, make_program
 
     record = Path(args.record)
-    if record.exists() and not args.overwrite:
-        raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
     program_file = args.program[len("file:"):] if args.program.startswith("file:") else None
     _check_outputs(args, record, [args.config, program_file])
+    if record.exists() and not args.overwrite:
+        raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
     cyl = load_config(args.config)
     _online_options(args, cyl)  # the options before the rig is opened
     try:

@@ -158,10 +158,10 @@ def _options(args, cyl):
 
 
 def _check_paths(args) -> None:
+    check_paths({"--record": args.record, "--out": args.out, "--json": args.json}, inputs=[args.config])
     if args.record and Path(args.record).exists() and not args.overwrite:
         raise UsageError(f"--record {args.record} exists; a recording is never overwritten unless you pass "
                          "--overwrite.")
-    check_paths({"--record": args.record, "--out": args.out, "--json": args.json}, inputs=[args.config])
 
 
 def _with_sigterm(fn):

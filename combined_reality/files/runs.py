@@ -18,6 +18,7 @@ import csv
 import io
 import math
 import os
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
@@ -541,7 +542,9 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
                 blank = None
         filled = col if blank is None else [s for s, b in zip(col, blank) if not b]
         try:  # C parser first; the Python loop below only runs to find what is wrong
-            arr = np.loadtxt(filled, delimiter=",", comments=None, quotechar=None, ndmin=1, dtype=np.float64)
+            with warnings.catch_warnings():  # an empty cell is said below, not warned about
+                warnings.simplefilter("ignore")
+                arr = np.loadtxt(filled, delimiter=",", comments=None, quotechar=None, ndmin=1, dtype=np.float64)
         except ValueError:
             arr = None
         if arr is not None and arr.shape == (len(filled),):

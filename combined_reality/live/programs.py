@@ -156,14 +156,25 @@ def command_file_program(path, cyl: Cylinder, options: ProgramOptions = ProgramO
         raise ValueError(f"{path}: file not found.") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not UTF-8 text (a command file is a CSV with columns t and u).") from None
-    # comment lines go first: genfromtxt would take a leading one for the header
-    lines = [ln for ln in text.splitlines() if not ln.lstrip().startswith("#")]
-    data = np.genfromtxt(lines, delimiter=",", names=True)
-    names = data.dtype.names or ()
+    rows = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not rows:
+        raise ValueError(f"{path}: holds no commands (a command file is a CSV with columns t and u).")
+    names = [c.strip() for c in rows[0][1].split(",")]
     if "t" not in names or "u" not in names:
         raise ValueError(f"{path}: a command file needs columns t and u (found "
                          f"{shorten(', '.join(names)) or 'none'}).")
-    t, u = np.atleast_1d(data["t"]).astype(float), np.atleast_1d(data["u"]).astype(float)
+    t, u = np.empty(len(rows) - 1), np.empty(len(rows) - 1)
+    for k, (n, line) in enumerate(rows[1:]):
+        cells = line.split(",")
+        if len(cells) != len(names):
+            raise ValueError(f"{path}, line {n}: {len(cells)} cells, but the header has {len(names)} columns.")
+        for arr, j in ((t, names.index("t")), (u, names.index("u"))):
+            try:
+                arr[k] = float(cells[j])
+            except ValueError:
+                raise ValueError(f"{path}, line {n}: {shorten(cells[j].strip())!r} is not a number.") from None
+    if not t.size:
+        raise ValueError(f"{path}: no commands after the header.")
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.diff(t) > 0)):
         raise ValueError(f"{path}: times must be finite and increasing, commands finite.")
     beyond = np.flatnonzero(np.abs(u) > COMMAND_LIMIT)
