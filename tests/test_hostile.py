@@ -21,7 +21,6 @@ import errno
 import math
 import os
 import random
-import resource
 import shutil
 import signal
 import stat

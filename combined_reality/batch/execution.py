@@ -33,8 +33,8 @@ from sim.extension import check_combination
 from sim.friction_models import FrictionModel, parse_truth_spec
 
 from ..diagnose import DiagnoseOptions, diagnose
-from ..files import (RunFormatError, atomic_write, check_run_against_cylinder, cylinder_tag, read_run,
-                     recorded_elsewhere, write_run)
+from ..files import (RunFormatError, atomic_write, check_distinct_runs, check_run_against_cylinder, cylinder_tag,
+                     read_run, recorded_elsewhere, write_run)
 from ..friction import identify_model, model_parameters
 from ..identify import IdentificationError, IdentifyOptions, velocity_estimate
 from ..live import simulate_run
@@ -96,6 +96,10 @@ def _load_inputs(job: CylinderJob):
             except (RunFormatError, ConfigError) as e:
                 raise _RowError(str(e)) from None
             runs.append(run)
+        try:
+            check_distinct_runs(runs, [Path(p).name for p in job.runs])
+        except RunFormatError as e:
+            raise _RowError(str(e)) from None
         rates = {round(r.sample_period, 9) for r in runs}
         if len(rates) > 1:
             raise _RowError("the runs have different sample rates; identify runs of one rig and rate together")

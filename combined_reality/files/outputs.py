@@ -53,7 +53,8 @@ _REASONS = {
 }
 
 
-def os_error(e: OSError, path: PathLike, flag: str | None = None, doing: str = "cannot write") -> InputError | ToolFailure:
+def os_error(e: OSError, path: PathLike, flag: str | None = None,
+             doing: str = "cannot write") -> InputError | ToolFailure:
     """The one sentence for an OS error on output `path` (never the name of a temporary file):
     an OutputError where the request is at fault, else a WriteError."""
     why, theirs = _REASONS.get(e.errno or 0, (e.strerror or str(e), False))
@@ -110,7 +111,8 @@ def _try_create_in(folder: Path, who: str) -> None:
         fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except OSError as e:
         why, theirs = _REASONS.get(e.errno or 0, (e.strerror or str(e), False))
-        msg = f"{who}: the folder {folder} does not accept new files" + ("." if e.errno == errno.ENOENT else f": {why}.")
+        msg = f"{who}: the folder {folder} does not accept new files" + (
+            "." if e.errno == errno.ENOENT else f": {why}.")
         raise OutputError(msg) if theirs else WriteError(msg) from None
     os.close(fd)
     os.unlink(probe)

@@ -343,14 +343,14 @@ def read_points(path: str | os.PathLike[str]) -> list[MapPoint]:
             raise PointsFormatError(f"{path}: line {n}, column 'v': v = 0 has no direction "
                                     f"(extension v > 0, retraction v < 0).")
         if abs(vals["v"]) > _MAX_SPEED:
-            raise PointsFormatError(f"{path}: line {n}, column 'v': {cells[cols['v']]} m/s is implausibly fast "
-                                    f"(v must be in m/s, not mm/s).")
+            raise PointsFormatError(f"{path}: line {n}, column 'v': {shorten(cells[cols['v']])} m/s is implausibly "
+                                    f"fast (v must be in m/s, not mm/s).")
         if "count" in vals and (vals["count"] < 1 or vals["count"] != int(vals["count"])):
-            raise PointsFormatError(f"{path}: line {n}, column 'count': {cells[cols['count']]} is not a "
+            raise PointsFormatError(f"{path}: line {n}, column 'count': {shorten(cells[cols['count']])} is not a "
                                     f"positive whole number.")
         if vals.get("breakaway", 0.0) not in (0.0, 1.0):
-            raise PointsFormatError(f"{path}: line {n}, column 'breakaway': {cells[cols['breakaway']]} is neither "
-                                    f"1 (a breakaway force) nor 0 (a sliding point).")
+            raise PointsFormatError(f"{path}: line {n}, column 'breakaway': {shorten(cells[cols['breakaway']])} is "
+                                    f"neither 1 (a breakaway force) nor 0 (a sliding point).")
         points.append(MapPoint(v=vals["v"], F=vals["F"], F_std=vals.get("F_std", math.nan),
                                v_std=vals.get("v_std", math.nan), count=int(vals.get("count", 1)),
                                dp=vals.get("dp", math.nan), pc=vals.get("pc", math.nan),

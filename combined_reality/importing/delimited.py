@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.inputs import shorten
+
 from .mapping import ImportMapping, MappingError
 from .raw import RawTable, require_column_time
 
@@ -126,7 +128,7 @@ def _find_header(path: Path, lines: list[str], wanted: list[str], header_line: i
     cells = _split(lines[i], d)
     missing = [n for n in wanted if n not in cells]
     raise MappingError(f"{path}, line {i + 1}: the header lacks {', '.join(repr(n) for n in missing)} (it has "
-                       f"{', '.join(repr(c) for c in cells[:12])}{' ...' if len(cells) > 12 else ''}).")
+                       f"{shorten(', '.join(repr(c) for c in cells[:12]))}{' ...' if len(cells) > 12 else ''}).")
 
 
 def _decimal_mark(cells: list[list[str]], cols, delimiter: str) -> str:
@@ -145,8 +147,8 @@ def _numbers(path: Path, texts: list[str], linenos: list[int], column: str, deci
         cell = s.strip()
         if decimal == ",":
             if "." in cell and "," in cell:
-                raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {cell!r} has both a point and a "
-                                   f"comma; thousands separators are not read (export without them).")
+                raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {shorten(cell)!r} has both a point "
+                                   f"and a comma; thousands separators are not read (export without them).")
             cell = cell.replace(",", ".")
         if not cell:
             raise MappingError(f"{path}, line {linenos[i]}, column '{column}': empty cell; every mapped channel needs "
@@ -157,9 +159,10 @@ def _numbers(path: Path, texts: list[str], linenos: list[int], column: str, deci
             v = float(cell)
         except ValueError:
             hint = " (the decimal mark is ','? set [source] decimal = \",\")" if decimal == "." and "," in cell else ""
-            raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {s.strip()!r} is not a number"
+            raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {shorten(s.strip())!r} is not a number"
                                f"{hint}.") from None
         if not np.isfinite(v):
-            raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {s.strip()!r} is not a finite number.")
+            raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {shorten(s.strip())!r} is not a "
+                               "finite number.")
         out[i] = v
     return out
