@@ -14,9 +14,9 @@ from typing import Iterable, Sequence
 from .errors import InputError, shorten
 
 __all__ = ["OptionError", "SEED_MAX", "RATE_MIN", "RATE_MAX", "INTERVAL_MAX", "MIN_SAMPLES", "MAX_SIMULATED_SAMPLES",
-           "MAX_LIVE_DURATION", "MAX_ITER", "MAX_ROWS", "seed", "sample_rate", "positive_seconds", "interval",
-           "whole_number", "simulated_samples", "live_duration", "parameter_names", "check_estimable",
-           "scheduler_address", "max_rows"]
+           "MAX_LIVE_DURATION", "MAX_ITER", "MAX_ROWS", "MAX_WINDOW", "MIN_UPDATE", "seed", "sample_rate",
+           "positive_seconds", "interval", "whole_number", "simulated_samples", "window", "update", "live_duration",
+           "parameter_names", "check_estimable", "scheduler_address", "max_rows"]
 
 SEED_MAX = 2**32 - 1
 RATE_MIN, RATE_MAX = 10.0, 100_000.0  # Hz: sample rates of a rig, a simulation, a resampling
@@ -27,6 +27,8 @@ MIN_SAMPLES = 10  # a run shorter than this is nothing to read, fit or replay
 MAX_SIMULATED_SAMPLES = 4_000_000
 MAX_LIVE_DURATION = 86_400.0  # s: a live session or procedure runs at most a day
 MAX_ITER = 10_000
+MAX_WINDOW = 600.0  # s: the online estimator's moving horizon (600k samples at 1 kHz in one window)
+MIN_UPDATE = 1e-3  # s: the online estimator updates at most every millisecond of data
 MAX_ROWS = 5_000_000  # lines of a run file by default (83 min at 1 kHz); --max-rows changes it
 
 
@@ -104,6 +106,22 @@ def simulated_samples(duration: float, rate: float, name: str = "--duration", ru
     return int(n)
 
 
+def window(value, name: str = "--window") -> float:
+    """The online estimator's moving horizon: more than 0, at most 600 s."""
+    v = positive_seconds(value, name)
+    if v > MAX_WINDOW:
+        raise OptionError(f"{name} must be at most {MAX_WINDOW:g} s, not {shorten(value)}.")
+    return v
+
+
+def update(value, name: str = "--update") -> float:
+    """Data between the online estimator's updates: at least 1 ms."""
+    v = positive_seconds(value, name)
+    if v < MIN_UPDATE:
+        raise OptionError(f"{name} must be at least {MIN_UPDATE:g} s, not {shorten(value)}.")
+    return v
+
+
 def live_duration(value, name: str = "--duration") -> float:
     """Seconds of a session on a rig: positive, at most a day."""
     v = positive_seconds(value, name)
@@ -113,15 +131,15 @@ def live_duration(value, name: str = "--duration") -> float:
 
 
 def parameter_names(value, name: str = "--estimate") -> tuple[str, ...]:
-    """A comma-separated list of parameter names (or a list): at least one, each once."""
+    """A comma-separated list of names (or a list): at least one, each once (parameters to
+    estimate, effects to try)."""
     items = value.split(",") if isinstance(value, str) else list(value)
     names = tuple(str(s).strip() for s in items if str(s).strip())
     if not names:
-        raise OptionError(f"{name} needs at least one parameter name.")
+        raise OptionError(f"{name} needs at least one name.")
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
-        raise OptionError(f"{name} names {', '.join(shorten(n) for n in twice)} more than once; give each "
-                          "parameter once.")
+        raise OptionError(f"{name} names {', '.join(shorten(n) for n in twice)} more than once; give each once.")
     return names
 
 

@@ -44,7 +44,7 @@ def run(args) -> int:
     from ..diagnose import DiagnoseOptions, diagnose
     from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
 
-    names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
+    names = options.parameter_names(args.candidates, "--candidates") if args.candidates is not None else tuple(EFFECTS)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:
         raise UsageError(f"--candidates: unknown effect {', '.join(unknown)} (known: {', '.join(EFFECTS)}).")

@@ -22,10 +22,10 @@ def _add_online_arguments(a) -> None:
                         "the viewer does not start) saves a .rrd next to the recording instead")
     a.add_argument("--estimate", type=typed(options.parameter_names),
                    help="comma-separated parameters, each once (default Fc,Fv,kp)")
-    a.add_argument("--window", type=typed(options.positive_seconds, "--window"), default=2.0,
-                   help="moving horizon, s (default 2)")
-    a.add_argument("--update", type=typed(options.positive_seconds, "--update"), default=0.2,
-                   help="data between estimator updates, s (default 0.2)")
+    a.add_argument("--window", type=typed(options.window), default=2.0,
+                   help=f"moving horizon, s (default 2, at most {options.MAX_WINDOW:g})")
+    a.add_argument("--update", type=typed(options.update), default=0.2,
+                   help=f"data between estimator updates, s (default 0.2, at least {options.MIN_UPDATE:g})")
     a.add_argument("--memory", type=typed(options.positive_seconds, "--memory", allow_inf=True), default=math.inf,
                    help="forgetting time constant of old data, s (default inf: keep all)")
     a.add_argument("--give-up", type=typed(options.positive_seconds, "--give-up"), default=5.0,
