@@ -29,7 +29,6 @@ import numpy as np
 from sim.inputs import InputFileError, regular_file_size, shorten
 
 from ..options import MAX_ROWS
-
 from .atomic import atomic_writer
 from .outputs import os_error, refuse_special
 from .plausibility import first_implausible, measured_value, time_unit_problem
@@ -339,7 +338,7 @@ class _RunReader:
         cols = self._arrow(block, k)
         if cols is None:
             return False
-        self._store(cols, {}, k)
+        self._store(cols, k)
         self.blocks.append(_Block(self.n - k, line0, offset, len(block), None))
         self.last_line = line0 + k - 1
         return True
@@ -401,7 +400,7 @@ class _RunReader:
             raise _TextColumn(self.text_columns | textual)
         for name, mask in empty.items():
             self._mark_empty(name, mask, self.n)
-        self._store(columns, empty, len(rows))
+        self._store(columns, len(rows))
         self.blocks.append(_Block(self.n - len(rows), line0, offset, len(block), np.array(linenos)))
         self.last_line = linenos[-1]
 
@@ -411,7 +410,9 @@ class _RunReader:
                 self.empty[name] = np.zeros(self.upper, bool)
             self.empty[name][at:at + mask.size] = mask
 
-    def _store(self, columns: dict[str, np.ndarray], empty: dict, k: int) -> None:
+    def _store(self, columns: dict[str, np.ndarray], k: int) -> None:
+        if self.n + k > self.upper:  # more lines than counted a moment ago
+            raise self.fail("the file grew while it was read; read it when its writer has finished.")
         for name, col in columns.items():
             if name in self.text:
                 self.text[name].append(col)
