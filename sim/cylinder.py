@@ -17,7 +17,7 @@ from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-from .inputs import TOML_MAX_BYTES, InputFileError, parse_toml, read_bounded, shorten
+from .inputs import TOML_MAX_BYTES, parse_toml, read_checked, shorten
 
 
 class ConfigError(ValueError):
@@ -246,16 +246,7 @@ _HINTS = {("geometry.bore", 1): "lengths are in metres, not mm",
 
 def load_cylinder(path: str | Path) -> Cylinder:
     path = Path(path)
-    try:
-        data = read_bounded(path, "a cylinder file", TOML_MAX_BYTES)
-    except InputFileError as e:
-        raise ConfigError(str(e)) from None
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: cylinder file not found.") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, not a cylinder file.") from None
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read cylinder file ({e.strerror}).") from None
+    data = read_checked(path, "a cylinder file", ConfigError, TOML_MAX_BYTES)
     try:
         text = data.decode("utf-8-sig")  # TOML is UTF-8; editors on Windows like to add a BOM
     except UnicodeDecodeError as e:

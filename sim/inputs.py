@@ -14,7 +14,7 @@ import stat
 import tomllib
 
 __all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "regular_file_size",
-           "read_bounded", "parse_toml"]
+           "checked_size", "read_checked", "read_bounded", "parse_toml"]
 
 TOML_MAX_BYTES = 1 << 20  # a cylinder file or a mapping is a few kB; 1 MiB is far beyond any
 TOML_MAX_LINE = 1 << 16  # characters per line of a TOML file
@@ -55,13 +55,42 @@ def regular_file_size(path: str | os.PathLike[str], what: str, limit: int | None
     return st.st_size
 
 
-def read_bounded(path: str | os.PathLike[str], what: str, limit: int, limit_hint: str = "") -> bytes:
+def checked_size(path: str | os.PathLike[str], what: str, error: type[Exception], limit: int | None = None,
+                 limit_hint: str = "") -> int:
+    """regular_file_size with every refusal (missing, a folder, special, too large, unreadable)
+    raised as `error`, one sentence naming the path; `what` is the file's kind ("a run file")."""
+    kind = what.removeprefix("an ").removeprefix("a ")
+    try:
+        return regular_file_size(path, what, limit, limit_hint)
+    except InputFileError as e:
+        raise error(str(e)) from None
+    except FileNotFoundError:
+        raise error(f"{path}: {kind} not found.") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, not {what}.") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read {kind} ({e.strerror or e}).") from None
+
+
+def read_checked(path: str | os.PathLike[str], what: str, error: type[Exception], limit: int | None) -> bytes:
+    """read_bounded with every refusal raised as `error` (checked_size); `limit` None: a file
+    whose size the caller has bounded already."""
+    checked_size(path, what, error, limit)
+    try:
+        return read_bounded(path, what, limit)
+    except InputFileError as e:
+        raise error(str(e)) from None
+    except OSError as e:
+        raise error(f"{path}: cannot read it ({e.strerror or e}).") from None
+
+
+def read_bounded(path: str | os.PathLike[str], what: str, limit: int | None, limit_hint: str = "") -> bytes:
     """The bytes of the regular file `path`, at most `limit` of them (a file that grows while it
     is read past the limit is refused too)."""
     regular_file_size(path, what, limit, limit_hint)
     with open(path, "rb") as f:
-        data = f.read(limit + 1)
-    if len(data) > limit:
+        data = f.read() if limit is None else f.read(limit + 1)
+    if limit is not None and len(data) > limit:
         raise InputFileError(f"{path}: more than {limit / 2**20:.4g} MiB, more than {what} may hold"
                              f"{limit_hint}.")
     return data

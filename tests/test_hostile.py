@@ -26,7 +26,6 @@ import signal
 import stat
 import subprocess
 import sys
-import textwrap
 import time
 from collections import Counter
 from contextlib import contextmanager
@@ -35,6 +34,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import CONFIGS
+from test_fuzz import LAB
+from test_fuzz import MAPPING as FUZZ_MAPPING
 
 import combined_reality.files.runs as runs_module
 from combined_reality.cli import main
@@ -42,22 +43,9 @@ from combined_reality.files import Run, RunFormatError, RunRecorder, WriteError,
 
 CFG = CONFIGS / "cyl_a_32x100.toml"
 ROOT = os.geteuid() == 0
-LAB = ("Zeit [ms];Ventil [V];Weg [mm];P_A [bar];P_B [bar]\n"
-       + "".join(f"{i:d};5,{i % 9};{50 + i % 7},0;2,{i % 5};3,{i % 4}\n" for i in range(200)))
-MAPPING = textwrap.dedent("""\
-    [source]
-    format = "csv"
-    delimiter = ";"
-    decimal = ","
-    [columns]
-    t = { from = "Zeit [ms]", unit = "ms" }
-    u = { from = "Ventil [V]", unit = "V", zero = 5.0, span = 5.0 }
-    x = { from = "Weg [mm]", unit = "mm" }
-    p1 = { from = "P_A [bar]", unit = "bar", gauge = true }
-    p2 = { from = "P_B [bar]", unit = "bar", gauge = true }
-    [atmosphere]
-    pressure = 101300.0
-    """)
+# the lab recording and its mapping of the fuzz tests; the format said, so that a special file
+# given as the recording reaches the reader (not the suffix check)
+MAPPING = FUZZ_MAPPING.replace("[source]\n", '[source]\nformat = "csv"\n', 1)
 
 
 def _moving_run(n: int = 2000, seed: int = 0) -> Run:

@@ -26,7 +26,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from sim.inputs import InputFileError, regular_file_size, shorten
+from sim.inputs import checked_size, shorten
 
 from ..options import MAX_ROWS
 from .atomic import atomic_writer
@@ -188,20 +188,11 @@ def read_run(path: str | os.PathLike[str], max_rows: int = MAX_ROWS) -> Run:
 
 
 def _regular_size(path: Path, max_rows: int) -> int:
-    try:
-        size = regular_file_size(path, "a run file")
-        if size > max_rows * _MAX_ROW_BYTES:
-            raise RunFormatError(f"{path}: {size / 2**20:.4g} MiB, more than {max_rows} lines (--max-rows) of "
-                                 f"{_MAX_ROW_BYTES} bytes would fill; raise --max-rows for a longer run.")
-        return size
-    except InputFileError as e:
-        raise RunFormatError(str(e)) from None
-    except FileNotFoundError:
-        raise RunFormatError(f"{path}: file not found.") from None
-    except IsADirectoryError:
-        raise RunFormatError(f"{path}: is a directory, not a run file.") from None
-    except OSError as e:
-        raise RunFormatError(f"{path}: cannot read the file ({e.strerror}).") from None
+    size = checked_size(path, "a run file", RunFormatError)
+    if size > max_rows * _MAX_ROW_BYTES:
+        raise RunFormatError(f"{path}: {size / 2**20:.4g} MiB, more than {max_rows} lines (--max-rows) of "
+                             f"{_MAX_ROW_BYTES} bytes would fill; raise --max-rows for a longer run.")
+    return size
 
 
 def _count_lines(f, path: Path, max_rows: int, fail: _Fail) -> int:

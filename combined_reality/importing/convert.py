@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from sim.inputs import InputFileError, regular_file_size, shorten
+from sim.inputs import checked_size, shorten
 
 from ..files import Run, first_implausible, time_unit_problem
 from ..options import MAX_ROWS
@@ -141,16 +141,7 @@ def _check_recording(path: Path, mapping: ImportMapping, fmt: str, max_rows: int
     if fmt == "can" and mapping.source.dbc is not None:
         files.append((mapping.source.dbc, "a DBC file"))
     for p, what in files:
-        try:
-            size = regular_file_size(p, what)
-        except InputFileError as e:
-            raise MappingError(str(e)) from None
-        except FileNotFoundError:
-            raise MappingError(f"{p}: file not found.") from None
-        except IsADirectoryError:
-            raise MappingError(f"{p}: is a directory, not {what}.") from None
-        except OSError as e:
-            raise MappingError(f"{p}: cannot read the file ({e.strerror}).") from None
+        size = checked_size(p, what, MappingError)
         if p == path and size > max_rows * _RECORDING_MAX_BYTES_PER_ROW:
             raise MappingError(f"{p}: {size / 2**20:.4g} MiB, more than {max_rows} rows (--max-rows) of "
                                f"{_RECORDING_MAX_BYTES_PER_ROW} bytes would fill; raise --max-rows for a longer "

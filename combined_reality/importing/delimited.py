@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.inputs import shorten
+from sim.inputs import read_checked, shorten
 
 from .mapping import ImportMapping, MappingError
 from .raw import RawTable, require_column_time
@@ -60,14 +60,7 @@ def read_delimited(path: Path, mapping: ImportMapping) -> RawTable:
 
 
 def _lines(path: Path, encoding: str | None) -> tuple[list[str], str]:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise MappingError(f"{path}: file not found.") from None
-    except IsADirectoryError:
-        raise MappingError(f"{path}: is a directory, not a recording.") from None
-    except OSError as e:
-        raise MappingError(f"{path}: cannot read the file ({e.strerror}).") from None
+    data = read_checked(path, "a recording", MappingError, None)  # its size bounded by import_recording
     if encoding is None:  # UTF-8, else what Windows DAQ programs write (the header must still match exactly)
         try:
             return _text_lines(path, data.decode("utf-8-sig")), "utf-8"

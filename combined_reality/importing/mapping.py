@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sim.inputs import TOML_MAX_BYTES, InputFileError, parse_toml, read_bounded, shorten
+from sim.inputs import TOML_MAX_BYTES, parse_toml, read_checked, shorten
 
 from .units import UnitProblem, check_unit, quantity_in
 
@@ -125,15 +125,7 @@ def format_of(path: Path, options: SourceOptions) -> str:
 def load_mapping(path: str | os.PathLike[str]) -> ImportMapping:
     path = Path(path)
     try:
-        text = read_bounded(path, "a mapping file", TOML_MAX_BYTES).decode("utf-8-sig")
-    except InputFileError as e:
-        raise MappingError(str(e)) from None
-    except FileNotFoundError:
-        raise MappingError(f"{path}: mapping file not found.") from None
-    except IsADirectoryError:
-        raise MappingError(f"{path}: is a directory, not a mapping file.") from None
-    except OSError as e:
-        raise MappingError(f"{path}: cannot read the mapping file ({e.strerror}).") from None
+        text = read_checked(path, "a mapping file", MappingError, TOML_MAX_BYTES).decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise MappingError(f"{path}: not UTF-8 text at byte {e.start} (a mapping file is TOML).") from None
     try:

@@ -14,7 +14,7 @@ import numpy as np
 
 from sim.cylinder import Cylinder
 from sim.flow import R_AIR, RHO0, T0
-from sim.inputs import InputFileError, read_bounded, shorten
+from sim.inputs import read_checked, shorten
 
 from ..files.plausibility import COMMAND_LIMIT
 
@@ -149,11 +149,7 @@ def command_file_program(path, cyl: Cylinder, options: ProgramOptions = ProgramO
     """Commands from a CSV file with columns t and u (u within [-1, 1]: a command beyond is
     refused, never bounded silently; the program's own bound still applies)."""
     try:
-        text = read_bounded(path, "a command file", COMMAND_FILE_MAX_BYTES).decode("utf-8-sig")
-    except InputFileError as e:
-        raise ValueError(str(e)) from None
-    except FileNotFoundError:
-        raise ValueError(f"{path}: file not found.") from None
+        text = read_checked(path, "a command file", ValueError, COMMAND_FILE_MAX_BYTES).decode("utf-8-sig")
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not UTF-8 text (a command file is a CSV with columns t and u).") from None
     rows = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
