@@ -171,8 +171,9 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory(prefix="cr_batch_bench_") as d:
         tmp = Path(d)
-        jobs = load_manifest(write_manifest(tmp / "jobs.toml", recipe, args.jobs, first_seed=101))
-        warm = load_manifest(write_manifest(tmp / "warm.toml", {**recipe, "duration": 2.0}, 1, first_seed=1))[0]
+        jobs = load_manifest(write_manifest(tmp / "jobs.toml", recipe, args.jobs, first_seed=101), allow_outside=True)
+        warm = load_manifest(write_manifest(tmp / "warm.toml", {**recipe, "duration": 2.0}, 1, first_seed=1),
+                             allow_outside=True)[0]
         print("warming the disk cache (one untimed job) ...", flush=True)
         warm_disk_cache(warm)
 

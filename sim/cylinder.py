@@ -17,6 +17,8 @@ from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
+from .inputs import TOML_MAX_BYTES, parse_toml, read_checked, shorten
+
 
 class ConfigError(ValueError):
     """A cylinder file that cannot be used; the message is one sentence naming file and key."""
@@ -244,14 +246,7 @@ _HINTS = {("geometry.bore", 1): "lengths are in metres, not mm",
 
 def load_cylinder(path: str | Path) -> Cylinder:
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: cylinder file not found.") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, not a cylinder file.") from None
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read cylinder file ({e.strerror}).") from None
+    data = read_checked(path, "a cylinder file", ConfigError, TOML_MAX_BYTES)
     try:
         text = data.decode("utf-8-sig")  # TOML is UTF-8; editors on Windows like to add a BOM
     except UnicodeDecodeError as e:
@@ -259,7 +254,7 @@ def load_cylinder(path: str | Path) -> Cylinder:
         raise ConfigError(f"{path}, line {line}: not UTF-8 text (a cylinder file is TOML, which is UTF-8; save it "
                           "as UTF-8).") from None
     try:
-        data = tomllib.loads(text)
+        data = parse_toml(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: not valid TOML ({e}).") from None
     return parse_cylinder(data, path)
@@ -273,7 +268,7 @@ def parse_cylinder(data: Mapping[str, Any], source: str | Path | None = None) ->
 
     for key in data:
         if key != "name" and key not in _SCHEMA:
-            raise fail(f"unknown key '{key}' (expected name, {', '.join(_SCHEMA)}).")
+            raise fail(f"unknown key '{shorten(key)}' (expected name, {', '.join(_SCHEMA)}).")
     name = data.get("name", Path(where).stem)
     if not isinstance(name, str):
         raise fail("key 'name' must be a string.")
@@ -289,7 +284,7 @@ def parse_cylinder(data: Mapping[str, Any], source: str | Path | None = None) ->
             raise fail(f"key '{section}' must be a table [{section}].")
         for key in table:
             if key not in keys:
-                raise fail(f"unknown key '{section}.{key}' (expected one of {', '.join(keys)}).")
+                raise fail(f"unknown key '{section}.{shorten(key)}' (expected one of {', '.join(keys)}).")
         vals: dict[str, Any] = {}
         for key, default in keys.items():
             full = f"{section}.{key}"
@@ -306,7 +301,7 @@ def parse_cylinder(data: Mapping[str, Any], source: str | Path | None = None) ->
                 vals[key] = _flow_levels(v, full, fail)
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise fail(f"key '{full}' must be a number, not {type(v).__name__} {v!r}.")
+                raise fail(f"key '{full}' must be a number, not {type(v).__name__} {shorten(repr(v))}.")
             v = float(v)
             if not math.isfinite(v):
                 raise fail(f"key '{full}' must be finite, not {v}.")
@@ -368,7 +363,8 @@ def flow_levels_at(grid: tuple[float, ...], levels: tuple[float, ...], openings)
 def _check_identify(key: str, v: Any, fail) -> Any:
     if key == "drive":
         if v not in ("command", "pressure", "chambers"):
-            raise fail(f"key 'identify.drive' must be \"command\", \"pressure\" or \"chambers\", not {v!r}.")
+            raise fail(f"key 'identify.drive' must be \"command\", \"pressure\" or \"chambers\", "
+                       f"not {shorten(repr(v))}.")
         return v
     if not isinstance(v, list) or not v or not all(isinstance(s, str) for s in v):
         raise fail("key 'identify.estimate' must be a non-empty list of parameter names.")
@@ -376,7 +372,8 @@ def _check_identify(key: str, v: Any, fail) -> Any:
         raise fail("key 'identify.estimate' names a parameter more than once.")
     for s in v:
         if s not in ESTIMABLE:
-            raise fail(f"key 'identify.estimate' names unknown parameter '{s}' (estimable: {', '.join(ESTIMABLE)}).")
+            raise fail(f"key 'identify.estimate' names unknown parameter '{shorten(s)}' (estimable: "
+                       f"{', '.join(ESTIMABLE)}).")
     return tuple(v)
 
 

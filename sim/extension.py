@@ -232,8 +232,14 @@ def parse_spec(spec: str, make, kind: str = "effect") -> Effect:
 
 
 def check_combination(effects: Sequence[Effect]) -> None:
-    """Refuse extension lists in which a friction model would silently override or be
-    overridden: two friction models, or a friction model with a friction effect."""
+    """Refuse extension lists in which an effect is given twice, or a friction model would
+    silently override or be overridden: two friction models, or a friction model with a
+    friction effect."""
+    names = [e.name for e in effects]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ValueError(f"{', '.join(twice)} is given more than once; give each effect once, with all its "
+                         "parameters")
     models = [e.name for e in effects if e.FRICTION == "replaces"]
     if len(models) > 1:
         raise ValueError(f"only one friction model at a time (given: {', '.join(models)})")

@@ -27,7 +27,7 @@ from combined_reality.cli import main
 
 CFG_A = CONFIGS / "cyl_a_32x100.toml"
 CFG_B = CONFIGS / "cyl_b_16x40.toml"
-SEED_PAPERS = CONFIGS / "manifests" / "seed_papers.toml"
+SEED_PAPERS = CONFIGS / "manifests" / "seed_papers.toml"  # names the cylinder files one folder up
 SHORT = 4.0  # s: simulated runs of the quick tests
 DIRS = ("pos", "neg")
 
@@ -151,8 +151,14 @@ BAD_MANIFESTS = {
     "simulate not a table": (f"[[cylinder]]\n{_OK}simulate = 4\n", ["'a'", "simulate must be a table"]),
     "default simulate not a table": (f"simulate = 4\n[[cylinder]]\n{_OK}runs = ['r.csv']\n",
                                      ["top-level simulate"]),
-    "negative duration": (f"[[cylinder]]\n{_OK}simulate = {{duration = -1}}\n", ["'a'", "duration > 0"]),
-    "infinite duration": (f"[[cylinder]]\n{_OK}simulate = {{duration = inf}}\n", ["'a'", "duration > 0"]),
+    # each value is held to its command-line option's rule, in the same words
+    "negative duration": (f"[[cylinder]]\n{_OK}simulate = {{duration = -1}}\n",
+                          ["'a'", "simulate.duration must be a positive number of seconds, not -1"]),
+    "infinite duration": (f"[[cylinder]]\n{_OK}simulate = {{duration = inf}}\n",
+                          ["'a'", "simulate.duration must be a positive number of seconds, not inf"]),
+    "negative seed": (f"[[cylinder]]\n{_OK}simulate = {{seed = -1}}\n",
+                      ["'a'", "simulate.seed must be a whole number from 0 to 4294967295, not -1"]),
+    "too short": (f"[[cylinder]]\n{_OK}simulate = {{duration = 1e-6}}\n", ["'a'", "a run needs at least 10"]),
     "duration not a number": (f'[[cylinder]]\n{_OK}simulate = {{duration = "long"}}\n',
                               ["'a'", "simulate.duration must be a number, not 'long'"]),
     "duration a boolean": (f"[[cylinder]]\n{_OK}simulate = {{duration = true}}\n",
@@ -162,9 +168,14 @@ BAD_MANIFESTS = {
     "runs a boolean": (f"[[cylinder]]\n{_OK}simulate = {{runs = true}}\n",
                        ["'a'", "simulate.runs must be a whole number"]),
     "rate too low": (f"[[cylinder]]\n{_OK}simulate = {{rate = 5}}\n", ["'a'", "rate"]),
-    "no runs": (f"[[cylinder]]\n{_OK}simulate = {{runs = 0}}\n", ["'a'", "runs >= 1"]),
+    "no runs": (f"[[cylinder]]\n{_OK}simulate = {{runs = 0}}\n",
+                ["'a'", "simulate.runs must be a whole number at least 1"]),
     "bad default simulate": (f"[simulate]\nduration = 0\n[[cylinder]]\n{_OK}simulate = {{seed = 2}}\n",
-                             ["'a'", "duration > 0"]),
+                             ["'a'", "simulate.duration must be a positive number"]),
+    "outside the folder": (f'[[cylinder]]\n{_OK}runs = ["/etc/shadow"]\n',
+                           ["'a'", "runs '/etc/shadow' lies outside the manifest's folder", "--allow-outside"]),
+    "climbing out": ('[[cylinder]]\nname = "a"\nconfig = "../../cyl.toml"\nruns = ["r.csv"]\n',
+                     ["'a'", "config '../../cyl.toml' lies outside"]),
     "unknown simulate key": (f"[[cylinder]]\n{_OK}simulate = {{durations = 4}}\n",
                              ["'a'", "unknown simulate key", "durations"]),
     "effect not a string": (f"[[cylinder]]\n{_OK}simulate = {{effect = 3}}\n", ["'a'", "simulate.effect"]),
@@ -212,14 +223,16 @@ def test_relative_paths_resolve_against_the_manifest_folder(tmp_path, monkeypatc
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
-    rec, sim = load_manifest(Path("../project/manifests/manifest.toml"))
+    with pytest.raises(ManifestError, match="lies outside the manifest's folder"):
+        load_manifest(Path("../project/manifests/manifest.toml"))  # ../runs and ../cyl.toml leave its folder
+    rec, sim = load_manifest(Path("../project/manifests/manifest.toml"), allow_outside=True)
     assert rec.config == str(deep / "cyl.toml")
     assert rec.runs == (str(tmp_path / "project" / "runs" / "r1.csv"), str(deep / "r2.csv"))
     assert rec.model == "nominal" and rec.simulate is None
     assert sim.config == str(tmp_path / "project" / "cyl.toml")
     assert sim.model == "cvs"  # the manifest's default
     assert sim.simulate == batch.SimulateSpec(duration=6.0, seed=7, effects=("cvs:Fs_pos=6",), runs=1)
-    assert load_manifest(m, diagnose=True)[1].simulate.runs == 2  # a diagnosis needs TRAIN and VALID
+    assert load_manifest(m, diagnose=True, allow_outside=True)[1].simulate.runs == 2  # TRAIN and VALID
 
 
 # ------------------------------------------------------------------ failures fail their row only
@@ -448,7 +461,7 @@ def test_html_report(folder, tmp_path):
 # ------------------------------------------------------------------ friction recovery
 
 def _seed_papers_job(name: str, duration: float | None = None):
-    job = next(j for j in load_manifest(SEED_PAPERS) if j.name == name)
+    job = next(j for j in load_manifest(SEED_PAPERS, allow_outside=True) if j.name == name)
     return job if duration is None else replace(job, simulate=replace(job.simulate, duration=duration))
 
 
@@ -538,7 +551,8 @@ def seed_papers_rows(tmp_path_factory):
     """The ten cylinders of configs/manifests/seed_papers.toml on two processes, with 10 s runs
     instead of the manifest's 20 s (the batch and the recovery are the same; CI is shorter)."""
     out = tmp_path_factory.mktemp("seed_papers")
-    jobs = [replace(j, simulate=replace(j.simulate, duration=10.0)) for j in load_manifest(SEED_PAPERS)]
+    jobs = [replace(j, simulate=replace(j.simulate, duration=10.0))
+            for j in load_manifest(SEED_PAPERS, allow_outside=True)]
     with ProcessPoolExecutor(2) as pool:
         summary = run_batch(jobs, out, pool, report=False, workers=2)
     return summary, out, _assert_csv_matches_parquet(out)
@@ -549,7 +563,7 @@ def seed_papers_rows(tmp_path_factory):
 def test_seed_papers_batch(seed_papers_rows):
     summary, out, rows = seed_papers_rows
     assert (summary.total, summary.ok, summary.failed) == (10, 10, 0), summary.to_json()["failures"]
-    assert [r["name"] for r in rows] == [j.name for j in load_manifest(SEED_PAPERS)]
+    assert [r["name"] for r in rows] == [j.name for j in load_manifest(SEED_PAPERS, allow_outside=True)]
     assert len(list((out / "runs").glob("*.csv"))) == 10
     assert _no_temporary_files(out) == []
 
@@ -664,7 +678,7 @@ def test_names_that_differ_only_in_punctuation_or_case_get_their_own_files(tmp_p
 
 
 @pytest.mark.parametrize("sim, says", [
-    ("{duration = 1e9}", "simulate asks for 1e+12 samples"),
+    ("{duration = 1e9}", "simulate.duration 1e+09 s at 1000 Hz gives 1e+12 samples"),
     ("{duration = 600, rate = 2000}", "at most 1e+06 per cylinder"),
     ("{duration = 400, runs = 3}", "x 3 run(s)"),
 ])

@@ -70,6 +70,7 @@ def _images(text: str) -> list[bytes]:
 def report(tmp_path_factory):
     d = tmp_path_factory.mktemp("batch")
     path, png = d / "out" / "report.html", d / "png"
+    path.parent.mkdir()  # writers create no folders (the command line checks them first)
     write_batch_report(ROWS, path, png_dir=png, title="Batch <test>")
     return path.read_text(encoding="utf-8"), png
 

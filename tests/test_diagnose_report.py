@@ -92,6 +92,7 @@ def _images(text: str) -> list[bytes]:
 
 def test_the_report_is_one_self_contained_file_with_the_verdict_and_every_candidate(diag, tmp_path):
     path, png = tmp_path / "out" / "report.html", tmp_path / "png"
+    path.parent.mkdir()  # writers create no folders (the command line checks them first)
     write_report(diag, path, png_dir=png)
     text = path.read_text(encoding="utf-8")
     assert text.startswith("<!DOCTYPE html>") and text.rstrip().endswith("</html>")

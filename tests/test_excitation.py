@@ -16,6 +16,9 @@ def test_programs_stay_bounded_and_push_back_past_the_soft_limits(cyl_a, tmp_pat
         with pytest.raises(ValueError, match="finite"):
             make_program(name, cyl_a, 10.0)
         (tmp_path / "cmd.csv").write_text("t,u\n0,0.3\n0.5,-7\n1.5,0.9\n")
+        with pytest.raises(ValueError, match=r"u = -7 at t = 0.5 s is outside \[-1, 1\]"):
+            make_program(name, cyl_a, 10.0)  # refused, not bounded silently
+        (tmp_path / "cmd.csv").write_text("t,u\n0,0.3\n0.5,-1\n1.5,0.9\n")
         prog = make_program(name, cyl_a, 10.0)
         assert prog.command(0.7, 0.5 * L) == -ProgramOptions().u_max  # held, then clipped to the bound
         assert prog.command(0.2, 0.5 * L) == 0.3

@@ -1,10 +1,13 @@
 """Malformed inputs never end in an internal error (issue 17): mutated runs, cylinder files,
-mappings and manifests fed to the command line in-process give exit status 2 with one sentence
-naming the file (or, for a batch, a failed row that names it), and the two crashes found by hand
-stay fixed in every subcommand that reads such files."""
+mappings, manifests, points tables and command files fed to the command line in-process give
+exit status 2 with one sentence naming the file (or, for a batch, a failed row that names it),
+option values are refused as they are parsed or lie within their documented range, and the two
+crashes found by hand stay fixed in every subcommand that reads such files (issue 43 adds
+tests/test_hostile.py: special files, huge inputs, impossible outputs)."""
 from __future__ import annotations
 
 import json
+import math
 import textwrap
 from pathlib import Path
 
@@ -185,7 +188,9 @@ def test_crashes_found_by_hand_are_located_in_a_batch_row(tmp_path, capsys, what
     run = _unclosed_quote_run(tmp_path / "quoted.csv") if what == "unclosed quote" else tmp_path / "run.csv"
     if what != "unclosed quote":
         run.write_text(STILL)
-    cfg = _latin1_cylinder(tmp_path / "latin1.toml") if what == "not UTF-8" else CFG
+    cfg = _latin1_cylinder(tmp_path / "latin1.toml") if what == "not UTF-8" else tmp_path / "cyl.toml"
+    if what != "not UTF-8":
+        cfg.write_text(CFG.read_text())
     (tmp_path / "fleet.toml").write_text(f'[[cylinder]]\nname = "c"\nconfig = "{cfg}"\nruns = ["{run}"]\n')
     code, err = _call(["batch", tmp_path / "fleet.toml", "--out", tmp_path / "out", "--workers", "1", "--no-report",
                        "-q"], capsys)
@@ -201,3 +206,71 @@ def test_a_manifest_that_is_not_utf8_is_located(tmp_path, capsys):
     m.write_bytes('[[cylinder]]\nname = "Zylinder für Presse 3"\nconfig = "c.toml"\nruns = ["r.csv"]\n'.encode("latin-1"))
     code, err = _call(["batch", m, "--out", tmp_path / "out", "-q"], capsys)
     _one_located_sentence(code, err, "fleet.toml, line 2: not UTF-8")
+
+
+POINTS = "# a sweep\nv,F,F_std,count\n" + "".join(f"{s * v:.3f},{s * (20 + 100 * v):.3f},0.5,100\n"
+                                                   for v in (0.01, 0.02, 0.05, 0.1, 0.2) for s in (1, -1))
+COMMANDS = "# a command file\nt,u\n0,0.1\n0.5,-0.2\n1.0,0.0\n1.5,0.3\n"
+
+
+@FUZZ
+@given(data=mutated(POINTS))
+def test_mutated_points_tables(workdir, capsys, data):
+    path = workdir / "mut_points.csv"
+    path.write_bytes(data)
+    code, err = _call(["friction-map", path, "--model", "cv", "--json", workdir / "m.json", "-q"], capsys)
+    if code != 0:  # a table that is still valid is fitted
+        _one_located_sentence(code, err, "mut_points.csv")
+
+
+@FUZZ
+@given(data=mutated(COMMANDS))
+def test_mutated_command_files(workdir, cyl_a, data):
+    from combined_reality.live import ProgramOptions, make_program
+
+    path = workdir / "mut_cmds.csv"
+    path.write_bytes(data)
+    try:
+        prog = make_program(f"file:{path}", cyl_a, 2.0)
+    except ValueError as e:  # one sentence naming the file
+        assert "mut_cmds.csv" in str(e) and "\n" not in str(e), e
+        return
+    u = [prog.command(t, 0.05) for t in (0.0, 0.7, 1.2, 3.0)]
+    assert all(abs(v) <= ProgramOptions().u_max for v in u)
+
+
+# every numeric option of the command line: a value is refused as it is parsed, in one line,
+# or it lies within the option's documented range (so that no run can fail on it later)
+OPTION_RANGES = {
+    ("simulate", "--seed"): (0, 2**32 - 1), ("simulate", "--rate"): (10, 1e5), ("identify", "--interval"): (0, 10),
+    ("identify", "--max-iter"): (1, 10_000), ("live", "--rate"): (10, 1e5), ("live", "--duration"): (0, 86_400),
+    ("replay", "--window"): (0, math.inf), ("import", "--resample"): (10, 1e5), ("batch", "--workers"): (1, 1024),
+    ("identify", "--max-rows"): (2, math.inf),
+}
+VALUES = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-2**70, 2**70).map(str),
+                   st.text(max_size=12), st.sampled_from(["1e9", "-1", "0", "1e-300", "nan", "inf", "0x10", "1_0"]))
+
+
+@settings(max_examples=200, deadline=None, derandomize=True, database=None)
+@given(option=st.sampled_from(sorted(OPTION_RANGES)), value=VALUES)
+def test_option_values_are_refused_as_parsed_or_within_range(option, value):
+    import contextlib
+    import io
+
+    from combined_reality.cli import build_parser
+
+    command, flag = option
+    base = {"simulate": ["--config", "c.toml", "-o", "o.csv"], "identify": ["--config", "c.toml", "r.csv"],
+            "live": ["--virtual", "--duration", "1", "--record", "r.csv"], "replay": ["r.csv"],
+            "import": ["raw.csv", "--map", "m.toml", "-o", "o.csv"], "batch": ["m.toml", "--out", "o"]}[command]
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        try:
+            args = build_parser().parse_args([command, *base, f"{flag}={value}"])
+        except SystemExit as e:
+            assert e.code == 2 and len(err.getvalue().strip().splitlines()) == 1 and flag in err.getvalue(), \
+                err.getvalue()
+            return
+    lo, hi = OPTION_RANGES[option]
+    v = getattr(args, flag.lstrip("-").replace("-", "_"))
+    assert lo <= v <= hi and (v > 0 or lo > 0 or flag in ("--seed",)), (option, value, v)

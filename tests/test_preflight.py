@@ -171,7 +171,8 @@ def test_a_32_mm_run_with_the_40_mm_file_is_refused_naming_the_bore(argv, run32,
 def test_batch_refuses_the_32_mm_run_with_the_40_mm_file_naming_the_bore(run32, tmp_path, capsys):
     manifest = tmp_path / "m.toml"
     manifest.write_text(f'[[cylinder]]\nname = "wrong"\nconfig = "{CFG_40}"\nruns = ["{run32}"]\n')
-    assert main([str(a) for a in ("batch", manifest, "--out", tmp_path / "out", "--workers", "1", "--no-report")]) == 1
+    assert main([str(a) for a in ("batch", manifest, "--out", tmp_path / "out", "--workers", "1", "--no-report",
+                                         "--allow-outside")]) == 1
     out, err = capsys.readouterr()
     assert "wrong: " in err and "recorded on a cylinder of another bore" in err and "bore 32 mm" in err
     table = out.splitlines()  # the batch's table: the row FAILED, its reason wrapped within 100 columns

@@ -33,7 +33,7 @@ from sim.extension import check_combination
 from sim.friction_models import FrictionModel, parse_truth_spec
 
 from ..diagnose import DiagnoseOptions, diagnose
-from ..files import RunFormatError, atomic_write, cylinder_tag, read_run, write_run
+from ..files import RunFormatError, atomic_write, check_distinct_runs, cylinder_tag, read_run, write_run
 from ..friction import identify_model, model_parameters
 from ..identify import IdentificationError, IdentifyOptions, preflight, velocity_estimate
 from ..live import simulate_run
@@ -81,7 +81,7 @@ def _load_inputs(job: CylinderJob):
     else:
         for p in job.runs:
             try:
-                run = read_run(p)
+                run = read_run(p, job.max_rows)
             except FileNotFoundError:
                 raise _RowError(f"run {p} not found") from None
             except (RunFormatError, OSError, ValueError) as e:
@@ -91,6 +91,10 @@ def _load_inputs(job: CylinderJob):
             except (RunFormatError, ConfigError) as e:
                 raise _RowError(str(e)) from None
             runs.append(run)
+        try:
+            check_distinct_runs(runs, [Path(p).name for p in job.runs])
+        except RunFormatError as e:
+            raise _RowError(str(e)) from None
         rates = {round(r.sample_period, 9) for r in runs}
         if len(rates) > 1:
             raise _RowError("the runs have different sample rates; identify runs of one rig and rate together")
@@ -288,7 +292,7 @@ class _Cache:
 
     def __init__(self, out_dir: Path):
         self.dir = out_dir / "cache"
-        self.dir.mkdir(parents=True, exist_ok=True)
+        self.dir.mkdir(exist_ok=True)
 
     def _path(self, job: CylinderJob, key: str) -> Path:
         return self.dir / f"{job.stem}.{key}.json"
@@ -334,7 +338,7 @@ def run_batch(jobs: Sequence[CylinderJob], out_dir: Path, executor: Executor | N
         nonlocal done
         simulated = row.pop(SIMULATED_RUNS, None)
         if simulated:
-            (out_dir / RUNS_DIR).mkdir(parents=True, exist_ok=True)
+            (out_dir / RUNS_DIR).mkdir(exist_ok=True)
             for run in simulated:  # the client writes every file, under out_dir
                 write_run(out_dir / run.source, run, comments=run.comments)
             row["run_files"] = "; ".join(str(run.source) for run in simulated)

@@ -1,17 +1,21 @@
 """The batch manifest: which cylinders to identify, from which runs (or simulated by the
 virtual rig), with which friction model. A manifest that cannot be read as a whole is
-refused with one sentence (ManifestError); a bad file of one cylinder fails only its row."""
+refused with one sentence (ManifestError); a bad file of one cylinder fails only its row.
+The files a manifest names must lie in its own folder (or below) unless the user allows
+others: a manifest from elsewhere cannot make the batch read, and quote, any file."""
 from __future__ import annotations
 
 import functools
 import hashlib
 import json
-import math
 import os
 import tomllib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+from sim.inputs import InputFileError, parse_toml, read_bounded, regular_file_size, shorten
+
+from .. import options
 from ..friction import DYNAMIC_SPECS, check_model
 
 __all__ = ["MODELS_HELP", "MAX_SIMULATED_SAMPLES", "ManifestError", "SimulateSpec", "CylinderJob", "load_manifest",
@@ -22,6 +26,7 @@ MODELS_HELP = "nominal (the cylinder file's Fc + Fv v + kp |dp|) or a friction m
 # samples a cylinder's simulated runs may hold in all (duration x rate x runs): 1000 s at 1 kHz.
 # Identification keeps sensitivities per sample, so memory grows with it; the papers' runs are 20 s.
 MAX_SIMULATED_SAMPLES = 1_000_000
+MANIFEST_MAX_BYTES = 16 << 20  # a manifest of tens of thousands of cylinders
 
 
 class ManifestError(ValueError):
@@ -49,6 +54,7 @@ class CylinderJob:
     simulate: SimulateSpec | None = None
     model: str = "nominal"
     diagnose: bool = False
+    max_rows: int = options.MAX_ROWS  # the run reader's limit of a run file's lines
     # the name in file names (simulated runs, cache entries): unique in the manifest, also where two
     # names differ only in characters a file name cannot hold or in case
     file_stem: str = ""
@@ -67,8 +73,11 @@ class CylinderJob:
         for p in (self.config, *self.runs):
             h.update(b"\0" + Path(p).name.encode() + b"\0")
             try:
-                h.update(hashlib.sha256(Path(p).read_bytes()).digest())
-            except OSError:
+                regular_file_size(p, "an input")  # a FIFO would block, a device never end
+                with open(p, "rb") as f:
+                    while block := f.read(1 << 20):
+                        h.update(block)
+            except (OSError, InputFileError):
                 h.update(b"missing")
         return h.hexdigest()[:24]
 
@@ -110,14 +119,18 @@ def _unique_stems(names: list[str]) -> list[str]:
             for n, st in zip(names, stems)]
 
 
-def load_manifest(path: str | os.PathLike[str], diagnose: bool = False) -> list[CylinderJob]:
+def load_manifest(path: str | os.PathLike[str], diagnose: bool = False, allow_outside: bool = False,
+                  max_rows: int = options.MAX_ROWS) -> list[CylinderJob]:
     """The manifest's cylinders as jobs. Structural faults (TOML syntax, a missing name, an
-    unknown key, duplicate names, an unknown model) raise ManifestError with one sentence;
-    files that are missing or bad fail their own row later, not the batch."""
+    unknown key, duplicate names, an unknown model, a file outside the manifest's folder
+    without `allow_outside`) raise ManifestError with one sentence; files that are missing
+    or bad fail their own row later, not the batch."""
     path = Path(path)
     try:
-        data = path.read_bytes()
-        doc = tomllib.loads(data.decode("utf-8-sig"))
+        data = read_bounded(path, "a manifest", MANIFEST_MAX_BYTES)
+        doc = parse_toml(data.decode("utf-8-sig"))
+    except InputFileError as e:
+        raise ManifestError(str(e)) from None
     except OSError as e:
         raise ManifestError(f"cannot read the manifest {path}: {e.strerror or e}") from None
     except UnicodeDecodeError as e:
@@ -127,7 +140,7 @@ def load_manifest(path: str | os.PathLike[str], diagnose: bool = False) -> list[
         raise ManifestError(f"{path} is not valid TOML: {e}") from None
     unknown = set(doc) - {"cylinder", "model", "simulate"}
     if unknown:
-        raise ManifestError(f"{path}: unknown top-level key(s) {', '.join(sorted(unknown))} "
+        raise ManifestError(f"{path}: unknown top-level key(s) {shorten(', '.join(sorted(unknown)))} "
                             "(expected [[cylinder]] tables, and optionally model = ... and [simulate] defaults).")
     entries = doc.get("cylinder")
     if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
@@ -138,19 +151,27 @@ def load_manifest(path: str | os.PathLike[str], diagnose: bool = False) -> list[
     if not isinstance(default_sim, dict):
         raise ManifestError(f"{path}: the top-level simulate must be a table of defaults.")
     base = path.resolve().parent
+
+    def inside(p: str, key: str, where: str) -> str:
+        full = (base / p).resolve()  # `..` and links followed: where the file really is
+        if not allow_outside and not full.is_relative_to(base):
+            raise ManifestError(f"{where}: {key} {shorten(repr(p))} lies outside the manifest's folder {base}; "
+                                "pass --allow-outside to let a manifest name files elsewhere.")
+        return str(full)
+
     jobs, seen = [], set()
     for i, e in enumerate(entries, 1):
         where = f"{path}, cylinder {i}"
         name = e.get("name")
         if not isinstance(name, str) or not name.strip():
             raise ManifestError(f"{where}: every cylinder needs a name (a non-empty string).")
-        where = f"{path}, cylinder '{name}'"
+        where = f"{path}, cylinder '{shorten(name)}'"
         if name in seen:
             raise ManifestError(f"{where}: the name is used twice; names identify rows and must be unique.")
         seen.add(name)
         bad = set(e) - _CYLINDER_KEYS
         if bad:
-            raise ManifestError(f"{where}: unknown key(s) {', '.join(sorted(bad))} "
+            raise ManifestError(f"{where}: unknown key(s) {shorten(', '.join(sorted(bad)))} "
                                 f"(known: {', '.join(sorted(_CYLINDER_KEYS))}).")
         config = e.get("config")
         if not isinstance(config, str):
@@ -159,7 +180,7 @@ def load_manifest(path: str | os.PathLike[str], diagnose: bool = False) -> list[
         try:
             check_model(model)
         except (ValueError, TypeError):
-            raise ManifestError(f"{where}: unknown model {model!r} ({MODELS_HELP}: "
+            raise ManifestError(f"{where}: unknown model {shorten(repr(model))} ({MODELS_HELP}: "
                                 f"{', '.join(DYNAMIC_SPECS)}).") from None
         runs, sim = e.get("runs"), e.get("simulate")
         if (runs is None) == (sim is None):
@@ -172,9 +193,9 @@ def load_manifest(path: str | os.PathLike[str], diagnose: bool = False) -> list[
             if not isinstance(sim, dict):
                 raise ManifestError(f"{where}: simulate must be a table, e.g. {{duration = 20, seed = 1}}.")
             spec = _simulate_spec({**default_sim, **sim}, where, diagnose)
-        jobs.append(CylinderJob(name=name, config=str((base / config).resolve()),
-                                runs=tuple(str((base / r).resolve()) for r in runs or ()),
-                                simulate=spec, model=model, diagnose=diagnose))
+        jobs.append(CylinderJob(name=name, config=inside(config, "config", where),
+                                runs=tuple(inside(r, "runs", where) for r in runs or ()),
+                                simulate=spec, model=model, diagnose=diagnose, max_rows=max_rows))
     stems = _unique_stems([j.name for j in jobs])
     return [replace(j, file_stem=st) for j, st in zip(jobs, stems)]
 
@@ -182,23 +203,23 @@ def load_manifest(path: str | os.PathLike[str], diagnose: bool = False) -> list[
 def _simulate_spec(sim: dict, where: str, diagnose: bool) -> SimulateSpec:
     bad = set(sim) - _SIMULATE_KEYS
     if bad:
-        raise ManifestError(f"{where}: unknown simulate key(s) {', '.join(sorted(bad))} "
+        raise ManifestError(f"{where}: unknown simulate key(s) {shorten(', '.join(sorted(bad)))} "
                             f"(known: {', '.join(sorted(_SIMULATE_KEYS))}).")
     eff = sim.get("effect", [])
     effects = tuple(eff) if isinstance(eff, list) else (eff,)
     if not all(isinstance(x, str) for x in effects):
         raise ManifestError(f"{where}: simulate.effect must be a string 'name:k=v,...' or a list of them.")
-    # TOML has types: a seed of 1.5 or a duration of true is a slip, not something to round
-    raw = {"duration": sim.get("duration", 20.0), "rate": sim.get("rate", 1000.0), "seed": sim.get("seed", 1),
-           "runs": sim.get("runs", 2 if diagnose else 1)}
-    for k, v in raw.items():
-        whole = k in ("seed", "runs")
-        if isinstance(v, bool) or not isinstance(v, int if whole else (int, float)):
-            raise ManifestError(f"{where}: simulate.{k} must be {'a whole number' if whole else 'a number'}, "
-                                f"not {v!r}.")
-    duration, rate, seed, runs = float(raw["duration"]), float(raw["rate"]), raw["seed"], raw["runs"]
-    if not (duration > 0 and math.isfinite(duration)) or not 10 <= rate <= 100_000 or runs < 1:
-        raise ManifestError(f"{where}: simulate needs duration > 0 s, 10 <= rate <= 100000 Hz and runs >= 1.")
+    # TOML has types: a seed of 1.5 or a duration of true is a slip, not something to round; each
+    # value is held to the rule of its command-line option (combined_reality.options)
+    try:
+        duration = options.positive_seconds(sim.get("duration", 20.0), "simulate.duration")
+        rate = options.sample_rate(sim.get("rate", 1000.0), "simulate.rate")
+        seed = options.seed(sim.get("seed", 1), "simulate.seed")
+        runs = options.whole_number(sim.get("runs", 2 if diagnose else 1), "simulate.runs", 1)
+        options.seed(seed + runs - 1, "simulate.seed + simulate.runs - 1")  # the last run's seed
+        options.simulated_samples(duration, rate, "simulate.duration")
+    except options.OptionError as e:
+        raise ManifestError(f"{where}: {e}") from None
     samples = duration * rate * runs
     if samples > MAX_SIMULATED_SAMPLES:
         raise ManifestError(f"{where}: simulate asks for {samples:.3g} samples (duration {duration:g} s x rate "

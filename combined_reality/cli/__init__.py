@@ -15,13 +15,13 @@ from sim.cylinder import ConfigError
 from . import (batch, calibrate, demo, diagnose, friction_compare, friction_map, identify, import_run, live, procedure,
                simulate,
                virtual_rig)
-from .common import UsageError, eprint
+from .common import OneLineParser, UsageError, eprint
 
 __all__ = ["build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="combined-reality",
+    p = OneLineParser(prog="combined-reality",
                                 description="Find out what a servopneumatic cylinder really does: simulate it, "
                                             "identify its friction from recorded runs, calibrate what its cylinder "
                                             "file only guesses, run the model beside a live rig, and diagnose why "
@@ -55,10 +55,14 @@ def _version() -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from ..files import RunFormatError
+    from ..errors import CombinedRealityError, shorten
+    from ..files import RunFormatError, os_error
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # a bad option (said in one line) or --help
+        return e.code if isinstance(e.code, int) else 2
     try:
         return args.func(args)
     except (ConfigError, RunFormatError, UsageError) as e:
@@ -66,13 +70,34 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         eprint(f"combined-reality {args.command}: {e}")
         return 2
+    except CombinedRealityError as e:  # the request's fault (2) or the machine's (1), said in one sentence
+        if args.debug:
+            raise
+        eprint(f"combined-reality {args.command}: {e}")
+        return e.exit_status
     except KeyboardInterrupt:
         eprint(f"combined-reality {args.command}: interrupted.")
         return 130
+    except OSError as e:  # a file the tool could not read or write: its path and the reason
+        if args.debug:
+            raise
+        err = os_error(e, e.filename, doing="cannot use") if e.filename else None
+        if err is None:
+            eprint(f"combined-reality {args.command}: {e.strerror or e}.")
+            return 1
+        eprint(f"combined-reality {args.command}: {err}")
+        return err.exit_status
+    except MemoryError:
+        if args.debug:
+            raise
+        eprint(f"combined-reality {args.command}: out of memory; give it less data at once (fewer or shorter runs).")
+        return 1
     except Exception as e:  # a failure of the tool, not of the input
         if args.debug:
             raise
-        eprint(f"combined-reality {args.command}: internal error: {e} (run with --debug for the traceback).")
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        eprint(f"combined-reality {args.command}: internal error: {shorten(first, 200)} (run with --debug for the "
+               "traceback).")
         return 1
 
 

@@ -17,7 +17,8 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from .common import UsageError, eprint
+from .. import options
+from .common import UsageError, add_max_rows, check_paths, eprint, typed
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -34,16 +35,20 @@ def add_parser(sub) -> argparse.ArgumentParser:
                     "cylinders failed, 2 for a bad manifest.")
     p.add_argument("manifest", metavar="MANIFEST.toml", help="the manifest: [[cylinder]] tables (docs/batch.md)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
-    p.add_argument("--workers", type=int, default=None,
+    p.add_argument("--workers", type=typed(options.whole_number, "--workers", lo=1, hi=1024), default=None,
                    help="local worker processes (default: all cores); with --scheduler, ignored")
-    p.add_argument("--scheduler", metavar="ADDRESS",
+    p.add_argument("--scheduler", metavar="ADDRESS", type=typed(options.scheduler_address),
                    help="run on an existing dask.distributed cluster, e.g. tcp://10.0.0.5:8786 (its workers need "
                         "combined-reality installed)")
+    p.add_argument("--allow-outside", action="store_true",
+                   help="let the manifest name cylinder files and runs outside its own folder (refused without it, "
+                        "so that a manifest from elsewhere cannot make the batch read any file)")
     p.add_argument("--diagnose", action="store_true",
                    help="also diagnose each cylinder (first run TRAIN, last run VALID; simulated cylinders get "
                         "two runs)")
     p.add_argument("--json", metavar="OUT.json", help="write the summary as JSON ('-' for stdout)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    add_max_rows(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress")
     p.set_defaults(func=run)
     return p
@@ -155,18 +160,16 @@ def run(args) -> int:
     from ..files import write_json_atomic
 
     out = Path(args.out)
+    check_paths({"--json": args.json}, inputs=[args.manifest], folders={"--out": out})
     try:
-        jobs = load_manifest(args.manifest, diagnose=args.diagnose)
+        jobs = load_manifest(args.manifest, diagnose=args.diagnose, allow_outside=args.allow_outside,
+                             max_rows=args.max_rows)
     except ManifestError as e:
         raise UsageError(str(e)) from None
     renamed = [j for j in jobs if j.file_stem != j.name]
     if renamed and not args.quiet:  # which files belong to which cylinder
         eprint("file names of cylinders whose names a file name cannot hold as they are: "
                + "; ".join(f"'{j.name}' -> {j.file_stem}" for j in renamed))
-    if args.workers is not None and args.workers < 1:
-        raise UsageError(f"--workers must be at least 1, not {args.workers}.")
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out} exists and is not a folder.")
     progress = _Progress(args.quiet)
     say = (lambda m: None) if args.quiet else eprint
     with contextlib.ExitStack() as stack:

@@ -1,10 +1,11 @@
 """`combined-reality calibrate`: what the cylinder file only guesses, estimated with the friction."""
 from __future__ import annotations
 
-import math
 import time
 
-from .common import UsageError, eprint, load_config, preflight_runs, progress_printer
+from .. import options
+from .common import (UsageError, add_max_rows, check_paths, eprint, load_config, preflight_runs, progress_printer,
+                     read_runs, typed)
 
 
 def add_parser(sub) -> None:
@@ -30,10 +31,15 @@ def add_parser(sub) -> None:
                         "determine and what to record")
     c.add_argument("--write-config", metavar="CAL.toml",
                    help="write the calibrated cylinder file (every other subcommand accepts it; comments kept)")
-    c.add_argument("--estimate", help="comma-separated subset of the calibrated parameters (default: all)")
-    c.add_argument("--horizon", type=float, default=1.0, help="validation simulation horizon, s (default 1)")
-    c.add_argument("--interval", type=float, default=0.1, help="shooting interval in seconds (default 0.1)")
-    c.add_argument("--max-iter", type=int, default=40, help="Gauss-Newton iterations per stage at most (default 40)")
+    c.add_argument("--estimate", type=typed(options.parameter_names),
+                   help="comma-separated subset of the calibrated parameters, each once (default: all)")
+    c.add_argument("--horizon", type=typed(options.positive_seconds, "--horizon"), default=1.0,
+                   help="validation simulation horizon, s (default 1)")
+    c.add_argument("--interval", type=typed(options.interval), default=0.1,
+                   help=f"shooting interval in seconds, at most {options.INTERVAL_MAX:g} (default 0.1)")
+    c.add_argument("--max-iter", type=typed(options.whole_number, "--max-iter", lo=1, hi=options.MAX_ITER),
+                   default=40, help="Gauss-Newton iterations per stage at most (default 40)")
+    add_max_rows(c)
     c.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     c.set_defaults(func=run)
 
@@ -60,31 +66,35 @@ def _table(cal, start) -> str:
 
 def run(args) -> int:
     from ..calibrate import CALIBRATED, CalibrateOptions, calibrate, validation_figures
-    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
+    from ..files import check_moves, check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import IdentificationError, validate
+    from ..identify import IdentificationError, check_determinable, validate
 
-    start = load_config(args.config)
-    runs = [read_run(p) for p in args.runs]
-    valid = None
-    if args.validate:
-        valid = read_run(args.validate)
-        check_train_and_valid(start, runs[0], valid, args.runs[0], args.validate)
+    check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
+                inputs=[args.config, *args.runs, args.validate])
     estimate = CALIBRATED
     if args.estimate is not None:
-        estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
+        estimate = args.estimate
         unknown = [n for n in estimate if n not in CALIBRATED]
-        if unknown or not estimate:
-            raise UsageError(f"--estimate: {', '.join(unknown) or 'nothing given'} is not calibrated (calibrated: "
+        if unknown:
+            raise UsageError(f"--estimate: {', '.join(unknown)} is not calibrated (calibrated: "
                              f"{', '.join(CALIBRATED)}).")
-    for name, v in (("--interval", args.interval), ("--horizon", args.horizon)):
-        if not (v > 0 and math.isfinite(v)):
-            raise UsageError(f"{name} must be a positive number of seconds, not {v}.")
-    if args.max_iter < 1:
-        raise UsageError(f"--max-iter must be at least 1, not {args.max_iter}.")
     if args.report and not args.report.lower().endswith((".html", ".htm")):
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
-    preflight_runs(start, runs + ([valid] if valid is not None else []))  # last: its notes follow no refusal
+    start = load_config(args.config)
+    runs = read_runs(args.runs, args)
+    valid = None
+    warning = None
+    if args.validate:
+        valid = read_run(args.validate, args.max_rows)
+        warning = check_train_and_valid(start, runs[0], valid, args.runs[0], args.validate)
+    # runs without motion, or friction they cannot determine, end before the fit (identify's rules)
+    check_moves(runs, start, "calibration needs motion: record runs with `combined-reality live --program "
+                             "calibration`")
+    preflight_runs(start, runs + ([valid] if valid is not None else []))  # its notes follow no refusal
+    check_determinable(start, runs, [n for n in ("Fc", "Fv", "kp") if n in estimate])
+    if warning:
+        eprint(f"combined-reality calibrate: warning: {warning}")
     say = progress_printer(args.quiet)
     if say:
         say(f"calibrating {len(estimate)} parameters from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "

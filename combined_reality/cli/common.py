@@ -9,7 +9,9 @@ Exit status of every subcommand: 0 success, 2 bad input (files, options: one sen
 from __future__ import annotations
 
 import atexit
+import argparse
 import math
+import re
 import sys
 import threading
 import time
@@ -19,9 +21,10 @@ from typing import Callable, Sequence
 
 from sim.cylinder import Cylinder, load_cylinder
 
-__all__ = ["UsageError", "eprint", "progress_printer", "ProgressView", "default_config_path", "load_config",
-           "BUILT_IN", "cylinder_for_runs", "preflight_runs", "parse_effects", "estimate_list", "positive_float", "rerun_mode",
-           "open_rig", "EFFECT_HELP"]
+__all__ = ["UsageError", "OneLineParser", "typed", "check_paths", "add_max_rows", "read_runs", "eprint",
+           "progress_printer", "ProgressView", "default_config_path", "load_config", "BUILT_IN", "cylinder_for_runs",
+           "preflight_runs", "parse_effects", "estimate_list", "positive_float", "rerun_mode", "open_rig",
+           "EFFECT_HELP"]
 
 EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 (repeatable; any word of the "
                "vocabulary, see docs/effects.md), or a friction model of the family as the friction, e.g. "
@@ -30,6 +33,39 @@ EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 
 
 class UsageError(ValueError):
     """Bad input from the command line (exit status 2)."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that says a bad command line in one line on stderr (exit status 2), like every
+    other refusal; the option rules' own sentences (combined_reality.options) stand alone."""
+
+    def error(self, message: str):
+        m = re.match(r"argument [^:]+: (-.*)", message, re.S)
+        said = m[1] if m else message  # a rule's sentence already names its option
+        eprint(f"{self.prog}: {said.rstrip('.')}" + ("." if m else f" (see {self.prog} --help)."))
+        raise SystemExit(2)
+
+
+def typed(rule: Callable, name: str | None = None, **kw) -> Callable[[str], object]:
+    """An option rule of combined_reality.options as an argparse type: the value is checked as
+    it is parsed, with the rule's sentence."""
+    from ..errors import InputError
+
+    def convert(text: str):
+        try:
+            return rule(text, name, **kw) if name else rule(text, **kw)
+        except InputError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+
+    convert.__name__ = rule.__name__
+    return convert
+
+
+def check_paths(outputs: dict, inputs: Sequence = (), folders: dict | None = None) -> None:
+    """The output options checked before any work (files.check_outputs): writable, not an input."""
+    from ..files import check_outputs
+
+    check_outputs(outputs, [p for p in inputs if p], folders)
 
 
 def eprint(msg: str) -> None:
@@ -167,14 +203,37 @@ def parse_effects(specs: Sequence[str] | None) -> list:
     return effects
 
 
-def estimate_list(arg: str | None, cyl: Cylinder) -> tuple[str, ...]:
-    """--estimate NAME,NAME: the parameters to estimate (default: the cylinder file's [identify])."""
+def estimate_list(arg, cyl: Cylinder, known: Sequence[str] | None = None) -> tuple[str, ...]:
+    """--estimate NAME,NAME (checked as parsed: options.parameter_names): the parameters to
+    estimate (default: the cylinder file's [identify]), each among `known` (default: every
+    estimable parameter)."""
+    from sim.cylinder import ESTIMABLE
+
+    from .. import options
+
     if arg is None:
         return cyl.identify.estimate
-    names = tuple(s.strip() for s in arg.split(",") if s.strip())
-    if not names:
-        raise UsageError("--estimate needs at least one parameter name.")
+    names = options.parameter_names(arg)
+    options.check_estimable(names, ESTIMABLE if known is None else known)
     return names
+
+
+def add_max_rows(p) -> None:
+    """--max-rows: the reader's limit of a run file's lines (docs/formats.md, "Limits")."""
+    from .. import options
+
+    p.add_argument("--max-rows", type=typed(options.max_rows), default=options.MAX_ROWS, metavar="N",
+                   help=f"refuse a run file of more than N lines before reading it (default {options.MAX_ROWS}, "
+                        "83 min at 1 kHz)")
+
+
+def read_runs(paths: Sequence[str], args) -> list:
+    """The runs named on the command line, read within --max-rows, the same data given twice refused."""
+    from ..files import check_distinct_runs, read_run
+
+    runs = [read_run(p, args.max_rows) for p in paths]
+    check_distinct_runs(runs, [str(p) for p in paths])
+    return runs
 
 
 def positive_float(text: str, what: str) -> float:

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import eprint, load_config, progress_printer
+from .. import options
+from .common import check_paths, eprint, load_config, progress_printer, typed
 from .identify import format_table
 
 
@@ -14,10 +15,13 @@ def add_parser(sub) -> None:
                                    "a deliberately poor start by multiple shooting, and print the identified values "
                                    "next to the true ones.")
     d.add_argument("--config", help="cylinder TOML file (default: the built-in 32 mm x 100 mm cylinder)")
-    d.add_argument("--duration", type=float, default=20.0, help="seconds of the simulated run (default 20)")
-    d.add_argument("--seed", type=int, default=1, help="seed of the excitation and the sensor noise (default 1)")
+    d.add_argument("--duration", type=typed(options.positive_seconds, "--duration"), default=20.0,
+                   help="seconds of the simulated run (default 20)")
+    d.add_argument("--seed", type=typed(options.seed), default=1,
+                   help=f"seed of the excitation and the sensor noise, 0 to {options.SEED_MAX} (default 1)")
     d.add_argument("--out", default="combined_reality_demo",
-                   help="folder for the run and the result (default combined_reality_demo)")
+                   help="folder for the run and the result (default combined_reality_demo; created in a folder "
+                        "that exists)")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     d.set_defaults(func=run)
 
@@ -27,9 +31,12 @@ def run(args) -> int:
     from ..identify import IdentifyOptions, identify
     from ..live import simulate_run
 
-    cyl = load_config(args.config)
+    options.simulated_samples(args.duration, 1000.0)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    check_paths({"the run": out / "demo_run.csv", "the result": out / "demo_identify.json"} if out.is_dir() else {},
+                inputs=[args.config], folders={"--out": out})
+    cyl = load_config(args.config)
+    out.mkdir(exist_ok=True)
     prog = progress_printer(args.quiet)
     eprint(f"1/2 simulating a {args.duration:g} s run of '{cyl.name}' on the virtual rig (seed {args.seed}) ...")
     run_ = simulate_run(cyl, args.duration, args.seed, progress=prog)

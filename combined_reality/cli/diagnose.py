@@ -4,7 +4,9 @@ from __future__ import annotations
 import math
 import os
 
-from .common import UsageError, cylinder_for_runs, eprint, preflight_runs, progress_printer, rerun_mode
+from .. import options
+from .common import (UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint, preflight_runs,
+                     progress_printer, rerun_mode, typed)
 
 
 def add_parser(sub) -> None:
@@ -24,13 +26,16 @@ def add_parser(sub) -> None:
     dg.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
                     help="show the diagnosis in Rerun: spawn | connect ADDR | save FILE.rrd | off (default)")
     dg.add_argument("--candidates", help="comma-separated effects to try (default: the whole vocabulary)")
-    dg.add_argument("--horizon", type=float, default=1.0, help="validation simulation horizon, s (default 1)")
-    dg.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                    help="parallel processes for the candidates (default: the number of CPUs)")
+    dg.add_argument("--horizon", type=typed(options.positive_seconds, "--horizon"), default=1.0,
+                    help="validation simulation horizon, s (default 1)")
+    dg.add_argument("--workers", type=typed(options.whole_number, "--workers", lo=1, hi=1024),
+                    default=os.cpu_count() or 1, help="parallel processes for the candidates (default: the number "
+                                                      "of CPUs)")
     dg.add_argument("--calibrate", action="store_true",
                     help="calibrate the cylinder file's valve characteristic, dead volumes, mass and sensor offsets on "
                          "TRAIN first and diagnose the calibrated model: mis-set quantities are reported as such, "
                          "not taken for an effect")
+    add_max_rows(dg)
     dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     dg.set_defaults(func=run)
 
@@ -41,23 +46,25 @@ def run(args) -> int:
     from ..diagnose import DiagnoseOptions, diagnose
     from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
 
-    train, valid = read_run(args.train), read_run(args.validate)
-    cyl, which = cylinder_for_runs(args.config, [train, valid])
-    check_train_and_valid(cyl, train, valid, args.train, args.validate)
-    names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
+    names = options.parameter_names(args.candidates, "--candidates") if args.candidates is not None else tuple(EFFECTS)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:
         raise UsageError(f"--candidates: unknown effect {', '.join(unknown)} (known: {', '.join(EFFECTS)}).")
-    if not (args.horizon > 0 and math.isfinite(args.horizon)):
-        raise UsageError(f"--horizon must be a positive number of seconds, not {args.horizon}.")
     mode, target = rerun_mode(args.rerun)
     if args.report and not args.report.lower().endswith((".html", ".htm")):
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
+    check_paths({"--json": args.json, "--report": args.report, "--rerun save": target if mode == "save" else None},
+                inputs=[args.config, args.train, args.validate])
+    train, valid = read_run(args.train, args.max_rows), read_run(args.validate, args.max_rows)
+    cyl, which = cylinder_for_runs(args.config, [train, valid])
+    warning = check_train_and_valid(cyl, train, valid, args.train, args.validate)
     opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers),
                            calibrate=args.calibrate)
     preflight_runs(cyl, [train, valid])  # last: its notes follow no refusal
     if which and not args.quiet:
         eprint(which)
+    if warning:
+        eprint(f"combined-reality diagnose: warning: {warning}")
     diagnosis = diagnose(cyl, train, valid, opts, progress=progress_printer(args.quiet))
     result = diagnosis.to_json()
     print(format_summary(result, args.horizon))

@@ -15,7 +15,8 @@ import time
 
 from sim.friction_models import parameter_unit
 
-from .common import UsageError, eprint, load_config, preflight_runs
+from .. import options
+from .common import UsageError, add_max_rows, check_paths, eprint, load_config, preflight_runs, typed
 
 _LOAD_MODELS = ("cv_load", "cvs_load")
 _PENALTY_PER_PARAM = 0.01
@@ -52,12 +53,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="constant normal load on the seals and guides, N: the load models (cv_load, cvs_load) need "
                         "it, since runs do not record a load and at their default Fn = 0 the load terms do nothing; "
                         "at one constant load those terms are not separable from Fc, Fs, B (see their std)")
-    p.add_argument("--horizon", type=float, default=1.0, metavar="S",
+    p.add_argument("--horizon", type=typed(options.positive_seconds, "--horizon"), default=1.0, metavar="S",
                    help="validation simulation horizon, s (default 1)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, metavar="N",
+    p.add_argument("--workers", type=typed(options.whole_number, "--workers", lo=1, hi=1024),
+                   default=os.cpu_count() or 1, metavar="N",
                    help="parallel processes, one model each (default: the number of CPUs)")
     p.add_argument("--json", metavar="OUT.json", help="write the ranking (ModelComparison rows), the best model "
                                                       "and the options")
+    add_max_rows(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
     return p
@@ -79,21 +82,21 @@ def _compare_models(args) -> list[str]:
 
 
 def run(args) -> int:
-    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
+    from ..files import check_moves, check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..friction import compare_friction_models
     from ..identify import IdentifyOptions
 
     models = _compare_models(args)
     if args.load is not None and not (math.isfinite(args.load) and args.load >= 0):
         raise UsageError(f"--load must be a non-negative force in N, not {args.load}.")
-    if not (args.horizon > 0 and math.isfinite(args.horizon)):
-        raise UsageError(f"--horizon must be a positive number of seconds, not {args.horizon}.")
-    if args.workers < 1:
-        raise UsageError(f"--workers must be at least 1, not {args.workers}.")
+    check_paths({"--json": args.json}, inputs=[args.config, args.train, args.validate])
     cyl = load_config(args.config)
-    train, valid = read_run(args.train), read_run(args.validate)
-    check_train_and_valid(cyl, train, valid, args.train, args.validate)
+    train, valid = read_run(args.train, args.max_rows), read_run(args.validate, args.max_rows)
+    warning = check_train_and_valid(cyl, train, valid, args.train, args.validate)
+    check_moves([train], cyl, "friction shows only in motion, so no model has an estimate from it")
     preflight_runs(cyl, [train, valid])
+    if warning:
+        eprint(f"combined-reality friction-compare: warning: {warning}")
 
     say = (lambda msg: None) if args.quiet else eprint
     options = IdentifyOptions(max_iter=40)  # no wall-clock limit: the ranking must not depend on load
@@ -160,7 +163,8 @@ def format_comparison(ranking, horizon_s: float) -> str:
     lines.append("")
     lines.append(f"best: {best.model} (identified on TRAIN, value ± std)")
     if best.model == "nominal":
-        lines.extend(f"  {n} = {_pm(v, best.std.get(n, math.nan))} {UNITS.get(n, '')}".rstrip()
+        lines.extend(f"  {n} = no estimate (TRAIN does not determine it)" if n in best.not_determined else
+                     f"  {n} = {_pm(v, best.std.get(n, math.nan))} {UNITS.get(n, '')}".rstrip()
                      for n, v in best.params.items())
         return "\n".join(lines)
     spec = fit_spec(best.model)
@@ -173,7 +177,8 @@ def format_comparison(ranking, horizon_s: float) -> str:
         for suffix in suffixes:
             name = f"{base}_{suffix}"
             v = best.params.get(name, math.nan)
-            cells.append(f"{v:.4g} (fixed)" if base in spec.fixed else _pm(v, best.std.get(name, math.nan)))
+            cells.append(f"{v:.4g} (fixed)" if base in spec.fixed else "no estimate" if name in best.not_determined
+                         else _pm(v, best.std.get(name, math.nan)))
         table.append((f"{base} [{unit}]" if unit else base, *cells))
     widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
     lines.extend("  " + "  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in table)
@@ -181,5 +186,6 @@ def format_comparison(ranking, horizon_s: float) -> str:
         unit = cls.PARAMS[name].unit
         v, sd = best.params.get(name, math.nan), best.std.get(name, math.nan)
         kind = "input, not estimated" if name == "Fn" else "both directions"
-        lines.append(f"  {name} = {_pm(v, sd)} {'' if unit == '1' else unit} ({kind})".replace("  (", " ("))
+        shown = "no estimate" if name in best.not_determined else f"{_pm(v, sd)} {'' if unit == '1' else unit}"
+        lines.append(f"  {name} = {shown} ({kind})".replace("  (", " ("))
     return "\n".join(lines)

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import argparse
 import math
-from pathlib import Path
+import os
 
 from sim.friction_models import parameter_unit
 
-from ..friction.map import FIT_SPECS, PARSIMONY, FrictionMap, FrictionMapError, SegmentOptions
-from .common import UsageError, cylinder_for_runs, eprint, preflight_runs, progress_printer
+from ..friction.map import FIT_SPECS, PARSIMONY, PLOT_FORMATS, FrictionMap, FrictionMapError, SegmentOptions
+from .common import (UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint, preflight_runs,
+                     progress_printer)
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -45,6 +46,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         f"(default {SegmentOptions.spread:g})")
     p.add_argument("--load", type=float, metavar="N",
                    help="constant normal load of the runs, N (for the load models cv_load, cvs_load)")
+    add_max_rows(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
     return p
@@ -66,6 +68,10 @@ def run(args) -> int:
     from ..friction.map import build_map, is_points_table, plot_map, points_from_run, read_points
 
     models, explicit = _model_names(args)
+    if args.plot and os.path.splitext(args.plot)[1].lstrip(".").lower() not in PLOT_FORMATS:
+        raise UsageError(f"--plot {args.plot}: name the plot with one of the suffixes "
+                         f"{', '.join('.' + f for f in PLOT_FORMATS)} (it says the image format).")
+    check_paths({"--json": args.json, "--plot": args.plot}, inputs=[args.config, *args.inputs])
     try:
         options = SegmentOptions(min_duration=args.min_duration, min_speed=args.min_speed, spread=args.spread)
     except FrictionMapError as e:
@@ -89,9 +95,7 @@ def run(args) -> int:
                 continue
         except FrictionMapError as e:
             raise UsageError(str(e)) from None
-        if not Path(path).is_file():
-            raise UsageError(f"{path}: file not found.")
-        run_ = read_run(path)
+        run_ = read_run(path, args.max_rows)
         if cyl is None:
             cyl, which = cylinder_for_runs(args.config, [run_])
         preflight_runs(cyl, [run_])
@@ -141,7 +145,6 @@ def run(args) -> int:
     say(f"wrote {args.json}")
     if args.plot:
         try:
-            Path(args.plot).parent.mkdir(parents=True, exist_ok=True)  # as the JSON writer does
             plot_map(fmap, args.plot, title=f"friction map: {inputs}")
         except FrictionMapError as e:
             eprint(f"combined-reality friction-map: {e}")

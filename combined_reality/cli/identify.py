@@ -5,7 +5,9 @@ from pathlib import Path
 
 from sim.cylinder import ESTIMABLE, FLOW_CHARACTERISTIC, Cylinder
 
-from .common import UsageError, eprint, estimate_list, load_config, parse_effects, preflight_runs, progress_printer
+from .. import options
+from .common import (UsageError, add_max_rows, check_paths, eprint, estimate_list, load_config, parse_effects,
+                     preflight_runs, progress_printer, read_runs, typed)
 
 
 def add_parser(sub) -> None:
@@ -22,20 +24,24 @@ def add_parser(sub) -> None:
     i.add_argument("--report", metavar="REPORT.html",
                    help="write a self-contained HTML report: measured vs simulated per run, the errors against time, "
                         "velocity and position, the friction law found, the iterations")
-    i.add_argument("--estimate", help=f"comma-separated parameters (default from the config, else Fc,Fv,kp; "
-                                      f"estimable: {', '.join(ESTIMABLE)})")
+    i.add_argument("--estimate", type=typed(options.parameter_names),
+                   help=f"comma-separated parameters, each once (default from the config, else Fc,Fv,kp; "
+                        f"estimable: {', '.join(ESTIMABLE)})")
     i.add_argument("--drive", choices=["command", "pressure", "chambers"],
                    help="command: full model driven by the recorded valve command (default); "
                         "pressure: piston only, driven by the measured pressures; "
                         "chambers: valve and chambers only, driven by the command and the measured motion")
     i.add_argument("--effect", action="append", metavar="NAME[:k=v,...]",
                    help="add an unmodelled effect to the model (its parameters may be estimated as NAME.param)")
-    i.add_argument("--interval", type=float, default=0.1, help="shooting interval in seconds (default 0.1)")
-    i.add_argument("--max-iter", type=int, default=40, help="Gauss-Newton iterations at most (default 40)")
+    i.add_argument("--interval", type=typed(options.interval), default=0.1,
+                   help=f"shooting interval in seconds, at most {options.INTERVAL_MAX:g} (default 0.1)")
+    i.add_argument("--max-iter", type=typed(options.whole_number, "--max-iter", lo=1, hi=options.MAX_ITER),
+                   default=40, help="Gauss-Newton iterations at most (default 40)")
     i.add_argument("--no-prefit", action="store_true",
                    help="start from the config's friction values, not from the equation-error fit")
     i.add_argument("--write-config", metavar="OUT.toml",
                    help="write the cylinder file with the identified values (the comments of --config kept)")
+    add_max_rows(i)
     i.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     i.set_defaults(func=run)
 
@@ -72,35 +78,26 @@ def format_table(result, truth: Cylinder | None = None) -> str:
 
 
 def not_determined(result) -> list[str]:
-    """Estimated parameters the data do not determine: no finite standard deviation, or, for a
-    quantity that is positive by nature and not held at a bound, one as large as the value (a
-    signed quantity such as a sensor offset may well be zero). Such a fit is never reported as
-    converged."""
-    import math
+    """Estimated parameters of an IdentifyResult the data do not determine (identify.not_determined)."""
+    from ..identify import not_determined as rule
 
-    from sim.cylinder import PARAMETERS
-
-    def signed(n: str) -> bool:
-        return n in PARAMETERS and PARAMETERS[n].lower < 0
-
-    return [n for n, e in result.params.items()
-            if not math.isfinite(e.std) or (not signed(n) and not e.at_bound and e.std >= abs(e.value))]
+    p = result.params
+    return rule({n: e.value for n, e in p.items()}, {n: e.std for n, e in p.items()},
+                {n for n, e in p.items() if e.at_bound})
 
 
 def run(args) -> int:
-    from ..files import clean_json, read_run, write_json_atomic
+    from ..files import clean_json, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
     from ..identify import IdentificationError, IdentifyOptions, identify
 
-    cyl = load_config(args.config)
-    runs = [read_run(p) for p in args.runs]
+    check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
+                inputs=[args.config, *args.runs])
     effects = parse_effects(args.effect)
-    estimate = estimate_list(args.estimate, cyl)
-    effect_params = {f"{e.name}.{n}" for e in effects for n in e.param_names()}
-    for n in estimate:
-        if n not in ESTIMABLE and n not in effect_params:
-            raise UsageError(f"--estimate: unknown parameter '{n}' (estimable: {', '.join(ESTIMABLE)}"
-                             + (f", {', '.join(sorted(effect_params))}" if effect_params else "") + ").")
+    cyl = load_config(args.config)
+    effect_params = sorted(f"{e.name}.{n}" for e in effects for n in e.param_names())
+    estimate = estimate_list(args.estimate, cyl, known=(*ESTIMABLE, *effect_params))
+    runs = read_runs(args.runs, args)
     drive = args.drive or cyl.identify.drive
     pneumatic = {"conductance", "critical_ratio", "dead_volume_cap", "dead_volume_rod", *FLOW_CHARACTERISTIC}
     mechanical = {"Fc", "Fv", "kp", "mass", "angle", "external_force"}
@@ -110,8 +107,6 @@ def run(args) -> int:
         bad = [n for n in estimate if n in excluded]
         if bad:
             raise UsageError(f"--drive {drive} uses {given}, so it cannot estimate {', '.join(bad)}.")
-    if not args.interval > 0:
-        raise UsageError(f"--interval must be positive, not {args.interval}.")
     if args.report and not args.report.lower().endswith((".html", ".htm")):
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,

@@ -3,9 +3,9 @@ log) in its own units into a run CSV, through a mapping file (docs/formats.md)."
 from __future__ import annotations
 
 import argparse
-import math
 
-from .common import UsageError, progress_printer
+from .. import options
+from .common import UsageError, add_max_rows, check_paths, eprint, progress_printer, typed
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -23,10 +23,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("raw", metavar="RAW", help="the recording (format from its suffix or [source] format)")
     p.add_argument("--map", required=True, metavar="MAP.toml", help="the mapping file (docs/formats.md)")
     p.add_argument("-o", "--output", required=True, metavar="RUN.csv", help="the run to write (replaced atomically)")
-    p.add_argument("--resample", metavar="RATE",
-                   help="resample to RATE Hz: measurements interpolated linearly, the command held from its last "
-                        "sample; instants inside gaps of lost samples are left out")
+    p.add_argument("--resample", metavar="RATE", type=typed(options.sample_rate, "--resample"),
+                   help=f"resample to RATE Hz ({options.RATE_MIN:g} to {options.RATE_MAX:g}): measurements "
+                        "interpolated linearly, the command held from its last sample; instants inside gaps of lost "
+                        "samples are left out")
     p.add_argument("--json", metavar="OUT.json", help="write what was done (sampling report, conversions) as JSON")
+    add_max_rows(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no report on stderr")
     p.set_defaults(func=run)
     return p
@@ -36,21 +38,17 @@ def run(args) -> int:
     from ..files import clean_json, write_json_atomic, write_run
     from ..importing import MappingError, import_recording, load_mapping
 
-    rate = None
-    if args.resample is not None:
-        try:
-            rate = float(args.resample)
-        except ValueError:
-            rate = math.nan
-        if not (math.isfinite(rate) and rate > 0):
-            raise UsageError(f"--resample must be a sampling rate in Hz (a positive number), not {args.resample!r}.")
+    rate = args.resample
+    check_paths({"-o": args.output, "--json": args.json}, inputs=[args.raw, args.map])
     say = progress_printer(args.quiet)
     try:
         mapping = load_mapping(args.map)
-        result = import_recording(args.raw, mapping, rate)
+        result = import_recording(args.raw, mapping, rate, max_rows=args.max_rows)
     except MappingError as e:
         raise UsageError(str(e).rstrip(".") + ".") from None
     write_run(args.output, result.run, comments=result.comments)
+    for warning in result.warnings:  # said also with -q: the run may be wrong though it was written
+        eprint(f"combined-reality import: warning: {warning}.")
     if say:
         say(f"{args.raw}: {result.comments[0].split(', ', 1)[1]}")
         say(f"  {result.sampling.describe()}")
@@ -61,7 +59,7 @@ def run(args) -> int:
         write_json_atomic(args.json, clean_json({
             "input": str(args.raw), "mapping": str(args.map), "output": str(args.output),
             "samples": result.run.n, "sampling": result.sampling.to_json(), "resampled_hz": rate,
-            "header": list(result.comments), "notes": list(result.notes)}))
+            "header": list(result.comments), "notes": list(result.notes), "warnings": list(result.warnings)}))
         if say:
             say(f"wrote {args.json}")
     return 0

@@ -9,8 +9,10 @@ import signal
 import time
 from pathlib import Path
 
-from .common import (BUILT_IN, EFFECT_HELP, UsageError, cylinder_for_runs, eprint, estimate_list, load_config,
-                     open_rig, parse_effects, positive_float, preflight_runs, rerun_mode)
+from .. import options
+from .common import (BUILT_IN, EFFECT_HELP, UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint,
+                     estimate_list, load_config, open_rig, parse_effects, positive_float, preflight_runs, rerun_mode,
+                     typed)
 
 
 def _add_online_arguments(a) -> None:
@@ -20,12 +22,16 @@ def _add_online_arguments(a) -> None:
     a.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
                    help="spawn | connect ADDR | save FILE | off (default off); spawn without a display (or when "
                         "the viewer does not start) saves a .rrd next to the recording instead")
-    a.add_argument("--estimate", help="comma-separated parameters (default Fc,Fv,kp)")
-    a.add_argument("--window", type=float, default=2.0, help="moving horizon, s (default 2)")
-    a.add_argument("--update", type=float, default=0.2, help="data between estimator updates, s (default 0.2)")
-    a.add_argument("--memory", type=float, default=math.inf,
+    a.add_argument("--estimate", type=typed(options.parameter_names),
+                   help="comma-separated parameters, each once (default Fc,Fv,kp)")
+    a.add_argument("--window", type=typed(options.window), default=2.0,
+                   help=f"moving horizon, s (default 2, at most {options.MAX_WINDOW:g})")
+    a.add_argument("--update", type=typed(options.update), default=0.2,
+                   help=f"data between estimator updates, s (default 0.2, at least {options.MIN_UPDATE:g})")
+    a.add_argument("--memory", type=typed(options.positive_seconds, "--memory", allow_inf=True), default=math.inf,
                    help="forgetting time constant of old data, s (default inf: keep all)")
-    a.add_argument("--give-up", type=float, default=5.0, help="end the session after this long without samples, s")
+    a.add_argument("--give-up", type=typed(options.positive_seconds, "--give-up"), default=5.0,
+                   help="end the session after this long without samples, s")
     a.add_argument("-q", "--quiet", action="store_true",
                    help="no status line (warnings and the summary are still printed)")
 
@@ -45,11 +51,14 @@ def add_parsers(sub) -> None:
                          "pulses; calibration: what `calibrate` needs (creeps through the valve's overlap, holds "
                          "against both end stops, pulses, position control); file:CMD.csv: your own command "
                          "(columns t,u)")
-    lv.add_argument("--duration", type=float, required=True, help="seconds of rig time")
+    lv.add_argument("--duration", type=typed(options.live_duration), required=True,
+                    help=f"seconds of rig time (at most {options.MAX_LIVE_DURATION:g})")
     lv.add_argument("--record", required=True, help="run CSV written as samples arrive")
     lv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
-    lv.add_argument("--seed", type=int, default=0, help="seed of the experiment program (and the virtual rig)")
-    lv.add_argument("--rate", type=float, default=1000.0, help="sample rate of the rig, Hz (default 1000)")
+    lv.add_argument("--seed", type=typed(options.seed), default=0,
+                    help=f"seed of the experiment program (and the virtual rig), 0 to {options.SEED_MAX}")
+    lv.add_argument("--rate", type=typed(options.sample_rate), default=1000.0,
+                    help=f"sample rate of the rig, Hz, {options.RATE_MIN:g} to {options.RATE_MAX:g} (default 1000)")
     lv.add_argument("--effect", action="append", metavar="SPEC", help=f"with --virtual: {EFFECT_HELP}, as truth")
     _add_online_arguments(lv)
     lv.set_defaults(func=run_live)
@@ -60,6 +69,7 @@ def add_parsers(sub) -> None:
                                     "and Rerun views.")
     rp.add_argument("run", help="recorded run CSV")
     rp.add_argument("--speed", default="1", help="1 = real time, 2 = twice as fast, max = as fast as possible")
+    add_max_rows(rp)
     _add_online_arguments(rp)
     rp.set_defaults(func=run_replay)
 
@@ -67,18 +77,17 @@ def add_parsers(sub) -> None:
 def run_live(args) -> int:
     from ..live import Console, make_program
 
+    record = Path(args.record)
+    program_file = args.program[len("file:"):] if args.program.startswith("file:") else None
+    _check_outputs(args, record, [args.config, program_file])
+    if record.exists() and not args.overwrite:
+        raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
     cyl = load_config(args.config)
-    if not (args.duration > 0 and math.isfinite(args.duration)):
-        raise UsageError(f"--duration must be a positive number of seconds, not {args.duration}.")
+    _online_options(args, cyl)  # the options before the rig is opened
     try:
         program = make_program(args.program, cyl, args.duration, seed=args.seed)
     except (ValueError, OSError) as e:
         raise UsageError(f"--program {args.program}: {e}") from None
-    record = Path(args.record)
-    if record.exists() and not args.overwrite:
-        raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
-    if not record.parent.is_dir():
-        raise UsageError(f"--record {record}: the folder {record.parent} does not exist.")
     effects = parse_effects(args.effect)
     if effects and not args.virtual:
         raise UsageError("--effect switches effects on in the virtual rig; it needs --virtual.")
@@ -102,13 +111,13 @@ def run_replay(args) -> int:
     from ..files import read_run
     from ..live import Console, ReplayRig
 
-    run = read_run(args.run)
+    speed = math.inf if args.speed == "max" else positive_float(args.speed, "--speed")
+    _check_outputs(args, None, [args.config, args.run])
+    run = read_run(args.run, args.max_rows)
     cyl, which = cylinder_for_runs(args.config, [run])
     if run.n < 3:
         raise UsageError(f"{args.run}: a run needs at least 3 samples.")
-    speed = math.inf if args.speed == "max" else positive_float(args.speed, "--speed")
     _online_options(args, cyl)  # the options refused before anything is said
-    rerun_mode(args.rerun)
     preflight_runs(cyl, [run])
     if which and not args.quiet:
         eprint(which)
@@ -116,18 +125,19 @@ def run_replay(args) -> int:
                         pipelined=speed == math.inf, console=Console(status=not args.quiet))
 
 
+def _check_outputs(args, record: Path | None, inputs) -> None:
+    """--record, --json and --rerun save FILE, checked before the session (files.check_outputs)."""
+    mode, target = rerun_mode(args.rerun)
+    check_paths({"--record": record, "--json": args.json, "--rerun save": target if mode == "save" else None},
+                inputs=inputs)
+
+
 def _online_options(args, cyl):
     from ..identify import OnlineOptions
 
     names = estimate_list(args.estimate, cyl)
-    for name in ("window", "update"):
-        v = getattr(args, name)
-        if not (v > 0 and math.isfinite(v)):
-            raise UsageError(f"--{name} must be a positive number of seconds, not {v}.")
     if args.update > args.window:
         raise UsageError(f"--update ({args.update:g} s) must not exceed --window ({args.window:g} s).")
-    if not args.memory > 0:
-        raise UsageError(f"--memory must be a positive number of seconds (or inf), not {args.memory}.")
     return OnlineOptions(window_s=args.window, update_s=args.update, memory_s=args.memory, estimate=names)
 
 

@@ -15,7 +15,8 @@ import threading
 import time
 from pathlib import Path
 
-from .common import BUILT_IN, UsageError, eprint, load_config, open_rig, parse_effects
+from .. import options
+from .common import BUILT_IN, UsageError, check_paths, eprint, load_config, open_rig, parse_effects, typed
 
 KINDS = ("breakaway", "sweep")
 _DIRECTIONS = {"both": (1, -1), "extension": (1,), "retraction": (-1,)}
@@ -43,7 +44,8 @@ def add_parser(sub) -> None:
     p.add_argument("--realtime", action="store_true", help="with --virtual: run at the rig's clock")
     p.add_argument("--effect", action="append", metavar="SPEC",
                    help="with --virtual: an unmodelled effect as truth, e.g. stiction:Fs_excess=10,v_stribeck=0.01")
-    p.add_argument("--seed", type=int, default=0, help="with --virtual: seed of the sensor noise (default 0)")
+    p.add_argument("--seed", type=typed(options.seed), default=0,
+                   help=f"with --virtual: seed of the sensor noise, 0 to {options.SEED_MAX} (default 0)")
     p.add_argument("--config", help="cylinder TOML (default: the built-in cylinder A)")
     p.add_argument("--trials", type=int, help="breakaway: trials per direction (default 15)")
     p.add_argument("--force-rate", type=float, metavar="N_PER_S",
@@ -158,19 +160,10 @@ def _options(args, cyl):
 
 
 def _check_paths(args) -> None:
-    if args.record:
-        record = Path(args.record)
-        if record.exists() and not args.overwrite:
-            raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
-        if not record.parent.is_dir():
-            raise UsageError(f"--record {record}: the folder {record.parent} does not exist.")
-    for flag, path in (("--out", args.out), ("--json", args.json)):
-        if path and not Path(path).parent.is_dir():
-            raise UsageError(f"{flag} {path}: the folder {Path(path).parent} does not exist.")
-        if path and Path(path).is_dir():
-            raise UsageError(f"{flag} {path} is a folder, not a file name.")
-    if args.record and Path(args.record).resolve() in {Path(p).resolve() for p in (args.out, args.json) if p}:
-        raise UsageError("--record and --out/--json must be different files.")
+    check_paths({"--record": args.record, "--out": args.out, "--json": args.json}, inputs=[args.config])
+    if args.record and Path(args.record).exists() and not args.overwrite:
+        raise UsageError(f"--record {args.record} exists; a recording is never overwritten unless you pass "
+                         "--overwrite.")
 
 
 def _with_sigterm(fn):

@@ -1,10 +1,10 @@
 """`combined-reality simulate`: a run of the virtual rig, written as a run CSV."""
 from __future__ import annotations
 
-import math
 import time
 
-from .common import EFFECT_HELP, UsageError, eprint, load_config, parse_effects, progress_printer
+from .. import options
+from .common import EFFECT_HELP, check_paths, eprint, load_config, parse_effects, progress_printer, typed
 
 
 def add_parser(sub) -> None:
@@ -14,9 +14,13 @@ def add_parser(sub) -> None:
                                    "can be switched on, sensors add white noise. Writes a run CSV whose first "
                                    "comment names the cylinder.")
     s.add_argument("--config", required=True, help="cylinder TOML file (its friction is the truth)")
-    s.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
-    s.add_argument("--seed", type=int, default=1, help="seed of the excitation and the noise (default 1)")
-    s.add_argument("--rate", type=float, default=1000.0, help="sample rate in Hz (default 1000)")
+    s.add_argument("--duration", type=typed(options.positive_seconds, "--duration"), default=20.0,
+                   help=f"seconds (default 20; at least {options.MIN_SAMPLES} samples, at most "
+                        f"{options.MAX_SIMULATED_SAMPLES:.0e})")
+    s.add_argument("--seed", type=typed(options.seed), default=1,
+                   help=f"seed of the excitation and the noise, 0 to {options.SEED_MAX} (default 1)")
+    s.add_argument("--rate", type=typed(options.sample_rate), default=1000.0,
+                   help=f"sample rate in Hz, {options.RATE_MIN:g} to {options.RATE_MAX:g} (default 1000)")
     s.add_argument("--effect", action="append", metavar="NAME[:k=v,...]", help=f"switch on {EFFECT_HELP}")
     s.add_argument("--no-noise", action="store_true", help="noise-free sensors")
     s.add_argument("-o", "--output", required=True, help="run CSV to write")
@@ -28,11 +32,9 @@ def run(args) -> int:
     from ..files import cylinder_tag, write_run
     from ..live import simulate_run
 
+    options.simulated_samples(args.duration, args.rate)
+    check_paths({"-o": args.output}, inputs=[args.config])
     cyl = load_config(args.config)
-    if not args.duration > 0 or not math.isfinite(args.duration):
-        raise UsageError(f"--duration must be a positive number of seconds, not {args.duration}.")
-    if not 10 <= args.rate <= 100_000:
-        raise UsageError(f"--rate must lie between 10 and 100000 Hz, not {args.rate}.")
     effects = parse_effects(args.effect)
     t0 = time.perf_counter()
     run_ = simulate_run(cyl, args.duration, args.seed, args.rate, effects, noise=not args.no_noise,

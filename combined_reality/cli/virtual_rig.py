@@ -6,7 +6,8 @@ import math
 import re
 import signal
 
-from .common import UsageError, eprint, load_config, parse_effects
+from .. import options
+from .common import UsageError, eprint, load_config, parse_effects, typed
 
 # option field -> command-line flag, so that the library's messages name what the user typed
 _FLAGS = {f: "--" + f.replace("_", "-") for f in ("rate", "jitter_us", "watchdog_ms", "drop", "corrupt",
@@ -26,10 +27,12 @@ def add_parser(sub) -> None:
     kind = v.add_mutually_exclusive_group(required=True)
     kind.add_argument("--serial", action="store_true", help="serial protocol: COBS frames with CRC-16")
     kind.add_argument("--can", action="store_true", help="an SLCAN adapter with the rig on its bus (hw/rig_can.dbc)")
-    v.add_argument("--rate", type=float, default=1000.0, help="sample rate in Hz (default 1000)")
+    v.add_argument("--rate", type=typed(options.sample_rate), default=1000.0,
+                   help=f"sample rate in Hz, {options.RATE_MIN:g} to {options.RATE_MAX:g} (default 1000)")
     v.add_argument("--effect", action="append", metavar="NAME[:k=v,...]",
                    help="switch on an unmodelled effect in the plant (repeatable)")
-    v.add_argument("--seed", type=int, default=1, help="seed of the noise, jitter and faults (default 1)")
+    v.add_argument("--seed", type=typed(options.seed), default=1,
+                   help=f"seed of the noise, jitter and faults, 0 to {options.SEED_MAX} (default 1)")
     v.add_argument("--no-noise", action="store_true", help="noise-free sensors")
     v.add_argument("--jitter-us", type=float, default=20.0, help="standard deviation of the tick times (default 20)")
     v.add_argument("--watchdog-ms", type=float, default=50.0,

@@ -1,17 +1,20 @@
 """What the tool reads and writes: run files (the run CSV), what a run alone shows to be in
-the wrong unit (plausibility), their checks against a cylinder file, and atomic writing of
-every output.
+the wrong unit (plausibility), their checks against a cylinder file, output paths checked
+before the work (outputs) and atomic writing of every output.
 
 Cylinder files themselves are parsed where their parameters live (sim.cylinder)."""
-from .atomic import atomic_write, clean_json, write_json_atomic, write_text_atomic
-from .checks import check_run_against_cylinder, check_train_and_valid, run_name
-from .plausibility import first_implausible, time_unit_problem
-from .runs import (MEASURED_CHANNELS, REQUIRED_COLUMNS, Run, RunFormatError, RunRecorder, cylinder_identity,
+from .atomic import atomic_write, atomic_writer, clean_json, write_json_atomic, write_text_atomic
+from .checks import (check_distinct_runs, check_moves, check_run_against_cylinder, check_train_and_valid, run_name,
+                     same_data)
+from .outputs import OutputError, WriteError, check_outputs, os_error, refuse_special
+from .plausibility import first_implausible, measured_value, time_unit_problem
+from .runs import (MAX_ROWS, MEASURED_CHANNELS, REQUIRED_COLUMNS, Run, RunFormatError, RunRecorder, cylinder_identity,
                    cylinder_tag, read_run, recorded_cylinder, recorded_elsewhere, recorded_file, recorded_geometry,
                    split_at_gaps, write_run)
 
-__all__ = ["atomic_write", "clean_json", "write_json_atomic", "write_text_atomic", "check_run_against_cylinder",
-           "check_train_and_valid", "run_name", "first_implausible", "time_unit_problem", "MEASURED_CHANNELS",
-           "REQUIRED_COLUMNS", "Run", "RunFormatError", "RunRecorder", "cylinder_identity", "cylinder_tag", "read_run",
-           "recorded_cylinder", "recorded_elsewhere", "recorded_file", "recorded_geometry", "split_at_gaps",
-           "write_run"]
+__all__ = ["atomic_write", "atomic_writer", "clean_json", "write_json_atomic", "write_text_atomic",
+           "check_distinct_runs", "check_moves", "check_run_against_cylinder", "check_train_and_valid", "run_name",
+           "same_data", "OutputError", "WriteError", "check_outputs", "os_error", "refuse_special", "first_implausible",
+           "measured_value", "time_unit_problem", "MAX_ROWS", "MEASURED_CHANNELS", "REQUIRED_COLUMNS", "Run",
+           "RunFormatError", "RunRecorder", "cylinder_identity", "cylinder_tag", "read_run", "recorded_cylinder",
+           "recorded_elsewhere", "recorded_file", "recorded_geometry", "split_at_gaps", "write_run"]

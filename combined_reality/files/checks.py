@@ -6,8 +6,10 @@ note what it is not sure of. `identify.preflight` runs them with the checks that
 motion's derivatives; every subcommand that takes a run and a cylinder goes through it."""
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -16,7 +18,8 @@ from sim.cylinder import ConfigError, Cylinder
 from .runs import GEOMETRY, Run, RunFormatError, recorded_cylinder, recorded_file, recorded_geometry
 
 __all__ = ["check_run_against_cylinder", "check_run_shape", "check_supply", "check_pressures_absolute", "supply_seen",
-           "check_train_and_valid", "run_name", "header_geometry", "header_cylinder_file", "GAUGE_FIX"]
+           "check_train_and_valid", "run_name", "header_geometry", "header_cylinder_file", "GAUGE_FIX", "same_data",
+           "check_distinct_runs", "check_moves"]
 
 # how gauge readings become absolute, for every message that suspects them
 GAUGE_FIX = "add the atmosphere to them (or set gauge = true for them in the import map)"
@@ -216,12 +219,58 @@ def supply_seen(run: Run) -> tuple[float, int] | None:
     return float(np.percentile(filled[idx], 90)), int(idx[0])
 
 
-def check_train_and_valid(cyl: Cylinder, train: Run, valid: Run, train_name: str, valid_name: str) -> None:
+_STILL = 0.005  # of the stroke: a piston whose position spans less has not moved
+
+
+def check_moves(runs: Sequence[Run], cyl: Cylinder, advice: str) -> None:
+    """Refuse runs in which the piston never moves (its position spans less than 0.5 % of the
+    stroke): nothing that shows only in motion can be fitted to them. `advice` ends the
+    sentence ('...; {advice}.')."""
+    span = max((float(np.nanmax(r.x) - np.nanmin(r.x)) for r in runs if np.isfinite(r.x).any()), default=0.0)
+    if span < _STILL * cyl.geometry.stroke:
+        names = ", ".join(str(r.source.name) if r.source is not None else "the run" for r in runs)
+        raise RunFormatError(f"{names}: the piston does not move (its position spans {span * 1e6:.3g} um of the "
+                             f"{cyl.geometry.stroke:g} m stroke); {advice}.")
+
+
+def _digest(run: Run) -> bytes:
+    """The samples' fingerprint: runs with equal digests hold the same data, whatever their names."""
+    h = hashlib.sha256()
+    for col in (run.t, run.u, run.x, run.p1, run.p2):
+        h.update(np.ascontiguousarray(col, dtype=np.float64).tobytes())
+    return h.digest()
+
+
+def same_data(a: Run, b: Run) -> bool:
+    """Whether two runs hold the same samples (t, u, x, p1, p2)."""
+    return a.n == b.n and _digest(a) == _digest(b)
+
+
+def check_distinct_runs(runs: Sequence[Run], names: Sequence[str]) -> None:
+    """Refuse the same data given twice (under one name or two): fitted twice, it counts double
+    and its standard deviations shrink by the square root of two without any new information."""
+    seen: dict[bytes, str] = {}
+    for run, name in zip(runs, names):
+        key = _digest(run)
+        if key in seen:
+            same = f"{name} is given twice" if seen[key] == name else f"{seen[key]} and {name} hold the same samples"
+            raise RunFormatError(f"{same}; a run fitted twice counts twice (its standard deviations shrink by "
+                                 "sqrt 2 without new information), so give each run once.")
+        seen[key] = name
+
+
+def check_train_and_valid(cyl: Cylinder, train: Run, valid: Run, train_name: str, valid_name: str) -> str | None:
     """Refuse a TRAIN/VALID pair of which a run is shorter than 1 s at 1 kHz, or VALID sampled
-    at another rate than TRAIN (each run against the cylinder file: identify.preflight)."""
+    at another rate than TRAIN (each run against the cylinder file: identify.preflight).
+    Returns a warning when VALID holds the same samples as TRAIN (a validation that cannot
+    fail), else None."""
     for r, what in ((train, train_name), (valid, valid_name)):
         if r.n < 1000:
             raise RunFormatError(f"{what}: {r.n} samples are too few (at least 1 s at 1 kHz).")
     if abs(valid.sample_period / train.sample_period - 1) > 0.01:
         raise RunFormatError(f"{valid_name} is sampled every {valid.sample_period * 1e3:.3g} ms but {train_name} "
                              f"every {train.sample_period * 1e3:.3g} ms; validate with a run of the same rig and rate.")
+    if same_data(train, valid):
+        return (f"{valid_name} holds the same samples as {train_name}: the validation scores the fit on the data it "
+                "was fitted to, so it cannot tell a real gain from overfitting; validate on another run.")
+    return None

@@ -10,12 +10,15 @@ from typing import Mapping
 
 import numpy as np
 
-__all__ = ["MIN_ABS_PRESSURE", "MAX_ABS_POSITION", "COMMAND_LIMIT", "Implausible", "first_implausible",
-           "time_unit_problem"]
+__all__ = ["MIN_ABS_PRESSURE", "MAX_ABS_PRESSURE", "MAX_ABS_POSITION", "COMMAND_LIMIT", "Implausible",
+           "first_implausible", "time_unit_problem", "measured_value"]
 
 # Below this no absolute pressure on a pneumatic rig is plausible, while bar (7.0), kPa (700),
 # psi (100) and gauge Pa (around 0) all are: catches the usual unit slips.
 MIN_ABS_PRESSURE = 2.0e4  # Pa
+# Above this no pneumatic pressure is plausible (sensors end near 25 bar): a reading beyond is
+# a fault of the sensor or the link, not a pressure.
+MAX_ABS_PRESSURE = 1.0e7  # Pa
 MAX_ABS_POSITION = 10.0  # m; a stroke in mm exceeds this almost immediately
 # u is the fraction of full opening; a hair beyond 1 is rounding of a saturated command
 COMMAND_LIMIT = 1.0 + 1e-9
@@ -46,10 +49,14 @@ def first_implausible(columns: Mapping[str, np.ndarray]) -> Implausible | None:
     for name in _PRESSURES:
         p = columns.get(name)
         if p is not None:
-            bad = np.flatnonzero(p < MIN_ABS_PRESSURE)
+            bad = np.flatnonzero((p < MIN_ABS_PRESSURE) | (p > MAX_ABS_PRESSURE))
             if bad.size:
-                return Implausible(name, int(bad[0]), "looks like bar or gauge pressure; absolute Pa required (bar: "
-                                                     "times 1e5; gauge: plus the atmosphere)")
+                i = int(bad[0])
+                return Implausible(name, i, "looks like bar or gauge pressure; absolute Pa required (bar: times 1e5; "
+                                   "gauge: plus the atmosphere)"
+                                   if p[i] < MIN_ABS_PRESSURE else
+                                   f"is beyond {MAX_ABS_PRESSURE:g} Pa ({MAX_ABS_PRESSURE / 1e5:g} bar), which no "
+                                   "pneumatic pressure reaches; absolute Pa required")
     x = columns.get("x")
     if x is not None:
         bad = np.flatnonzero(np.abs(x) > MAX_ABS_POSITION)
@@ -70,3 +77,19 @@ def time_unit_problem(t: np.ndarray) -> str | None:
         return (f"the samples are {period:.4g} s apart ({rate}) over {duration:.6g} s, which looks like a time in "
                 "milliseconds; the time column must be in seconds")
     return None
+
+
+def measured_value(name: str, value: float | None) -> float:
+    """A measured channel's sample as the tool records it: NaN (not measured) where the
+    channel was missing, not finite, or beyond what the run reader accepts (a sensor or link
+    fault such as 3e38 Pa), so that a recording stays readable and every count agrees."""
+    if value is None:
+        return math.nan
+    v = float(value)
+    if not math.isfinite(v):
+        return math.nan
+    if name in _PRESSURES:
+        return v if MIN_ABS_PRESSURE <= v <= MAX_ABS_PRESSURE else math.nan
+    if name == "x":
+        return v if abs(v) <= MAX_ABS_POSITION else math.nan
+    return v

@@ -13,10 +13,13 @@ command is unknown cannot be simulated, so it is a gap (the line left out), not 
 """
 from __future__ import annotations
 
+import bisect
 import csv
+import io
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
@@ -24,12 +27,16 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from .atomic import atomic_write
-from .plausibility import first_implausible, time_unit_problem
+from sim.inputs import checked_size, shorten
 
-__all__ = ["REQUIRED_COLUMNS", "MEASURED_CHANNELS", "RunFormatError", "Run", "read_run", "write_run", "RunRecorder",
-           "split_at_gaps", "cylinder_identity", "cylinder_tag", "recorded_cylinder", "recorded_elsewhere",
-           "recorded_geometry", "recorded_file", "GEOMETRY"]
+from ..options import MAX_ROWS
+from .atomic import atomic_writer
+from .outputs import os_error, refuse_special
+from .plausibility import first_implausible, measured_value, time_unit_problem
+
+__all__ = ["REQUIRED_COLUMNS", "MEASURED_CHANNELS", "MAX_ROWS", "RunFormatError", "Run", "read_run", "write_run",
+           "RunRecorder", "split_at_gaps", "cylinder_identity", "cylinder_tag", "recorded_cylinder",
+           "recorded_elsewhere", "recorded_geometry", "recorded_file", "GEOMETRY"]
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("t", "u", "x", "p1", "p2")
 # measured channels: an empty cell (not measured at that sample) is read as NaN
@@ -144,103 +151,311 @@ def _as_column(value: object, name: str) -> np.ndarray:
 
 # --------------------------------------------------------------------------- reading
 
+# Limits of the reader (docs/formats.md, "Limits"): a run file is read as a stream of blocks,
+# its memory a little more than the columns it holds.
+MAX_LINE = 1 << 16  # bytes of one line
+_MAX_ROW_BYTES = 256  # a file larger than max_rows lines of this length is refused unread
+_BLOCK = 8 << 20  # bytes read at a time: a block after the first is parsed by pyarrow's CSV reader
+_BOM = b"\xef\xbb\xbf"  # spreadsheet programs like to add a UTF-8 BOM
 
-def read_run(path: str | os.PathLike[str]) -> Run:
-    """Load a run CSV, refusing anything docs/formats.md does not allow with a RunFormatError."""
+
+def read_run(path: str | os.PathLike[str], max_rows: int = MAX_ROWS) -> Run:
+    """Load a run CSV, refusing anything docs/formats.md does not allow with a RunFormatError:
+    also a file that is not a regular file (a device, a FIFO: refused before it is opened) or
+    has more than `max_rows` lines."""
     path = Path(path)
-    lines = _read_lines(path)
 
     def fail(msg: str, line: int | None = None, column: str | None = None) -> RunFormatError:
         where = str(path)
         if line is not None:
             where += f", line {line}"
         if column is not None:
-            where += f", column '{column}'"
+            where += f", column '{shorten(column)}'"
         return RunFormatError(f"{where}: {msg}")
 
-    while lines and not lines[-1].strip():
-        lines.pop()
-    if not lines:
-        raise fail(f"the file is empty; expected a header with columns {', '.join(REQUIRED_COLUMNS)}.")
-    h = next((i for i, ln in enumerate(lines) if ln.strip() and not _is_comment(ln)), None)
-    if h is None:
-        raise fail(f"the file holds only comments; expected a header with columns {', '.join(REQUIRED_COLUMNS)}.")
-    header_line = h + 1
-    names = _header(lines[h], header_line, fail)
-
-    rows: list[str] = []
-    linenos: list[int] = []
-    for no, ln in enumerate(lines[h + 1:], start=h + 2):
-        if _is_comment(ln):
-            continue
-        if not ln.strip():
-            raise fail("blank line inside the data (only trailing blank lines are allowed).", no)
-        rows.append(ln)
-        linenos.append(no)
-    if not rows:
-        raise fail("the header is not followed by any data rows; at least 2 samples are required.", header_line)
-    if len(rows) == 1:
-        raise fail("only one sample; at least 2 are required.", linenos[0])
-
-    columns, empty = _parse_cells(rows, linenos, names, header_line, fail)
-
-    # Extra columns are not checked: docs/formats.md says they are ignored (but kept).
-    standard = [c for c in REQUIRED_COLUMNS + ("ps",) if c in columns]
-    for name in standard:
-        finite = np.isfinite(columns[name])
-        bad = np.flatnonzero(~finite if name not in empty else ~finite & ~empty[name])
-        if bad.size:
-            i = int(bad[0])
-            raise fail(f"{_cell_text(rows[i], names.index(name))!r} is not a finite number.", linenos[i], name)
-
-    t = columns["t"]
-    bad = np.flatnonzero(np.diff(t) <= 0)
-    if bad.size:
-        i = int(bad[0]) + 1
-        raise fail(f"time {_cell_text(rows[i], names.index('t'))} s is not after the "
-                   f"{_cell_text(rows[i - 1], names.index('t'))} s of line {linenos[i - 1]}; "
-                   "times must be strictly increasing.", linenos[i], "t")
-
-    odd = first_implausible(columns)
-    if odd is not None:
-        i = odd.index
-        raise fail(f"{_cell_text(rows[i], names.index(odd.column))} {odd.reason}.", linenos[i], odd.column)
-    why = time_unit_problem(t)
-    if why is not None:
-        raise fail(f"{why}.", linenos[-1], "t")
-
-    return Run(
-        t=columns["t"], u=columns["u"], x=columns["x"], p1=columns["p1"], p2=columns["p2"],
-        ps=columns.get("ps"),
-        extra={k: v for k, v in columns.items() if k not in standard},
-        source=path,
-        comments=tuple(ln.lstrip()[1:].strip() for ln in lines if _is_comment(ln)),
-    )
+    _regular_size(path, max_rows)
+    with open(path, "rb") as f:
+        upper = _count_lines(f, path, max_rows, fail)
+        f.seek(0)
+        text_columns: frozenset[str] = frozenset()
+        while True:
+            reader = _RunReader(path, f, upper, fail, text_columns)
+            try:
+                reader.read()
+                return reader.run(f)
+            except _TextColumn as e:  # a further column holds text: read again, keeping it as text
+                text_columns = e.names
+                f.seek(0)
 
 
-def _read_lines(path: Path) -> list[str]:
+def _regular_size(path: Path, max_rows: int) -> int:
+    size = checked_size(path, "a run file", RunFormatError)
+    if size > max_rows * _MAX_ROW_BYTES:
+        raise RunFormatError(f"{path}: {size / 2**20:.4g} MiB, more than {max_rows} lines (--max-rows) of "
+                             f"{_MAX_ROW_BYTES} bytes would fill; raise --max-rows for a longer run.")
+    return size
+
+
+def _count_lines(f, path: Path, max_rows: int, fail: _Fail) -> int:
+    """An upper bound of the rows (line breaks + 1), after refusing more than max_rows lines."""
+    n = r = 0
+    while block := f.read(_BLOCK):
+        n += block.count(b"\n")
+        if b"\r" in block:
+            r += block.count(b"\r")
+    lines = max(n, r)
+    if lines > max_rows:
+        raise fail(f"{lines} lines, more than the {max_rows} a run file may have (--max-rows raises the limit).")
+    return n + r + 1
+
+
+def _line_breaks(data: bytes) -> int:
+    n = data.count(b"\n")
+    return n + data.count(b"\r") - data.count(b"\r\n") if b"\r" in data else n
+
+
+def _blocks(f, fail: _Fail):
+    """(byte offset, first line, bytes, line breaks) of whole lines, about _BLOCK bytes at a
+    time; a line longer than MAX_LINE is refused. A block ends after a line break, or at the
+    end of the file."""
+    offset, line, rest = 0, 1, b""
+    first = True
+    while True:
+        chunk = f.read(_BLOCK)
+        data = rest + chunk
+        if first:
+            first = False
+            if data.startswith(_BOM):
+                data, offset = data[len(_BOM):], len(_BOM)
+        if not chunk:
+            if data:
+                yield offset, line, data, _line_breaks(data)
+            return
+        end = len(data) - 1 if data.endswith(b"\r") else len(data)  # \r\n must stay together
+        cut = max(data.rfind(b"\n", 0, end), data.rfind(b"\r", 0, end))
+        block, rest = data[:cut + 1], data[cut + 1:]
+        breaks = _line_breaks(block)
+        if len(rest) > MAX_LINE:
+            raise fail(f"longer than {MAX_LINE} bytes: not a line of a run CSV.", line + breaks)
+        if block:
+            yield offset, line, block, breaks
+            offset += len(block)
+            line += breaks
+
+
+def _split_lines(text: str) -> list[str]:
+    # Universal newlines, but only \n, \r\n and \r: str.splitlines would also split on form
+    # feeds and the like and so shift the physical line numbers in messages.
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()  # the block ended with its last line's break
+    return lines
+
+
+def _decoded(block: bytes, line0: int, fail: _Fail) -> str:
     try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise RunFormatError(f"{path}: file not found.") from None
-    except IsADirectoryError:
-        raise RunFormatError(f"{path}: is a directory, not a run file.") from None
-    except OSError as e:
-        raise RunFormatError(f"{path}: cannot read the file ({e.strerror}).") from None
-    if data.startswith(b"\xef\xbb\xbf"):  # spreadsheet programs like to add a UTF-8 BOM
-        data = data[3:]
-    try:
-        text = data.decode("utf-8")
+        return block.decode("utf-8")
     except UnicodeDecodeError as e:
-        line = data.count(b"\n", 0, e.start) + 1
-        raise RunFormatError(f"{path}, line {line}: not UTF-8 text (is this a CSV file?).") from None
-    # Universal newlines, but only \n, \r\n and \r: str.splitlines would also split on
-    # form feeds and the like and so shift the physical line numbers in messages.
-    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+        raise fail("not UTF-8 text (is this a CSV file?).", line0 + _line_breaks(block[:e.start])) from None
 
 
 def _is_comment(line: str) -> bool:
     return line.lstrip().startswith("#")
+
+
+class _TextColumn(Exception):
+    def __init__(self, names: frozenset[str]):
+        self.names = names
+
+
+@dataclass(frozen=True)
+class _Block:
+    """Where a block's rows lie, to find a row's line and text again for a message."""
+    row0: int
+    line0: int
+    offset: int
+    size: int
+    linenos: np.ndarray | None  # the line of each row; None: every line of the block is a row
+
+
+class _RunReader:
+    """One pass over a run file: the header, then the rows block by block into columns
+    allocated once (upper: a bound of the row count), a block of plain numbers parsed at C
+    speed, anything else line by line with the exact line and column of a problem."""
+
+    def __init__(self, path: Path, f, upper: int, fail: _Fail, text_columns: frozenset[str] = frozenset()):
+        self.path, self.f, self.upper, self.fail = path, f, upper, fail
+        self.text_columns = text_columns
+        self.names: list[str] | None = None
+        self.header_line = 0
+        self.comments: list[str] = []
+        self.n = 0
+        self.blank: int | None = None  # a blank line after the header, refused if anything follows it
+        self.blocks: list[_Block] = []
+        self.numeric: dict[str, np.ndarray] = {}
+        self.text: dict[str, list[np.ndarray]] = {}
+        self.empty: dict[str, np.ndarray] = {}
+        self.last_line = 0
+
+    def read(self) -> None:
+        for offset, line0, block, breaks in _blocks(self.f, self.fail):
+            if self.names is None or not self._plain(offset, line0, block, breaks):
+                self._lines(offset, line0, block)
+        if self.names is None:
+            if self.comments:
+                raise self.fail(f"the file holds only comments; expected a header with columns "
+                                f"{', '.join(REQUIRED_COLUMNS)}.")
+            raise self.fail(f"the file is empty; expected a header with columns {', '.join(REQUIRED_COLUMNS)}.")
+        if self.n == 0:
+            raise self.fail("the header is not followed by any data rows; at least 2 samples are required.",
+                            self.header_line)
+        if self.n == 1:
+            raise self.fail("only one sample; at least 2 are required.", self.last_line)
+
+    def _start(self, names: list[str]) -> None:
+        self.names = names
+        for name in names:
+            if name in self.text_columns:
+                self.text[name] = []
+            else:
+                self.numeric[name] = np.empty(self.upper)
+
+    def _plain(self, offset: int, line0: int, block: bytes, breaks: int) -> bool:
+        """Parse a block of nothing but rows of plain numbers at C speed; False if it is not one
+        (then the line by line pass says what is wrong, and where)."""
+        if (self.text or self.blank is not None or b"#" in block or b"\r" in block or b"\n\n" in block
+                or block.startswith(b"\n")):
+            return False
+        k = breaks + (not block.endswith(b"\n"))
+        cols = self._arrow(block, k)
+        if cols is None:
+            return False
+        self._store(cols, k)
+        self.blocks.append(_Block(self.n - k, line0, offset, len(block), None))
+        self.last_line = line0 + k - 1
+        return True
+
+    def _arrow(self, block: bytes, k: int) -> dict[str, np.ndarray] | None:
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+
+        try:
+            table = pacsv.read_csv(
+                io.BytesIO(block), read_options=pacsv.ReadOptions(column_names=self.names, use_threads=False),
+                parse_options=pacsv.ParseOptions(newlines_in_values=False),
+                convert_options=pacsv.ConvertOptions(column_types={n: pa.float64() for n in self.names},
+                                                     null_values=[""], strings_can_be_null=False,
+                                                     quoted_strings_can_be_null=False))
+        except (pa.ArrowInvalid, ValueError):
+            return None
+        if table.num_rows != k:
+            return None
+        out, empty = {}, {}
+        for name in self.names:
+            col = table.column(name)
+            if col.null_count:
+                if name not in MEASURED_CHANNELS:
+                    return None  # an empty time, command or further cell: said line by line
+                empty[name] = col.is_null().to_numpy(zero_copy_only=False)
+            out[name] = col.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+        for name, mask in empty.items():
+            out[name] = np.where(mask, np.nan, out[name])
+            self._mark_empty(name, mask, self.n)
+        return out
+
+    def _lines(self, offset: int, line0: int, block: bytes) -> None:
+        """A block line by line: comments, blank lines, the header, rows of any kind."""
+        rows: list[str] = []
+        linenos: list[int] = []
+        for lineno, line in enumerate(_split_lines(_decoded(block, line0, self.fail)), start=line0):
+            if len(line) > MAX_LINE:
+                raise self.fail(f"longer than {MAX_LINE} characters: not a line of a run CSV.", lineno)
+            if not line.strip():
+                if self.names is not None and self.blank is None:
+                    self.blank = lineno
+                continue
+            if self.blank is not None:
+                raise self.fail("blank line inside the data (only trailing blank lines are allowed).", self.blank)
+            if _is_comment(line):
+                self.comments.append(line.lstrip()[1:].strip())
+            elif self.names is None:
+                self.header_line = lineno
+                self._start(_header(line, lineno, self.fail))
+            else:
+                rows.append(line)
+                linenos.append(lineno)
+        if not rows:
+            return
+        columns, empty = _parse_cells(rows, linenos, self.names, self.header_line, self.fail, self.text_columns)
+        textual = frozenset(n for n, c in columns.items() if c.dtype.kind not in "biuf" and n not in self.text)
+        if textual:
+            raise _TextColumn(self.text_columns | textual)
+        for name, mask in empty.items():
+            self._mark_empty(name, mask, self.n)
+        self._store(columns, len(rows))
+        self.blocks.append(_Block(self.n - len(rows), line0, offset, len(block), np.array(linenos)))
+        self.last_line = linenos[-1]
+
+    def _mark_empty(self, name: str, mask: np.ndarray, at: int) -> None:
+        if mask.any():
+            if name not in self.empty:
+                self.empty[name] = np.zeros(self.upper, bool)
+            self.empty[name][at:at + mask.size] = mask
+
+    def _store(self, columns: dict[str, np.ndarray], k: int) -> None:
+        if self.n + k > self.upper:  # more lines than counted a moment ago
+            raise self.fail("the file grew while it was read; read it when its writer has finished.")
+        for name, col in columns.items():
+            if name in self.text:
+                self.text[name].append(col)
+            else:
+                self.numeric[name][self.n:self.n + k] = col
+        self.n += k
+
+    def row(self, f, i: int) -> tuple[int, str]:
+        """The line number and the text of row i (read again from the file)."""
+        b = self.blocks[bisect.bisect_right([b.row0 for b in self.blocks], i) - 1]
+        f.seek(b.offset)
+        lines = _split_lines(f.read(b.size).decode("utf-8", errors="replace"))
+        lineno = b.line0 + (i - b.row0) if b.linenos is None else int(b.linenos[i - b.row0])
+        return lineno, lines[lineno - b.line0]
+
+    def run(self, f) -> Run:
+        names, n, fail = self.names, self.n, self.fail
+        columns = {name: (np.concatenate(self.text[name]) if name in self.text else self.numeric[name][:n])
+                   for name in names}
+        empty = {name: mask[:n] for name, mask in self.empty.items()}
+
+        def cell(i: int, name: str) -> tuple[int, str]:
+            lineno, text = self.row(f, i)
+            return lineno, shorten(_cell_text(text, names.index(name)))
+
+        # Extra columns are not checked: docs/formats.md says they are ignored (but kept).
+        standard = [c for c in REQUIRED_COLUMNS + ("ps",) if c in columns]
+        for name in standard:
+            finite = np.isfinite(columns[name])
+            bad = np.flatnonzero(~finite if name not in empty else ~finite & ~empty[name])
+            if bad.size:
+                lineno, text = cell(int(bad[0]), name)
+                raise fail(f"{text!r} is not a finite number.", lineno, name)
+        t = columns["t"]
+        bad = np.flatnonzero(np.diff(t) <= 0)
+        if bad.size:
+            i = int(bad[0]) + 1
+            lineno, text = cell(i, "t")
+            before_line, before = cell(i - 1, "t")
+            raise fail(f"time {text} s is not after the {before} s of line {before_line}; times must be strictly "
+                       "increasing.", lineno, "t")
+        odd = first_implausible(columns)
+        if odd is not None:
+            lineno, text = cell(odd.index, odd.column)
+            raise fail(f"{text} {odd.reason}.", lineno, odd.column)
+        why = time_unit_problem(t)
+        if why is not None:
+            raise fail(f"{why}.", self.last_line, "t")
+        return Run(t=columns["t"], u=columns["u"], x=columns["x"], p1=columns["p1"], p2=columns["p2"],
+                   ps=columns.get("ps"), extra={k: v for k, v in columns.items() if k not in standard},
+                   source=self.path, comments=tuple(self.comments))
 
 
 def _split(row: str) -> list[str]:
@@ -262,13 +477,13 @@ def _header(line: str, lineno: int, fail: _Fail) -> list[str]:
     seen: dict[str, int] = {}
     for j, name in enumerate(names):
         if name in seen:
-            raise fail(f"column '{name}' appears more than once in the header "
+            raise fail(f"column '{shorten(name)}' appears more than once in the header "
                        f"(columns {seen[name] + 1} and {j + 1}).", lineno)
         seen[name] = j
     missing = [c for c in REQUIRED_COLUMNS if c not in seen]
     if missing:
         what = "column" if len(missing) == 1 else "columns"
-        found = ", ".join(repr(n) for n in names)
+        found = shorten(", ".join(repr(n) for n in names))
         raise fail(f"missing required {what} {', '.join(repr(c) for c in missing)} "
                    f"(the header has {found}); a recording with other columns or units converts with "
                    "'combined-reality import'.", lineno)
@@ -276,13 +491,16 @@ def _header(line: str, lineno: int, fail: _Fail) -> list[str]:
 
 
 def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_line: int,
-                 fail: _Fail) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Column name -> array (float64 for numeric columns, str for non-numeric extra columns),
-    and for the measured channels with empty cells, where they are (read as NaN)."""
+                 fail: _Fail, text_columns: frozenset[str] = frozenset()
+                 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Column name -> array (float64 for numeric columns, str for non-numeric extra columns and
+    those of `text_columns`), and for the measured channels with empty cells, where they are
+    (read as NaN)."""
     ncol = len(names)
     # Fast path: numpy's C parser, valid only when every cell is a plain number.
     try:
-        table = np.loadtxt(rows, delimiter=",", comments=None, quotechar=None, ndmin=2, dtype=np.float64)
+        table = None if text_columns else np.loadtxt(rows, delimiter=",", comments=None, quotechar=None, ndmin=2,
+                                                     dtype=np.float64)
     except ValueError:
         table = None
     if table is not None and table.shape == (len(rows), ncol):
@@ -305,6 +523,9 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
     empty: dict[str, np.ndarray] = {}
     for j, name in enumerate(names):
         col = [c[j] for c in cells]
+        if name in text_columns:
+            columns[name] = np.array(col, dtype=str)
+            continue
         blank = None
         if name in MEASURED_CHANNELS:
             blank = np.fromiter((not s.strip() for s in col), bool, len(col))
@@ -314,7 +535,9 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
                 blank = None
         filled = col if blank is None else [s for s, b in zip(col, blank) if not b]
         try:  # C parser first; the Python loop below only runs to find what is wrong
-            arr = np.loadtxt(filled, delimiter=",", comments=None, quotechar=None, ndmin=1, dtype=np.float64)
+            with warnings.catch_warnings():  # an empty cell is said below, not warned about
+                warnings.simplefilter("ignore")
+                arr = np.loadtxt(filled, delimiter=",", comments=None, quotechar=None, ndmin=1, dtype=np.float64)
         except ValueError:
             arr = None
         if arr is not None and arr.shape == (len(filled),):
@@ -337,7 +560,7 @@ def _parse_cells(rows: list[str], linenos: list[int], names: list[str], header_l
                             "(the time step then shows the gap)")
                     raise fail(f"empty cell: {what}.", linenos[i], name) from None
                 if name in REQUIRED_COLUMNS or name == "ps":
-                    raise fail(f"{s.strip()!r} is not a number.", linenos[i], name) from None
+                    raise fail(f"{shorten(s.strip())!r} is not a number.", linenos[i], name) from None
                 # docs/formats.md: further columns are ignored, so text there is kept, not refused.
                 columns[name] = np.array(col, dtype=str)
                 break
@@ -427,23 +650,17 @@ def recorded_elsewhere(run: Run, cyl) -> str | None:
     return None if same else recorded_cylinder(run)
 
 
+_WRITE_ROWS = 1 << 16  # rows formatted at a time: the text of a long run is never held whole
+
+
 def write_run(path: str | os.PathLike[str], run: Run, comments: Sequence[str] | None = None) -> None:
     """Write ``run`` as CSV atomically (readers never see a partial file); round-trips exactly."""
-    path = Path(path)
     names, cols = _columns_of(run)
-
-    def parts():
-        yield (_comment_lines(comments or ()) + _join(names) + "\n").encode("utf-8")
-        for a in range(0, run.n, _WRITE_ROWS):
-            formatted = [_format_column(name, col[a:a + _WRITE_ROWS]) for name, col in zip(names, cols)]
-            yield "".join(",".join(row) + "\n" for row in zip(*formatted)).encode("utf-8")
-
-    atomic_write(path, parts())
-
-
-# rows formatted at a time: with the text of the whole run held, simulate --duration 3600 peaked at
-# 2.66 GB (273 MB so)
-_WRITE_ROWS = 1 << 16
+    with atomic_writer(path) as f:
+        f.write((_comment_lines(comments or ()) + _join(names) + "\n").encode("utf-8"))
+        for i in range(0, run.n, _WRITE_ROWS):
+            formatted = [_format_column(name, col[i:i + _WRITE_ROWS]) for name, col in zip(names, cols)]
+            f.write("".join(",".join(row) + "\n" for row in zip(*formatted)).encode("utf-8"))
 
 
 def _columns_of(run: Run) -> tuple[list[str], list[np.ndarray]]:
@@ -488,12 +705,11 @@ def _comment_lines(comments: Iterable[str]) -> str:
     return "".join(out)
 
 
-def _cell(value: float | None) -> str:
-    """A measured value as a cell: empty when it was not measured (None) or is not finite."""
-    if value is None:
-        return ""
-    v = float(value)
-    return repr(v) if math.isfinite(v) else ""
+def _cell(name: str, value: float | None) -> str:
+    """A measured value as a cell: empty when it was not measured (None), is not finite or is
+    beyond what a reading can be (files.plausibility.measured_value)."""
+    v = measured_value(name, value)
+    return "" if v != v else repr(v)
 
 
 class RunRecorder:
@@ -501,10 +717,13 @@ class RunRecorder:
 
     Each line goes to the OS in a single unbuffered write, so a crash or kill of the process
     leaves a file of whole lines that :func:`read_run` accepts (power loss is only covered up
-    to the last :meth:`sync`). Values are written as given; :func:`read_run` checks them. A
-    measured channel that is missing (None) or not finite is written as an empty cell (not
-    measured at that sample); the time and the command must be finite.
-    An existing file at ``path`` is replaced.
+    to the last :meth:`sync`). A measured channel that is missing (None), not finite or
+    beyond what a reading can be is written as an empty cell (not measured at that sample:
+    files.plausibility.measured_value); the time and the command must be finite.
+    An existing file at ``path`` is replaced; a device, a FIFO or a folder is refused.
+    When a write fails (the disk is full), the file is cut back to its last whole line, or
+    removed if it holds no sample, and every later call raises the same WriteError, which
+    says so.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, with_ps: bool = False,
@@ -512,16 +731,20 @@ class RunRecorder:
         self.path = Path(path)
         self.with_ps = with_ps
         self.n = 0
+        self._whole = 0  # bytes of whole lines written
+        self._error: Exception | None = None
         names = list(REQUIRED_COLUMNS) + (["ps"] if with_ps else [])
-        self._f = open(self.path, "wb", buffering=0)
+        refuse_special(self.path)
         try:
-            self._write((_comment_lines(comments or ()) + _join(names) + "\n").encode("utf-8"))
-        except BaseException:
-            self._f.close()
-            raise
+            self._f = open(self.path, "wb", buffering=0)
+        except OSError as e:
+            raise os_error(e, self.path, doing="cannot record to") from None
+        self._write((_comment_lines(comments or ()) + _join(names) + "\n").encode("utf-8"))
 
     def append(self, t: float, u: float, x: float | None, p1: float | None, p2: float | None,
                ps: float | None = None) -> None:
+        if self._error is not None:
+            raise self._error
         if self._f.closed:
             raise ValueError(f"RunRecorder for {self.path} is closed.")
         if ps is not None and not self.with_ps:
@@ -530,16 +753,19 @@ class RunRecorder:
         if not (math.isfinite(t) and math.isfinite(u)):
             raise ValueError(f"RunRecorder for {self.path}: the time and the command of a sample must be finite "
                              f"(got t={t!r}, u={u!r}).")
-        cells = [repr(t), repr(u), _cell(x), _cell(p1), _cell(p2)]
+        cells = [repr(t), repr(u), _cell("x", x), _cell("p1", p1), _cell("p2", p2)]
         if self.with_ps:
-            cells.append(_cell(ps))
+            cells.append(_cell("ps", ps))
         self._write((",".join(cells) + "\n").encode("ascii"))
         self.n += 1
 
     def sync(self) -> None:
         """Force the lines written so far onto the disk (survives power loss, costs a disk flush)."""
         if not self._f.closed:
-            os.fsync(self._f.fileno())
+            try:
+                os.fsync(self._f.fileno())
+            except OSError as e:
+                self._failed(e)
 
     def close(self) -> None:
         if not self._f.closed:
@@ -554,9 +780,29 @@ class RunRecorder:
 
     def _write(self, data: bytes) -> None:
         view = memoryview(data)
-        while view:
-            written = self._f.write(view)
-            view = view[written:]
+        try:
+            while view:
+                written = self._f.write(view)
+                view = view[written:]
+        except OSError as e:
+            self._failed(e)
+        self._whole += len(data)
+
+    def _failed(self, e: OSError):
+        """Keep the whole lines (or nothing, without a sample), close, and raise what failed."""
+        kept = (f"; it holds the {self.n} sample{'s' if self.n != 1 else ''} recorded before, each line whole"
+                if self.n else "; nothing was recorded, so the file was removed")
+        try:
+            if self.n:
+                os.ftruncate(self._f.fileno(), self._whole)
+            self._f.close()
+            if not self.n:
+                os.unlink(self.path)
+        except OSError:
+            pass
+        err = os_error(e, self.path, doing="cannot record to")
+        self._error = type(err)(str(err).rstrip(".") + kept + ".")
+        raise self._error from None
 
     def __enter__(self) -> "RunRecorder":
         return self

@@ -29,7 +29,7 @@ from sim.friction_models import DIRECTIONS, FRICTION_MODELS, FrictionModel, make
 
 from ..files import Run
 from ..identify import (IdentificationError, IdentifyOptions, IdentifyResult, friction_from_newton, identify,
-                        validate)
+                        not_determined, validate)
 from .map import FIT_SPECS, FitSpec, FrictionMapError, MapPoint, fit_model
 
 # models whose dynamic identification is offered (the map's "cvs_delta" is cvs with a free exponent)
@@ -277,6 +277,7 @@ class ModelComparison:
     wall_s: float = 0.0
     error: str = ""
     start: str = ""  # the start the kept fit came from (identify_friction_model)
+    not_determined: tuple[str, ...] = ()  # parameters TRAIN does not determine (identify.not_determined): no estimate
 
     def to_json(self) -> dict:
         def num(x):
@@ -289,6 +290,8 @@ class ModelComparison:
                "score": num(self.score), "wall_s": round(self.wall_s, 3)}
         if self.start:
             out["start"] = self.start
+        if self.not_determined:
+            out["not_determined"] = list(self.not_determined)
         if self.error:
             out["error"] = self.error
         return out
@@ -307,7 +310,11 @@ def _compare_one(args) -> ModelComparison:
     values, std = model_parameters(res)
     k = len(res.params)
     nrms = val.normalized_rms()
-    return ModelComparison(model=name, n_params=k, params=values, std=std, status=res.solver["status"],
+    unknown = tuple(n.split(".", 1)[1] if "." in n else n for n in not_determined(
+        {n: e.value for n, e in res.params.items()}, {n: e.std for n, e in res.params.items()},
+        {n for n, e in res.params.items() if e.at_bound}))
+    status = "not_determined" if unknown and res.solver["status"] == "converged" else res.solver["status"]
+    return ModelComparison(model=name, n_params=k, params=values, std=std, status=status, not_determined=unknown,
                            iterations=res.solver["iterations"], rmse_x_train=res.fit["rmse_x"],
                            rmse_x_validation=val.rmse("x"), normalized_rms=nrms,
                            score=nrms * (1 + penalty * k) if math.isfinite(nrms) else math.inf,

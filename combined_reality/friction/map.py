@@ -28,6 +28,7 @@ Jacobian at the solution (as scipy's curve_fit), RMSE, R^2, the mean absolute er
 """
 from __future__ import annotations
 
+import io
 import math
 import os
 from dataclasses import dataclass, replace
@@ -38,12 +39,14 @@ import numpy as np
 
 from sim.cylinder import Cylinder
 from sim.friction_models import DIRECTIONS, FRICTION_MODELS, FrictionModel
+from sim.inputs import InputFileError, regular_file_size, shorten
 
-from ..files import Run, split_at_gaps
+from ..files import Run, atomic_write, split_at_gaps
+from ..files.plausibility import MAX_ABS_PRESSURE
 from ..identify import derivative_kernels, friction_from_newton
 from ..progress import counter
 
-__all__ = ["FrictionMapError", "PointsFormatError", "TooFewPointsError", "SegmentOptions", "MapPoint",
+__all__ = ["PLOT_FORMATS", "FrictionMapError", "PointsFormatError", "TooFewPointsError", "SegmentOptions", "MapPoint",
            "Breakaway", "RunPoints", "StickBand", "LinearFit", "ModelFit", "FitSpec", "FIT_SPECS", "Confounding",
            "confounded_quantities", "DirectionMap", "FrictionMap", "points_from_run", "read_points", "is_points_table",
            "linear_fit", "fit_model", "build_map", "plot_map", "NOMINAL_LAW", "PARSIMONY"]
@@ -253,16 +256,28 @@ _TABLE_OPTIONAL = ("F_std", "v_std", "count", "dp", "pc", "load", "breakaway")
 _MAX_SPEED = 10.0  # m/s: above this, v is not in m/s
 
 
-def _lines(path: Path):
-    """The file's lines, lazily; missing or unreadable files in one sentence."""
+PLOT_FORMATS = ("png", "pdf", "svg", "eps", "ps", "jpg", "jpeg", "tif", "tiff", "webp")  # --plot's suffixes
+_POINTS_MAX_BYTES = 64 << 20  # a points table: a point per constant-speed stroke, far below this
+_MAX_FORCE = 1.0e6  # N: beyond any pneumatic cylinder (a 320 mm bore at 10 bar makes 80 kN)
+_POINTS_MAX_LINE = 1 << 16  # characters
+
+
+def _lines(path: Path, limit: int | None = _POINTS_MAX_BYTES):
+    """The file's lines, lazily; missing, unreadable or special files (a device, a FIFO:
+    refused before opening), files beyond `limit` bytes and overlong lines in one sentence."""
     try:
+        regular_file_size(path, "a points table" if limit else "a points table or run", limit)
         with open(path, encoding="utf-8-sig") as f:
-            for line in f:
+            for n, line in enumerate(f, 1):
+                if len(line) > _POINTS_MAX_LINE:
+                    raise PointsFormatError(f"{path}: line {n} is longer than {_POINTS_MAX_LINE} characters.")
                 yield line.rstrip("\r\n")
+    except InputFileError as e:
+        raise PointsFormatError(str(e)) from None
     except FileNotFoundError:
         raise PointsFormatError(f"{path}: file not found.") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise PointsFormatError(f"{path}: cannot be read ({e}).") from None
+        raise PointsFormatError(f"{path}: cannot be read ({shorten(str(e))}).") from None
 
 
 def _is_data(line: str) -> bool:
@@ -271,7 +286,7 @@ def _is_data(line: str) -> bool:
 
 def is_points_table(path: str | os.PathLike[str]) -> bool:
     """A points table has v and F in its header (a run has t,u,x,p1,p2); reads up to the header."""
-    header = next((line for line in _lines(Path(path)) if _is_data(line)), None)
+    header = next((line for line in _lines(Path(path), None) if _is_data(line)), None)
     cells = [c.strip() for c in header.split(",")] if header is not None else []
     return "v" in cells and "F" in cells
 
@@ -288,7 +303,7 @@ def read_points(path: str | os.PathLike[str]) -> list[MapPoint]:
     header = [c.strip() for c in lines[hline - 1].split(",")]
     if len(set(header)) != len(header):
         dup = next(c for c in header if header.count(c) > 1)
-        raise PointsFormatError(f"{path}: line {hline}: column '{dup}' appears twice in the header.")
+        raise PointsFormatError(f"{path}: line {hline}: column '{shorten(dup)}' appears twice in the header.")
     for col in ("v", "F"):
         if col not in header:
             raise PointsFormatError(f"{path}: line {hline}: the header has no column '{col}' "
@@ -307,22 +322,36 @@ def read_points(path: str | os.PathLike[str]) -> list[MapPoint]:
             try:
                 x = float(cells[j])
             except ValueError:
-                raise PointsFormatError(f"{path}: line {n}, column '{c}': '{cells[j]}' is not a number.") from None
+                raise PointsFormatError(f"{path}: line {n}, column '{c}': '{shorten(cells[j])}' is not a "
+                                        "number.") from None
             if not math.isfinite(x):
-                raise PointsFormatError(f"{path}: line {n}, column '{c}': '{cells[j]}' is not a finite number.")
+                raise PointsFormatError(f"{path}: line {n}, column '{c}': '{shorten(cells[j])}' is not a finite "
+                                        "number.")
             vals[c] = x
+        for c in ("F_std", "v_std", "dp", "load"):
+            if vals.get(c, 0.0) < 0:
+                raise PointsFormatError(f"{path}: line {n}, column '{c}': {shorten(cells[cols[c]])} is negative; "
+                                        f"{'a spread' if c.endswith('_std') else 'it'} cannot be.")
+        for c in ("F", "F_std", "load"):
+            if abs(vals.get(c, 0.0)) > _MAX_FORCE:
+                raise PointsFormatError(f"{path}: line {n}, column '{c}': {shorten(cells[cols[c]])} N is beyond any "
+                                        f"pneumatic cylinder's force ({_MAX_FORCE:g} N); F is in N.")
+        for c in ("dp", "pc"):
+            if abs(vals.get(c, 0.0)) > MAX_ABS_PRESSURE:
+                raise PointsFormatError(f"{path}: line {n}, column '{c}': {shorten(cells[cols[c]])} Pa is beyond any "
+                                        f"pneumatic pressure ({MAX_ABS_PRESSURE:g} Pa); pressures are in Pa.")
         if vals["v"] == 0.0:
             raise PointsFormatError(f"{path}: line {n}, column 'v': v = 0 has no direction "
                                     f"(extension v > 0, retraction v < 0).")
         if abs(vals["v"]) > _MAX_SPEED:
-            raise PointsFormatError(f"{path}: line {n}, column 'v': {cells[cols['v']]} m/s is implausibly fast "
-                                    f"(v must be in m/s, not mm/s).")
+            raise PointsFormatError(f"{path}: line {n}, column 'v': {shorten(cells[cols['v']])} m/s is implausibly "
+                                    f"fast (v must be in m/s, not mm/s).")
         if "count" in vals and (vals["count"] < 1 or vals["count"] != int(vals["count"])):
-            raise PointsFormatError(f"{path}: line {n}, column 'count': {cells[cols['count']]} is not a "
+            raise PointsFormatError(f"{path}: line {n}, column 'count': {shorten(cells[cols['count']])} is not a "
                                     f"positive whole number.")
         if vals.get("breakaway", 0.0) not in (0.0, 1.0):
-            raise PointsFormatError(f"{path}: line {n}, column 'breakaway': {cells[cols['breakaway']]} is neither "
-                                    f"1 (a breakaway force) nor 0 (a sliding point).")
+            raise PointsFormatError(f"{path}: line {n}, column 'breakaway': {shorten(cells[cols['breakaway']])} is "
+                                    f"neither 1 (a breakaway force) nor 0 (a sliding point).")
         points.append(MapPoint(v=vals["v"], F=vals["F"], F_std=vals.get("F_std", math.nan),
                                v_std=vals.get("v_std", math.nan), count=int(vals.get("count", 1)),
                                dp=vals.get("dp", math.nan), pc=vals.get("pc", math.nan),
@@ -1081,8 +1110,10 @@ def plot_map(fmap: FrictionMap, path: str | os.PathLike[str], title: str = "") -
     ax.set_title((title or "static friction map") + "\nbold: the best fit; faint: fits not to be preferred")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    buf = io.BytesIO()  # written atomically, as every output (a failed plot leaves no half file)
+    fig.savefig(buf, dpi=120, format=Path(path).suffix.lstrip(".").lower() or "png")
     plt.close(fig)
+    atomic_write(path, buf.getvalue())
 
 
 def _predicted(fit: ModelFit, points: Sequence[MapPoint]) -> np.ndarray:

@@ -5,8 +5,10 @@
 - validation: scoring a model on a run it was not fitted to (`validate`)
 - newton: friction from Newton's law with the measured pressures (the identifier's start)
 - preflight: whether runs can belong to the cylinder file and determine the chosen parameters at all
+- determined: whether a fit's estimate is one (its standard deviation below its value)
 - shooting, smoothing: the shared machinery (intervals, Gauss-Newton, covariance; derivatives)
 """
+from .determined import not_determined
 from .newton import equation_error_friction, friction_from_newton
 from .offline import MISMATCH, Estimate, IdentifyOptions, IdentifyResult, identify
 from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
@@ -15,8 +17,9 @@ from .shooting import UNITS, IdentificationError, PriorRow, at_bounds, sensor_no
 from .smoothing import derivative_kernels, savgol_kernels, velocity_estimate
 from .validation import Validation, validate, validation_gain, validation_segments
 
-__all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estimate", "IdentifyOptions", "IdentifyResult",
-           "identify", "check_determinable", "motion_summary", "Preflight", "preflight", "MovingHorizonEstimator",
-           "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError", "PriorRow",
+__all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estimate", "IdentifyOptions",
+           "IdentifyResult", "identify", "not_determined", "check_determinable", "motion_summary", "Preflight",
+           "preflight", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError",
+           "PriorRow",
            "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",
            "validate", "validation_gain", "validation_segments"]

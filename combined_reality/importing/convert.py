@@ -4,14 +4,19 @@ sample), report the sampling and, on request, resample."""
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from sim.inputs import checked_size, shorten
+
 from ..files import Run, first_implausible, time_unit_problem
-from .mapping import ImportMapping, MappingError, format_of
+from ..options import MAX_ROWS
+from .delimited import HEADER_SEARCH_LINES as _HEADER_LINES
+from .mapping import PRESSURES, ImportMapping, MappingError, format_of
 from .raw import RawTable
 from .sampling import SamplingReport, resample, sampling_report
 from .units import SI_UNITS, convert_channel
@@ -66,12 +71,27 @@ class ImportResult:
     sampling: SamplingReport  # of the recording as read (before any resampling)
     comments: tuple[str, ...]  # the header the run is written with: where it came from, how converted
     notes: tuple[str, ...]  # what the user should hear (irregular sampling, rows left out)
+    warnings: tuple[str, ...] = ()  # what looks wrong though the run is readable (a unit, a column mapped twice)
 
 
-def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate: float | None = None) -> ImportResult:
+# absolute pressures a pneumatic rig's chambers and supply plausibly show, Pa
+PLAUSIBLE_PRESSURE = (0.5e5, 20e5)
+_BELOW_ATMOSPHERE = 0.85  # of the atmosphere: a chamber reading lower for long is a gauge sensor
+_RECORDING_MAX_BYTES_PER_ROW = 1024  # a recording larger than max_rows rows of this is refused unread
+
+
+def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate: float | None = None,
+                     max_rows: int = MAX_ROWS) -> ImportResult:
+    """The recording as a run (refused with a MappingError naming the place when it cannot be
+    one); the recording is read whole, so it may have at most `max_rows` rows (lines of text)."""
     path = Path(raw_path)
     fmt = format_of(path, mapping.source)
+    _check_recording(path, mapping, fmt, max_rows)
     raw = READERS[fmt](path, mapping)
+    n = max((len(v) for v in raw.columns.values()), default=0)
+    if n > max_rows:
+        raise MappingError(f"{path}: {n} samples, more than the {max_rows} a run may have (--max-rows raises the "
+                           "limit).")
     columns: dict[str, np.ndarray] = {}
     how: list[str] = []
     for ch in mapping.channels:
@@ -94,6 +114,10 @@ def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate
                 f"mapping: {mapping.path.name if mapping.path else '-'}", *how,
                 f"sampling as recorded: {report.describe()}", *raw.notes]
     if resample_rate is not None:
+        n_grid = math.floor(report.duration * resample_rate) + 1
+        if n_grid > max_rows:
+            raise MappingError(f"{path}: --resample {resample_rate:g} Hz over the {report.duration:.6g} s recording "
+                               f"gives {n_grid:.4g} samples, more than the {max_rows} a run may have (--max-rows).")
         run, left_out = resample(run, resample_rate)
         if run.n < 2:
             raise MappingError(f"{path}: --resample {resample_rate:g} leaves {run.n} sample(s) of a "
@@ -103,7 +127,69 @@ def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate
                                                     f"invented across a gap)" if left_out else ""))
         comments.append(line)
         notes.append(line)
-    return ImportResult(run=run, sampling=report, comments=tuple(comments), notes=tuple(notes))
+    warnings = _warnings(mapping, columns)
+    comments += [f"warning: {w}" for w in warnings]
+    return ImportResult(run=run, sampling=report, comments=tuple(comments), notes=tuple(notes),
+                        warnings=tuple(warnings))
+
+
+def _check_recording(path: Path, mapping: ImportMapping, fmt: str, max_rows: int) -> None:
+    """A regular file (a device or FIFO refused before it is opened: /dev/zero would never end,
+    a FIFO without a writer never start), and for text at most `max_rows` lines; a CAN log's
+    database likewise."""
+    files = [(path, "a recording")]
+    if fmt == "can" and mapping.source.dbc is not None:
+        files.append((mapping.source.dbc, "a DBC file"))
+    for p, what in files:
+        size = checked_size(p, what, MappingError)
+        if p == path and size > max_rows * _RECORDING_MAX_BYTES_PER_ROW:
+            raise MappingError(f"{p}: {size / 2**20:.4g} MiB, more than {max_rows} rows (--max-rows) of "
+                               f"{_RECORDING_MAX_BYTES_PER_ROW} bytes would fill; raise --max-rows for a longer "
+                               "recording.")
+    if fmt == "csv":
+        lines = 0
+        with open(path, "rb") as f:
+            while block := f.read(8 << 20):
+                lines += block.count(b"\n")
+        if lines > max_rows + _HEADER_LINES:
+            raise MappingError(f"{path}: {lines} lines, more than the {max_rows} rows a run may have (--max-rows "
+                               "raises the limit).")
+
+
+def _warnings(mapping: ImportMapping, columns: dict[str, np.ndarray]) -> list[str]:
+    """What a readable run can still show to be wrong: two standard channels read from one
+    column, pressures outside what a pneumatic rig shows ([0.5, 20] bar absolute: a unit
+    declared wrongly), a pressure not declared gauge that stays below the atmosphere."""
+    where = mapping.path.name if mapping.path else "the mapping"
+    out = []
+    by_source: dict[tuple, str] = {}
+    for name in ("u", "x", "p1", "p2", "ps"):
+        ch = mapping.channel(name)
+        if ch is None or ch.source is None:
+            continue
+        key = (ch.source, ch.zero, ch.scale, ch.span)
+        if key in by_source:
+            out.append(f"columns.{by_source[key]} and columns.{name} of {where} both read the column "
+                       f"'{shorten(ch.source)}' the same way, so {by_source[key]} and {name} are one signal; map "
+                       "each to its own sensor")
+        by_source.setdefault(key, name)
+    lo_ok, hi_ok = PLAUSIBLE_PRESSURE
+    atmosphere = mapping.atmosphere or 101325.0
+    for name in PRESSURES:
+        p = columns.get(name)
+        if p is None or not np.isfinite(p).any():
+            continue
+        ch = mapping.channel(name)
+        lo, hi = float(np.nanmin(p)), float(np.nanmax(p))
+        if lo < lo_ok or hi > hi_ok:
+            out.append(f"{name} spans {lo / 1e5:.4g} to {hi / 1e5:.4g} bar absolute, outside the "
+                       f"[{lo_ok / 1e5:g}, {hi_ok / 1e5:g}] bar of a pneumatic rig: check unit "
+                       f"'{shorten(ch.unit)}'" + ("" if ch.gauge else " and gauge") + f" of columns.{name} in {where}")
+        elif not ch.gauge and np.mean(p < _BELOW_ATMOSPHERE * atmosphere) > 0.01:
+            out.append(f"{name} stays below the atmosphere for {100 * np.mean(p < _BELOW_ATMOSPHERE * atmosphere):.3g} "
+                       f"% of the recording (down to {lo / 1e5:.4g} bar), which a chamber does not: if its sensor "
+                       f"reads gauge pressure, set gauge = true for columns.{name} in {where}")
+    return out
 
 
 def _digest(path: Path) -> str:

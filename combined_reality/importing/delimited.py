@@ -10,13 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.inputs import read_checked, shorten
+
 from .mapping import ImportMapping, MappingError
 from .raw import RawTable, require_column_time
 
-__all__ = ["read_delimited", "DELIMITERS"]
+__all__ = ["read_delimited", "DELIMITERS", "HEADER_SEARCH_LINES"]
 
 DELIMITERS = (";", "\t", ",", "|")
-_HEADER_SEARCH_LINES = 500  # the column names must be within the first lines
+HEADER_SEARCH_LINES = 500  # the column names must be within the first lines
 _COMMA_DECIMAL = re.compile(r"^\s*[-+]?\d*,\d+([eE][-+]?\d+)?\s*$")
 
 
@@ -58,14 +60,7 @@ def read_delimited(path: Path, mapping: ImportMapping) -> RawTable:
 
 
 def _lines(path: Path, encoding: str | None) -> tuple[list[str], str]:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise MappingError(f"{path}: file not found.") from None
-    except IsADirectoryError:
-        raise MappingError(f"{path}: is a directory, not a recording.") from None
-    except OSError as e:
-        raise MappingError(f"{path}: cannot read the file ({e.strerror}).") from None
+    data = read_checked(path, "a recording", MappingError, None)  # its size bounded by import_recording
     if encoding is None:  # UTF-8, else what Windows DAQ programs write (the header must still match exactly)
         try:
             return _text_lines(path, data.decode("utf-8-sig")), "utf-8"
@@ -102,7 +97,7 @@ def _find_header(path: Path, lines: list[str], wanted: list[str], header_line: i
             raise MappingError(f"{path}: [source] header_line = {header_line}, but the file has {len(lines)} lines.")
         indices = [header_line - 1]
     else:
-        indices = range(min(len(lines), _HEADER_SEARCH_LINES))
+        indices = range(min(len(lines), HEADER_SEARCH_LINES))
     best: tuple[int, int, str] | None = None  # (names found, index, delimiter)
     for i in indices:
         for d in candidates:
@@ -126,7 +121,7 @@ def _find_header(path: Path, lines: list[str], wanted: list[str], header_line: i
     cells = _split(lines[i], d)
     missing = [n for n in wanted if n not in cells]
     raise MappingError(f"{path}, line {i + 1}: the header lacks {', '.join(repr(n) for n in missing)} (it has "
-                       f"{', '.join(repr(c) for c in cells[:12])}{' ...' if len(cells) > 12 else ''}).")
+                       f"{shorten(', '.join(repr(c) for c in cells[:12]))}{' ...' if len(cells) > 12 else ''}).")
 
 
 def _decimal_mark(cells: list[list[str]], cols, delimiter: str) -> str:
@@ -145,8 +140,8 @@ def _numbers(path: Path, texts: list[str], linenos: list[int], column: str, deci
         cell = s.strip()
         if decimal == ",":
             if "." in cell and "," in cell:
-                raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {cell!r} has both a point and a "
-                                   f"comma; thousands separators are not read (export without them).")
+                raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {shorten(cell)!r} has both a point "
+                                   f"and a comma; thousands separators are not read (export without them).")
             cell = cell.replace(",", ".")
         if not cell:
             raise MappingError(f"{path}, line {linenos[i]}, column '{column}': empty cell; every mapped channel needs "
@@ -157,9 +152,10 @@ def _numbers(path: Path, texts: list[str], linenos: list[int], column: str, deci
             v = float(cell)
         except ValueError:
             hint = " (the decimal mark is ','? set [source] decimal = \",\")" if decimal == "." and "," in cell else ""
-            raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {s.strip()!r} is not a number"
+            raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {shorten(s.strip())!r} is not a number"
                                f"{hint}.") from None
         if not np.isfinite(v):
-            raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {s.strip()!r} is not a finite number.")
+            raise MappingError(f"{path}, line {linenos[i]}, column '{column}': {shorten(s.strip())!r} is not a "
+                               "finite number.")
         out[i] = v
     return out

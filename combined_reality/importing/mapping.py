@@ -32,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sim.inputs import TOML_MAX_BYTES, parse_toml, read_checked, shorten
+
 from .units import UnitProblem, check_unit, quantity_in
 
 __all__ = ["MappingError", "SOURCE_FORMATS", "SourceOptions", "ChannelMap", "ImportMapping", "load_mapping",
@@ -123,17 +125,11 @@ def format_of(path: Path, options: SourceOptions) -> str:
 def load_mapping(path: str | os.PathLike[str]) -> ImportMapping:
     path = Path(path)
     try:
-        text = path.read_bytes().decode("utf-8-sig")
-    except FileNotFoundError:
-        raise MappingError(f"{path}: mapping file not found.") from None
-    except IsADirectoryError:
-        raise MappingError(f"{path}: is a directory, not a mapping file.") from None
-    except OSError as e:
-        raise MappingError(f"{path}: cannot read the mapping file ({e.strerror}).") from None
+        text = read_checked(path, "a mapping file", MappingError, TOML_MAX_BYTES).decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise MappingError(f"{path}: not UTF-8 text at byte {e.start} (a mapping file is TOML).") from None
     try:
-        data = tomllib.loads(text)
+        data = parse_toml(text)
     except tomllib.TOMLDecodeError as e:
         raise MappingError(f"{path}: not valid TOML ({e}).") from None
     return parse_mapping(data, path)
@@ -147,7 +143,8 @@ def parse_mapping(data: dict[str, Any], path: Path | None = None) -> ImportMappi
 
     unknown = set(data) - {"source", "columns", "atmosphere"}
     if unknown:
-        raise fail(f"unknown table or key '{sorted(unknown)[0]}' (expected [source], [columns], [atmosphere]).")
+        raise fail(f"unknown table or key '{shorten(sorted(unknown)[0])}' (expected [source], [columns], "
+                   "[atmosphere]).")
     source = _source(_table(data, "source", fail), path, fail)
     columns = data.get("columns")
     if not isinstance(columns, dict) or not columns:
@@ -160,7 +157,7 @@ def parse_mapping(data: dict[str, Any], path: Path | None = None) -> ImportMappi
     atm = _table(data, "atmosphere", fail)
     unknown = set(atm) - {"pressure"}
     if unknown:
-        raise fail(f"unknown key 'atmosphere.{sorted(unknown)[0]}' (expected pressure).")
+        raise fail(f"unknown key 'atmosphere.{shorten(sorted(unknown)[0])}' (expected pressure).")
     if "pressure" in atm:
         atmosphere = _pressure_value(atm["pressure"], "atmosphere.pressure", fail)
         if not 5e4 <= atmosphere <= 1.2e5:
@@ -183,23 +180,24 @@ def _table(data: dict, key: str, fail) -> dict:
 def _source(src: dict, path: Path | None, fail) -> SourceOptions:
     unknown = set(src) - _SOURCE_KEYS
     if unknown:
-        raise fail(f"unknown key 'source.{sorted(unknown)[0]}' (expected one of {', '.join(sorted(_SOURCE_KEYS))}).")
+        raise fail(f"unknown key 'source.{shorten(sorted(unknown)[0])}' (expected one of "
+                   f"{', '.join(sorted(_SOURCE_KEYS))}).")
     kw: dict[str, Any] = {}
     fmt = src.get("format")
     if fmt is not None:
         if fmt not in SOURCE_FORMATS:
-            raise fail(f"key 'source.format' must be one of {', '.join(SOURCE_FORMATS)}, not {fmt!r}.")
+            raise fail(f"key 'source.format' must be one of {', '.join(SOURCE_FORMATS)}, not {shorten(repr(fmt))}.")
         kw["format"] = fmt
     delimiter = src.get("delimiter")
     if delimiter is not None:
         if not isinstance(delimiter, str) or len(delimiter) != 1 or delimiter in "\r\n\"" or delimiter.isalnum():
             raise fail(f"key 'source.delimiter' must be one character such as \";\", \",\" or \"\\t\", "
-                       f"not {delimiter!r}.")
+                       f"not {shorten(repr(delimiter))}.")
         kw["delimiter"] = delimiter
     decimal = src.get("decimal")
     if decimal is not None:
         if decimal not in (".", ","):
-            raise fail(f"key 'source.decimal' must be \".\" or \",\", not {decimal!r}.")
+            raise fail(f"key 'source.decimal' must be \".\" or \",\", not {shorten(repr(decimal))}.")
         if decimal == delimiter:
             raise fail("keys 'source.decimal' and 'source.delimiter' are the same character; a number could not "
                        "be told from the next cell.")
@@ -213,14 +211,15 @@ def _source(src: dict, path: Path | None, fail) -> SourceOptions:
                 raise LookupError
             codecs.lookup(encoding)
         except LookupError:
-            raise fail(f"key 'source.encoding' names no known text encoding: {encoding!r} (e.g. \"utf-8\", "
+            raise fail(f"key 'source.encoding' names no known text encoding: {shorten(repr(encoding))} "
+                       f"(e.g. \"utf-8\", "
                        f"\"cp1252\", \"latin-1\").") from None
         kw["encoding"] = encoding
     for key, low in (("header_line", 1), ("skip_after_header", 0)):
         v = src.get(key)
         if v is not None:
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise fail(f"key 'source.{key}' must be a whole number >= {low}, not {v!r}.")
+                raise fail(f"key 'source.{key}' must be a whole number >= {low}, not {shorten(repr(v))}.")
             kw[key] = v
     dbc = src.get("dbc")
     if dbc is not None:
@@ -233,10 +232,11 @@ def _source(src: dict, path: Path | None, fail) -> SourceOptions:
 def _channel(name: str, spec: Any, fail) -> ChannelMap:
     key = f"columns.{name}"
     if not isinstance(spec, dict):
-        raise fail(f"key '{key}' must be a table such as {{ from = \"column\", unit = \"s\" }}, not {spec!r}.")
+        raise fail(f"key '{key}' must be a table such as {{ from = \"column\", unit = \"s\" }}, "
+                   f"not {shorten(repr(spec))}.")
     unknown = set(spec) - _CHANNEL_KEYS
     if unknown:
-        raise fail(f"unknown key '{key}.{sorted(unknown)[0]}' (expected {', '.join(sorted(_CHANNEL_KEYS))}).")
+        raise fail(f"unknown key '{key}.{shorten(sorted(unknown)[0])}' (expected {', '.join(sorted(_CHANNEL_KEYS))}).")
     source, time_of = spec.get("from"), spec.get("time_of")
     if time_of is not None and name != "t":
         raise fail(f"key '{key}.time_of' is for t only (the time track of a channel).")
@@ -253,26 +253,27 @@ def _channel(name: str, spec: Any, fail) -> ChannelMap:
                        f"{_EXAMPLE_UNITS.get(name, 'V')}).")
         unit = ""
     if not isinstance(unit, str):
-        raise fail(f"key '{key}.unit' must be a unit as text, such as \"ms\", \"mm\" or \"bar\", not {unit!r}.")
+        raise fail(f"key '{key}.unit' must be a unit as text, such as \"ms\", \"mm\" or \"bar\", "
+                   f"not {shorten(repr(unit))}.")
     zero = spec.get("zero", 0.0)
     if isinstance(zero, bool) or not isinstance(zero, (int, float)) or not math.isfinite(zero):
-        raise fail(f"key '{key}.zero' must be a finite number in the channel's unit, not {zero!r}.")
+        raise fail(f"key '{key}.zero' must be a finite number in the channel's unit, not {shorten(repr(zero))}.")
     span = spec.get("span")
     if span is not None and name != "u":
         raise fail(f"key '{key}.span' is for the command u only (use scale for a sensor's gain).")
     if span is not None and (isinstance(span, bool) or not isinstance(span, (int, float)) or not math.isfinite(span)
                              or span == 0):
         raise fail(f"key '{key}.span' must be a non-zero number: the change of the raw value from centre to full "
-                   f"opening, not {span!r}.")
+                   f"opening, not {shorten(repr(span))}.")
     scale = spec.get("scale")
     if scale is not None and name in ("u", "t"):
         raise fail(f"key '{key}.scale' is for measured channels (x, p1, p2, ps, extras); "
                    + ("map the command with zero and span." if name == "u" else "give the time's unit."))
     if scale is not None and not isinstance(scale, str):
-        raise fail(f"key '{key}.scale' must be a quantity as text such as \"25 mm/V\", not {scale!r}.")
+        raise fail(f"key '{key}.scale' must be a quantity as text such as \"25 mm/V\", not {shorten(repr(scale))}.")
     gauge = spec.get("gauge", False)
     if not isinstance(gauge, bool):
-        raise fail(f"key '{key}.gauge' must be true or false, not {gauge!r}.")
+        raise fail(f"key '{key}.gauge' must be true or false, not {shorten(repr(gauge))}.")
     if gauge and name not in PRESSURES:
         raise fail(f"key '{key}.gauge' is for the pressures p1, p2, ps only.")
     channel = ChannelMap(name=name, source=source, unit=unit, time_of=time_of, zero=float(zero),
@@ -290,7 +291,8 @@ _EXAMPLE_UNITS = {"t": "\"s\" or \"ms\"", "x": "\"m\" or \"mm\"", "p1": "\"Pa\",
 
 def _pressure_value(value: Any, key: str, fail) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        raise fail(f"key '{key}' must be a number in Pa or a quantity such as \"1013 mbar\", not {value!r}.")
+        raise fail(f"key '{key}' must be a number in Pa or a quantity such as \"1013 mbar\", "
+                   f"not {shorten(repr(value))}.")
     if isinstance(value, str):
         try:
             return quantity_in(value, "Pa")

@@ -7,6 +7,8 @@ import functools
 
 import numpy as np
 
+from sim.inputs import shorten
+
 __all__ = ["UnitProblem", "registry", "check_unit", "quantity_in", "convert_channel", "decimal_clean"]
 
 # the run channels' SI units (extras: pint's base units)
@@ -29,18 +31,18 @@ def _units(text: str):
     try:
         return registry().Quantity(1.0, text) if text.strip() else registry().Quantity(1.0)
     except Exception as e:  # pint's parser raises its own errors, TokenError, SyntaxError, AttributeError ...
-        raise UnitProblem(f"'{text}' is not a unit pint knows ({_first_line(e)}); use e.g. s, ms, m, mm, Pa, kPa, "
-                          f"bar, psi, V, percent.") from None
+        raise UnitProblem(f"'{shorten(text)}' is not a unit pint knows ({_first_line(e)}); use e.g. s, ms, m, mm, "
+                          f"Pa, kPa, bar, psi, V, percent.") from None
 
 
 def _quantity(text: str):
     try:
         q = registry().Quantity(text)
     except Exception as e:  # as in _units
-        raise UnitProblem(f"'{text}' is not a quantity pint can read ({_first_line(e)}); write e.g. \"25 mm/V\".") \
-            from None
+        raise UnitProblem(f"'{shorten(text)}' is not a quantity pint can read ({_first_line(e)}); write e.g. "
+                          "\"25 mm/V\".") from None
     if not np.isfinite(float(np.asarray(q.magnitude, dtype=float))) or float(q.magnitude) == 0:
-        raise UnitProblem(f"'{text}' must be a finite, non-zero quantity.")
+        raise UnitProblem(f"'{shorten(text)}' must be a finite, non-zero quantity.")
     return q
 
 
@@ -78,7 +80,7 @@ def quantity_in(text: str, target: str) -> float:
     try:
         return float(q.to(target).magnitude)
     except Exception as e:
-        raise UnitProblem(f"'{text}' is not in units convertible to {target} ({_first_line(e)}).") from None
+        raise UnitProblem(f"'{shorten(text)}' is not in units convertible to {target} ({_first_line(e)}).") from None
 
 
 _DIGITS = 15  # a recording holds fewer significant digits than this; a double more (17)

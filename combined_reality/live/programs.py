@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from sim.cylinder import Cylinder
 from sim.flow import R_AIR, RHO0, T0
+from sim.inputs import read_checked, shorten
 
+from ..files.plausibility import COMMAND_LIMIT
+
+COMMAND_FILE_MAX_BYTES = 64 << 20  # a command file: hours of commands at 1 kHz
 
 @dataclass(frozen=True)
 class ProgramOptions:
@@ -143,16 +146,38 @@ def pulse_program(cyl: Cylinder, duration: float, seed: int = 0,
 
 
 def command_file_program(path, cyl: Cylinder, options: ProgramOptions = ProgramOptions()) -> HeldCommandProgram:
-    """Commands from a CSV file with columns t and u."""
-    # comment lines go first: genfromtxt would take a leading one for the header
-    lines = [ln for ln in Path(path).read_text().splitlines() if not ln.lstrip().startswith("#")]
-    data = np.genfromtxt(lines, delimiter=",", names=True)
-    names = data.dtype.names or ()
+    """Commands from a CSV file with columns t and u (u within [-1, 1]: a command beyond is
+    refused, never bounded silently; the program's own bound still applies)."""
+    try:
+        text = read_checked(path, "a command file", ValueError, COMMAND_FILE_MAX_BYTES).decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not UTF-8 text (a command file is a CSV with columns t and u).") from None
+    rows = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not rows:
+        raise ValueError(f"{path}: holds no commands (a command file is a CSV with columns t and u).")
+    names = [c.strip() for c in rows[0][1].split(",")]
     if "t" not in names or "u" not in names:
-        raise ValueError(f"{path}: a command file needs columns t and u (found {', '.join(names) or 'none'}).")
-    t, u = np.atleast_1d(data["t"]).astype(float), np.atleast_1d(data["u"]).astype(float)
+        raise ValueError(f"{path}: a command file needs columns t and u (found "
+                         f"{shorten(', '.join(names)) or 'none'}).")
+    t, u = np.empty(len(rows) - 1), np.empty(len(rows) - 1)
+    for k, (n, line) in enumerate(rows[1:]):
+        cells = line.split(",")
+        if len(cells) != len(names):
+            raise ValueError(f"{path}, line {n}: {len(cells)} cells, but the header has {len(names)} columns.")
+        for arr, j in ((t, names.index("t")), (u, names.index("u"))):
+            try:
+                arr[k] = float(cells[j])
+            except ValueError:
+                raise ValueError(f"{path}, line {n}: {shorten(cells[j].strip())!r} is not a number.") from None
+    if not t.size:
+        raise ValueError(f"{path}: no commands after the header.")
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.diff(t) > 0)):
         raise ValueError(f"{path}: times must be finite and increasing, commands finite.")
+    beyond = np.flatnonzero(np.abs(u) > COMMAND_LIMIT)
+    if beyond.size:
+        i = int(beyond[0])
+        raise ValueError(f"{path}: u = {u[i]:g} at t = {t[i]:g} s is outside [-1, 1] (the valve's opening as a "
+                         "fraction of full opening; not percent or volts).")
     return HeldCommandProgram(t, u, cyl, options)
 
 

@@ -33,7 +33,8 @@ from sim.cylinder import Cylinder
 from sim.extension import Effect
 from sim.plant import plant_for
 
-from ..files import Run, RunRecorder
+from ..files import Run, RunRecorder, measured_value
+from ..files.plausibility import COMMAND_LIMIT
 from ..identify import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
 from .console import Console
 
@@ -571,9 +572,6 @@ class _Recording:
         return Run(t=c[0], u=c[1], x=c[2], p1=c[3], p2=c[4], ps=ps)
 
 
-def _measured(v) -> float:
-    """A channel's value, NaN when the rig did not measure it (None, NaN or infinite)."""
-    return float(v) if v is not None and math.isfinite(v) else math.nan
 
 
 def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: float | None = None,
@@ -646,7 +644,8 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     def take_sample(s: Sample) -> bool:
         """Record one sample and queue it for the model; False if it cannot be a row."""
         nonlocal t0, t_prev, seq_prev, dt_nominal
-        if not (math.isfinite(s.t) and math.isfinite(s.u_applied)) or (t_prev is not None and s.t <= t_prev):
+        if (not (math.isfinite(s.t) and math.isfinite(s.u_applied)) or abs(s.u_applied) > COMMAND_LIMIT
+                or (t_prev is not None and s.t <= t_prev)):
             # a row needs its time (after the one before) and the command the valve held
             counters["invalid"] += 1
             sample_event("invalid", f"a sample without a valid time or command (t = {s.t!r}, u = {s.u_applied!r}) "
@@ -669,10 +668,13 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
                 lost_before = dt > 1.9 * dt_nominal  # at least one period without a sample
             counters["gaps"] += lost_before
         t_prev, seq_prev = s.t, s.seq
-        x, p1, p2, ps = (_measured(v) for v in (s.x, s.p1, s.p2, s.ps))
+        # not measured: missing, not finite, or beyond any reading (a sensor or link fault)
+        x, p1, p2, ps = (measured_value(n, v) for n, v in (("x", s.x), ("p1", s.p1), ("p2", s.p2), ("ps", s.ps)))
         if not (math.isfinite(x) and math.isfinite(p1) and math.isfinite(p2)):
             counters["incomplete"] += 1
-            missing = ", ".join(n for n, v in (("x", x), ("p1", p1), ("p2", p2)) if not math.isfinite(v))
+            missing = ", ".join(n if getattr(s, n) is None or not math.isfinite(getattr(s, n))
+                                else f"{n} (read {getattr(s, n):.4g}, not physical)"
+                                for n, v in (("x", x), ("p1", p1), ("p2", p2)) if not math.isfinite(v))
             sample_event("incomplete", f"sample at t = {s.t - t0:.3f} s: {missing} not measured (recorded as an "
                                        "empty cell)")
         if s.status and s.status & Status.OVERRUN:  # a healthy sample skips the (slow) flag arithmetic
@@ -746,7 +748,8 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         event(f"online estimator failed: {estimator.error}")
     for s in sinks:
         s.close()
-    if stats is not None:
-        counters.update({k: v for k, v in vars(stats).items() if isinstance(v, (int, float))})
+    if stats is not None:  # the link's counters; "samples" stays the rows taken (the recording's, the run's)
+        counters.update({("received" if k == "samples" else k): v for k, v in vars(stats).items()
+                         if isinstance(v, (int, float))})
     return SessionResult(run=rec.run(), estimates=estimates, stop_reason=reason, counters=counters, events=events,
                          t0=0.0 if t0 is None else t0)

@@ -6,7 +6,7 @@ import base64
 import html
 from pathlib import Path
 
-from ..files import write_text_atomic
+from ..files import atomic_write, write_text_atomic
 
 __all__ = ["CSS", "escape", "img_tag", "write_html_and_plots"]
 
@@ -42,5 +42,5 @@ def write_html_and_plots(path, html_text: str, plots: dict[str, bytes], png_dir=
         png_dir = Path(png_dir)
         png_dir.mkdir(parents=True, exist_ok=True)
         for name, data in plots.items():
-            (png_dir / f"{name}.png").write_bytes(data)
+            atomic_write(png_dir / f"{name}.png", data)
     write_text_atomic(path, html_text)
