@@ -62,7 +62,7 @@ from .shooting import (ShootingProblem, free_parameters, line_search, linearize,
                        normal_equations, parameter_bounds, parameter_unit, residual_scales, scaled_inverse,
                        shooting_residuals, solve_bounded)
 from .smoothing import fill_missing, velocity_estimate
-from .tracking import Blocks, Change, Drift, analyse, pinv, trend_fit
+from .tracking import Blocks, Change, Drift, Regime, analyse, pinv, regime_variance, trend_fit
 
 
 @dataclass(frozen=True)
@@ -103,6 +103,17 @@ class OnlineOptions:
     history_s: float = 20.0
     change_z: float = 6.0
     drift_z: float = 5.0
+    # an effect the model lacks moves the locally best friction with the operating regime: by
+    # how much is measured on stretches of regime_s / 8 to regime_s (averaged over the session
+    # with a time constant of regime_memory_s), and at least regime_floor of the friction force
+    # for each of its terms (the smallest change worth a word is some times this)
+    regime_s: float = 4.0
+    recent_s: float = 6.0  # a step is looked for in the last recent_s (older ones were looked for when recent)
+    # ... with at least min_after_s of data after it: the newest data of a window are the
+    # least settled (their last node state has nothing after it)
+    min_after_s: float = 1.0
+    regime_memory_s: float = 60.0
+    regime_floor: float = 0.005
 
 
 @dataclass
@@ -263,6 +274,14 @@ class MovingHorizonEstimator:
         self._change: Change | None = None  # found by the update that restarts, reported by the refit
         self._t_tested = 0.0  # rig time of the last update tested
         self._explained = False  # whether the last window's residual was within identify's limit (MISMATCH)
+        self._noise = 1.0  # its residual variance in units of the sensor noise (1 .. MISMATCH^2)
+        self._sigmas: list[float] = []  # the last ten windows' residual sigma
+        self._regime: np.ndarray | None = None  # the rig's regime variance per parameter (see _update_regime)
+        self._regime_recent: np.ndarray | None = None  # that of the history alone
+        self._regime_slide = 0.0  # s of data since they were last measured
+        self._block_cache: dict | None = None  # the last window's blocks by global intervals (see _track)
+        # its scales: doubling from regime_s / 8 up to regime_s
+        self._scales = options.regime_s / 2.0 ** np.arange(3, -1, -1)
         self.analysis = None  # the last update's tests (identify/tracking.Analysis)
 
     # ------------------------------------------------------------ data
@@ -696,22 +715,44 @@ class MovingHorizonEstimator:
         if self._restarting:  # the refit after a step: its blocks are tested from the next update on
             self._restarting, self._explained = False, sigma <= MISMATCH
             return None
-        w["ranges"] = self._block_ranges(w["k0"], w["Kw"], w["piece_of"])
-        w["blocks"] = self._blocks(w, w["ranges"])
+        w["ranges"] = ranges = self._block_ranges(w["k0"], w["Kw"], w["piece_of"])
+        # where neither this update nor the last took a step, the intervals both windows hold
+        # are linearised alike, and so are the blocks they make (a block's own start state is
+        # profiled out, whichever node the window starts from)
+        kept = self._block_cache if w["Sens"] is not None else None
+        keys = [(w["k0"] + a, w["k0"] + b) for a, b in ranges]
+        todo = [r for r, key in zip(ranges, keys) if not kept or key not in kept]
+        fresh = iter(self._blocks(w, todo).rows() if todo else ())
+        rows = [kept[key] if kept and key in kept else next(fresh) for key in keys]
+        w["blocks"] = Blocks.of_rows(len(self.free), rows)
+        self._block_cache = dict(zip(keys, rows)) if w["Sens"] is not None else None
         data = self._history.extend(w["blocks"])
         # a model that did not explain the rig before these data says nothing of its changes
         explained, self._explained = self._explained, sigma <= MISMATCH
+        self._sigmas = (self._sigmas + [sigma])[-10:]
+        noise, self._noise = self._noise, max(1.0, min(sigma, MISMATCH)) ** 2
+        slide, self._t_tested = t_last - self._t_tested, t_last
+        self._regime_slide += slide
+        if self._regime_slide >= 1.0 or self._regime_recent is None:  # a slow quantity: once a second of data
+            self._update_regime(data, t_last, self._regime_slide)
+            self._regime_slide = 0.0
         if len(data) < 2:
             return None
-        an = self.analysis = analyse(data, self.theta, t_last)
+        an = self.analysis = analyse(data, self.theta, t_last, self._regime_now(), noise, cluster_s=opts.cluster_s,
+                                     min_after_s=opts.min_after_s, recent_s=opts.recent_s)
         chi2 = an.dispersion
-        if explained and an.z_step >= opts.change_z and (an.z_drift < opts.drift_z
-                                                         or chi2["step_chi2"] <= chi2["drift_chi2"]):
+        # a model that leaves sigma times the noise leaves it systematically, with a regime
+        # dependence that the history need not have shown in full: a step must be sigma times
+        # as large (a drift not: the residual of a rig that drifts away grows by itself)
+        if explained and an.z_step >= opts.change_z * math.sqrt(noise) and (an.z_drift < opts.drift_z
+                                                                             or chi2["step_chi2"] <= chi2["drift_chi2"]):
             self._restart(an, data, w["k0"], t_last)
             return "restart"
-        slide, self._t_tested = t_last - self._t_tested, t_last
         if self._drift is None:
-            if explained and math.isinf(opts.memory_s) and an.z_drift >= opts.drift_z:
+            # (a rig that drifts away from its estimate leaves a growing residual: judged by the
+            # session's typical window rather than the last one)
+            typical = float(np.median(self._sigmas)) <= MISMATCH
+            if typical and math.isinf(opts.memory_s) and an.z_drift >= opts.drift_z:
                 self._drift = self._drift_of(an, float(data.t0[0]))
                 self._drift_quiet = 0.0
         else:
@@ -726,6 +767,51 @@ class MovingHorizonEstimator:
         tr = an.trend
         return np.clip(tr.value, self.lower, self.upper), np.sqrt(np.maximum(np.diag(tr.cov), 0.0))
 
+    def _update_regime(self, data: Blocks, t_last: float, slide: float) -> None:
+        """The rig's regime variance (identify/tracking.regime_variance) from the history but its
+        last regime_s (where a change may be under way), averaged over the session with a
+        time constant of regime_memory_s of data; a step does not reset it (the model lacks
+        what it lacked before)."""
+        opts = self.options
+        old = self._history.select(self._history.t1 < t_last - opts.regime_s)
+        est = [regime_variance(old, self.theta, sc) for sc in self._scales]
+        if est[-1] is None:  # early in a session: what there is, the window too
+            est = [regime_variance(data, self.theta, sc) for sc in self._scales]
+        for i in range(1, len(est)):  # a scale the data are too short for: that of the one below
+            if est[i] is None:
+                est[i] = est[i - 1]
+        if est[0] is None:
+            self._regime_recent = None
+            return
+        est = np.array(est)
+        self._regime_recent = est
+        if self._regime is None:
+            self._regime = est
+        else:
+            a = min(1.0, max(slide, 0.0) / opts.regime_memory_s)
+            self._regime = (1 - a) * self._regime + a * est
+
+    def _regime_now(self) -> Regime:
+        """The regime covariance to count at each scale: the session's, or the recent
+        history's where larger (the session's average is slow to learn), and at least the
+        floor on the diagonal: regime_floor of each value, and for kp of the friction force
+        Fc + Fv 0.1 m/s + kp 2 bar over 2 bar (the seal's pressure term is the least determined
+        and moves with the regime more than the others)."""
+        floor = self.options.regime_floor * np.abs(self.theta)
+        names = list(self.names)
+        if "kp" in names:
+            terms = {"Fc": 1.0, "Fv": 0.1, "kp": 2e5}  # each term's regressor at a typical state
+            level = sum(abs(self.theta[names.index(n)]) * x for n, x in terms.items() if n in names)
+            floor[names.index("kp")] = max(floor[names.index("kp")], self.options.regime_floor * level / 2e5)
+        out = []
+        for i in range(len(self._scales)):
+            c = np.diag(floor ** 2)
+            for v in (self._regime, self._regime_recent):
+                if v is not None:
+                    c = _psd_max(c, v[i])
+            out.append(c)
+        return Regime(self._scales, np.array(out))
+
     def _drift_of(self, an, since: float) -> Drift:
         tr = an.trend
         rate_std = np.sqrt(np.maximum(np.diag(tr.rate_cov), 0.0))
@@ -737,7 +823,7 @@ class MovingHorizonEstimator:
         centre (what the data before the window say of it)."""
         if len(self._history) < 2:
             return
-        fit = trend_fit(self._history, self.theta, t_c)
+        fit = trend_fit(self._history, self.theta, t_c, self._regime_now(), self._noise)
         self.info = pinv(fit.cov)[0] + self._weak
         self.prior_mean = np.clip(fit.value, self.lower, self.upper)
 
@@ -1040,19 +1126,20 @@ class _ReducedWindow:
         the command offsets over gaps inside it) profiled out: what the block alone says."""
         nth = self.nth
         S, A = np.empty((len(ranges), nth)), np.empty((len(ranges), nth, nth))
-        starts = np.array([a for a, _ in ranges], int)
         inner = [[j for j, kk in enumerate(after_gap) if a < kk < b] for a, b in ranges]
         plain = np.array([not g for g in inner])
         if plain.any():  # blocks without a gap inside: their sums over intervals at once
-            K = ranges[-1][1]  # the ranges are consecutive from interval 0 on
-            Gf, P = self.Gf[:K], self.P[:K]
+            ks = np.concatenate([np.arange(a, b) for (a, b), p in zip(ranges, plain) if p])
+            firsts = np.cumsum([0] + [b - a for (a, b), p in zip(ranges, plain) if p][:-1])
+            K = len(ks)
+            Gf, P = self.Gf[ks], self.P[ks]
             Gt = Gf.transpose(0, 2, 1)
-            Jth = self.Jth[:K].reshape(K, -1, nth)
-            rr = r[:K].reshape(K, -1, 1)
+            Jth = self.Jth[ks].reshape(K, -1, nth)
+            rr = r[ks].reshape(K, -1, 1)
             Pt = P.transpose(0, 2, 1)
             per = [Pt @ (Gt @ Gf) @ P, Pt @ (Gt @ Jth), (Pt @ (Gt @ rr))[..., 0],
                    Jth.transpose(0, 2, 1) @ Jth, (Jth.transpose(0, 2, 1) @ rr)[..., 0]]
-            NtCN, NtF, Ntr, JJ, Jr = (np.add.reduceat(x, starts, axis=0)[plain] for x in per)
+            NtCN, NtF, Ntr, JJ, Jr = (np.add.reduceat(x, firsts, axis=0) for x in per)
             proj = pinv(NtCN)[0] @ NtF
             A[plain] = JJ - NtF.transpose(0, 2, 1) @ proj
             S[plain] = Jr - (proj.transpose(0, 2, 1) @ Ntr[..., None])[..., 0]
@@ -1070,6 +1157,15 @@ class _ReducedWindow:
             A[i] = np.einsum("kma,kmb->ab", Jth, Jth) - NtF.T @ proj
             S[i] = np.einsum("kma,km->a", Jth, rr) - proj.T @ Ntr
         return S, A
+
+
+def _psd_max(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A covariance at least as large as A and as B in every direction (A plus the part of
+    B - A beyond it), on the unit-diagonal scale of A."""
+    d = np.sqrt(np.maximum(np.diag(A), 1e-300))
+    D = (B - A) / np.outer(d, d)
+    w, V = np.linalg.eigh(0.5 * (D + D.T))
+    return A + (V * np.maximum(w, 0.0)) @ V.T * np.outer(d, d)
 
 
 def _pinv_scaled(N: np.ndarray) -> np.ndarray:

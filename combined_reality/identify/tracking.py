@@ -11,17 +11,21 @@ summed quadratic that the alternative's extra parameters allow (twice it is chi-
 with as many degrees of freedom as they have, Basseville & Nikiforov 1993, ch. 7):
 
 - a step: the parameters jump by delta at a block boundary b (the change's time unknown:
-  the largest statistic over the boundaries, and the boundaries weighted by
-  exp(statistic / 2) locate it, with its standard deviation);
+  the boundary with the largest statistic, and the boundaries weighted by exp(statistic / 2)
+  locate it, with its standard deviation);
 - a drift: theta(t) = theta_now + beta (t - t_now), a linear trend over the blocks.
 
-Model error that the plant does not describe makes the blocks disagree more than their noise
-says (an effect the model lacks moves the locally best friction with the operating regime).
-Each statistic is therefore divided by the blocks' over-dispersion around the alternative
-it tests (their residual chi-square per degree of freedom, at least 1), as an F test does:
-a model that explains the rig to within its noise keeps its chi-square scale, one that
-explains it less well asks for correspondingly more evidence, and the standard deviations
-of the estimates grow by the same factor.
+Model error that the plant does not describe breaks the "blocks share nothing": an effect the
+model lacks moves the locally best friction with the operating regime (a ramp, a sine, a
+hold), by amounts that more data of the same regime do not reduce, and some regimes far more
+than most. The tests therefore add a regime covariance to every estimate's noise covariance,
+measured on the stream itself: how far stretches of 0.5, 1, 2 and 4 s (sliding by a block)
+stray from the blocks' common trend beyond what their noise explains, the largest such
+excursion divided by ENVELOPE (`regime_variance`, `Regime`). A model that explains the rig
+leaves about none (a floor of 0.5 % of each value is kept), one that explains it less well
+asks for correspondingly more evidence. A step is then judged by the Wald statistic of the
+difference of the estimates before and after it (where it lies: the noise's likelihood
+ratios), a drift by that of its rate; both in standard deviations (z).
 """
 from __future__ import annotations
 
@@ -97,6 +101,15 @@ class Blocks:
     def select(self, which) -> "Blocks":
         return Blocks(self.nth, *(getattr(self, f)[which] for f in _FIELDS))
 
+    def rows(self) -> list[tuple]:
+        return list(zip(*(getattr(self, f) for f in _FIELDS)))
+
+    @staticmethod
+    def of_rows(nth: int, rows: list[tuple]) -> "Blocks":
+        if not rows:
+            return Blocks(nth)
+        return Blocks(nth, *(np.array(col) for col in zip(*rows)))
+
     def since(self, t: float) -> "Blocks":
         """The blocks that begin at or after t."""
         return self.select(self.t0 >= t - 1e-9)
@@ -113,7 +126,7 @@ class Blocks:
 @dataclass(frozen=True)
 class Fit:
     """The parameters of a stretch of blocks: estimate (at the stretch's end for a trend),
-    covariance (over-dispersion included), and for a trend the rate and its covariance."""
+    covariance (regime included), and for a trend the rate and its covariance."""
 
     value: np.ndarray
     cov: np.ndarray
@@ -124,10 +137,10 @@ class Fit:
 @dataclass(frozen=True)
 class Analysis:
     """The tests over a stretch of blocks (see the module's docstring). z_step, z_drift: the
-    square roots of the GLR statistics divided by their over-dispersion (in units of a
-    standard deviation: chi-square with nth degrees of freedom under a rig that does not
-    change); the step's located time (mean and standard deviation over the boundaries'
-    weights), the fits before and after it, and the trend's fit."""
+    square roots of the Wald statistics of the step and of the drift rate, regime covariance
+    included (in standard deviations: chi-square with nth degrees of freedom under a rig that
+    does not change); the step's located time (mean and standard deviation over the
+    boundaries' weights), the fits before and after it, and the trend's fit."""
 
     z_step: float
     z_drift: float
@@ -138,7 +151,7 @@ class Analysis:
     after: Fit | None
     trend: Fit | None
     constant: Fit
-    dispersion: dict = field(default_factory=dict)  # per model: its over-dispersion factor
+    dispersion: dict = field(default_factory=dict)  # per model: the residual chi-square it leaves
 
 
 @dataclass(frozen=True)
@@ -170,65 +183,150 @@ class Drift:
     since: float
 
 
-def _dispersion(chi2: float, dof: float) -> float:
-    return max(1.0, chi2 / dof) if dof > 0 else 1.0
+def _clusters(blocks: Blocks, G: np.ndarray, cluster_s: float):
+    """(gradient, information) of clusters of consecutive blocks, each about cluster_s long."""
+    c = np.floor((blocks.t0 - blocks.t0[0]) / cluster_s).astype(int)
+    starts = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
+    return np.add.reduceat(G, starts, axis=0), np.add.reduceat(blocks.A, starts, axis=0)
 
 
-def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, min_before_s: float = 1.0,
-            min_after: int = 1) -> Analysis:
+# the largest squared excursion beyond the noise among a history's stretches, divided by
+# this, is the regime variance: a regime that varied like Gaussian noise would put the
+# largest square of the dozen or so independent stretches a history holds near 4.6
+# variances; the heavy tails that some regimes give count more
+ENVELOPE = 4.0
+
+
+def regime_variance(blocks: Blocks, theta_r: np.ndarray, cluster_s: float = 1.0) -> np.ndarray | None:
+    """The covariance (diagonal) by which stretches of about cluster_s scatter around the
+    blocks' common trend beyond what their noise explains, from the largest excursion of each
+    parameter among the stretches that determine every parameter (ENVELOPE), or None with
+    fewer than 4 such stretches. A model that explains the rig leaves about 0; an effect it
+    lacks moves the locally best parameters with the operating regime (a ramp, a sine, a
+    hold), which no amount of data averages out, and some regimes far more than most."""
+    if not len(blocks):
+        return None
+    G, _ = blocks.at(theta_r)
+    # every stretch of about cluster_s (sliding by a block): a regime is not aligned to a grid
+    n = max(1, int(round(cluster_s / max(float(np.median(blocks.t1 - blocks.t0)), 1e-9))))
+    if len(blocks) < n:
+        return None
+    Gs = np.concatenate([np.zeros((1,) + G.shape[1:]), G.cumsum(axis=0)])
+    As = np.concatenate([np.zeros((1,) + blocks.A.shape[1:]), blocks.A.cumsum(axis=0)])
+    Gc, Ac = Gs[n:] - Gs[:-n], As[n:] - As[:-n]
+    _, step, rank, P = gain(Gc, Ac)
+    full = rank == blocks.nth
+    if full.sum() < 4:
+        return None
+    # around the blocks' trend (a rig that drifts has no more regime than one that does not)
+    mid = 0.5 * (blocks.t0 + blocks.t1)
+    t_w = 0.5 * (mid[n - 1:] + mid[:len(mid) - n + 1])
+    fit, _ = _trend(blocks, G, theta_r, float(mid[-1]))
+    line = fit.value - theta_r + np.outer(t_w - mid[-1], fit.rate)
+    dev = step[full] - line[full]
+    var = np.diagonal(P[full], axis1=1, axis2=2)
+    # beyond what noise alone would put at the top of that many stretches (the largest of m
+    # chi-square(1) lies near 2 ln m); a stretch that determines a parameter to no better
+    # than half its value tells nothing of its regime
+    noise = 2 * math.log(max(int(full.sum()), 2)) + 4
+    told = np.isfinite(dev) & (var <= (0.5 * np.abs(fit.value)) ** 2)
+    beyond = np.where(told, dev ** 2 - noise * var, 0.0)
+    return np.diag(np.maximum(beyond.max(axis=0), 0.0) / ENVELOPE)
+
+
+@dataclass(frozen=True)
+class Regime:
+    """The rig's regime covariance at a few time scales: `cov[i]` is what stretches of about
+    `scales[i]` seconds scatter by beyond their noise (regime_variance). A stretch of length
+    L counts that of the largest scale not above L (the smallest for shorter ones); beyond
+    the largest, it falls as scales[-1] / L."""
+
+    scales: np.ndarray
+    cov: np.ndarray
+
+    def at(self, length) -> np.ndarray:
+        length = np.asarray(length, float)
+        i = np.clip(np.searchsorted(self.scales, length, side="right") - 1, 0, len(self.scales) - 1)
+        f = np.minimum(1.0, self.scales[-1] / np.maximum(length, 1e-9))
+        return f[..., None, None] * self.cov[i]
+
+
+def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | None = None,
+            noise: float = 1.0, min_before_s: float = 1.0, min_after_s: float = 0.0,
+            cluster_s: float = 1.0, recent_s: float = math.inf) -> Analysis:
     """The step and drift tests over `blocks` (in time order), re-centred at theta_r; the
-    trend's value is that at t_ref. A step is tested at the boundaries with at least
-    min_before_s of data before and min_after blocks after."""
+    trend's value is that at t_ref. A step is tested at the boundaries of the last recent_s
+    (a moving-window GLR: an older step would have been found when it was recent) with at
+    least min_before_s of data before and min_after_s (at least a block) after.
+
+    Each estimate's covariance is its noise part (the inverse information, times `noise`,
+    the residual variance in units of the sensor noise when above 1) plus the rig's regime
+    covariance for a stretch of its length (`regime`): what one operating regime moves the
+    locally best parameters by, which more data of the same regime do not reduce. A step is
+    then judged by the Wald statistic of the difference before and after it, a drift by that
+    of its rate (whose regime part is that of a regression slope over the stretch with
+    errors correlated over the largest scale R: 12 R / length^3)."""
     J, nth = len(blocks), blocks.nth
-    G, above = blocks.at(theta_r)
+    if regime is None:
+        regime = Regime(np.array([1.0]), np.zeros((1, nth, nth)))
+    R, reg = float(regime.scales[-1]), regime.cov[-1]
+    G, _ = blocks.at(theta_r)
     A = blocks.A
-    # what every block's own best would gain from theta_r
-    sum_own, sum_rank = float(above.sum()), float(blocks.rank.sum())
+    dur = blocks.t1 - blocks.t0
+    total = float(dur.sum())
+    regime_cov = regime.at
+
     Gc, Ac = G.cumsum(axis=0), A.cumsum(axis=0)
-    g_all, step_all, rank_all, P_all = gain(Gc[-1], Ac[-1])
-    c_const = _dispersion(2 * (sum_own - g_all), sum_rank - rank_all)
-    constant = Fit(theta_r + step_all, c_const * P_all)
+    g_all, step_all, _, P_all = gain(Gc[-1], Ac[-1])
+    constant = Fit(theta_r + step_all, noise * P_all + regime_cov(total))
 
     # a step at boundary b: the blocks before it and those from it on fitted apart
-    z_step, b_best, t_c, t_std, before, after, c_step = 0.0, -1, math.nan, math.nan, None, None, 1.0
-    dur = blocks.t1 - blocks.t0
+    z_step, b_best, t_c, t_std, before, after = 0.0, -1, math.nan, math.nan, None, None
+    chi2_step = math.inf
     span_before = np.r_[0.0, np.cumsum(dur)[:-1]]  # data before each block
-    cand = np.flatnonzero((span_before >= min_before_s) & (np.arange(J) <= J - min_after))
+    span_after = total - span_before
+    cand = np.flatnonzero((span_before >= min_before_s) & (span_after >= min_after_s) & (np.arange(J) >= 1)
+                          & (blocks.t0 >= t_ref - recent_s))
     if len(cand):
         Gb, Ab = Gc[cand - 1], Ac[cand - 1]
         n = len(cand)  # before and after each boundary, in one stack
-        g2, step2, rank2, P2 = gain(np.concatenate([Gb, Gc[-1] - Gb]), np.concatenate([Ab, Ac[-1] - Ab]))
-        gb, step_b, rank_b, Pb = g2[:n], step2[:n], rank2[:n], P2[:n]
-        ga, step_a, rank_a, Pa = g2[n:], step2[n:], rank2[n:], P2[n:]
-        stat = 2 * (gb + ga - g_all)
-        i = int(np.argmax(stat))
-        b_best = int(cand[i])
-        c_step = _dispersion(2 * (sum_own - gb[i] - ga[i]), sum_rank - rank_b[i] - rank_a[i])
-        z_step = math.sqrt(max(float(stat[i]), 0.0) / c_step)
+        g2, step2, _, P2 = gain(np.concatenate([Gb, Gc[-1] - Gb]), np.concatenate([Ab, Ac[-1] - Ab]))
+        cov_b = noise * P2[:n] + regime_cov(span_before[cand])
+        cov_a = noise * P2[n:] + regime_cov(span_after[cand])
+        # where: the likelihood ratio of the noise alone (a regime's part depends on the
+        # stretches' lengths, and would draw the boundary to where they are long)
+        glr = 2 * (g2[:n] + g2[n:] - g_all)
+        i = int(np.argmax(glr))
+        d = step2[n + i] - step2[i]
+        W, _ = pinv(cov_a[i] + cov_b[i])
+        b_best, z_step = int(cand[i]), math.sqrt(max(float(d @ W @ d), 0.0))
         # the change's time: the boundaries weighted by their likelihood ratios
-        w = np.exp(0.5 * (stat - stat[i]) / c_step)
+        w = np.exp(0.5 * (glr - glr[i]) / max(1.0, noise))
         w /= w.sum()
         tb = blocks.t0[cand]
         t_c = float(w @ tb)
         width = float(dur[b_best])  # the change lies somewhere in a block
         t_std = math.sqrt(float(w @ (tb - t_c) ** 2) + width ** 2 / 12)
-        before = Fit(theta_r + step_b[i], c_step * Pb[i])
-        after = Fit(theta_r + step_a[i], c_step * Pa[i])
-        chi2_step = 2 * (sum_own - float(gb[i] + ga[i]))
-    else:
-        chi2_step = math.inf
+        before = Fit(theta_r + step2[i], cov_b[i])
+        after = Fit(theta_r + step2[n + i], cov_a[i])
+    # what clusters of 2 cluster_s would gain on their own: the residual chi-square each
+    # alternative leaves is that less what it gains (the better one explains the blocks)
+    g_own = float(gain(*_clusters(blocks, G, 2 * cluster_s))[0].sum())
+    if len(cand):
+        chi2_step = 2 * (g_own - float(g2[i] + g2[n + i]))
 
     # a drift: theta_now + beta (t - t_ref)
-    trend, g_tr, c_tr = _trend(blocks, G, theta_r, t_ref, sum_own, sum_rank)
-    z_drift = math.sqrt(max(2 * float(g_tr - g_all), 0.0) / c_tr)
-    # the residual chi-square each alternative leaves (the better one explains the blocks)
+    trend, g_tr = _trend(blocks, G, theta_r, t_ref, noise)
+    trend = Fit(trend.value, trend.cov + regime_cov(total), trend.rate,
+                trend.rate_cov + reg * 12 * R / max(total, R) ** 3)
+    W, _ = pinv(trend.rate_cov)
+    z_drift = math.sqrt(max(float(trend.rate @ W @ trend.rate), 0.0))
     return Analysis(z_step, z_drift, b_best, t_c, t_std, before, after, trend, constant,
-                    {"constant": c_const, "step": c_step, "drift": c_tr, "step_chi2": chi2_step,
-                     "drift_chi2": 2 * (sum_own - g_tr)})
+                    {"step_chi2": chi2_step, "drift_chi2": 2 * (g_own - g_tr)})
 
 
-def _trend(blocks: Blocks, G: np.ndarray, theta_r: np.ndarray, t_ref: float, sum_own: float, sum_rank: float):
-    """(the trend's Fit at t_ref, its decrease of the summed quadratic, its over-dispersion)."""
+def _trend(blocks: Blocks, G: np.ndarray, theta_r: np.ndarray, t_ref: float, noise: float = 1.0):
+    """(the trend's Fit at t_ref (noise part of the covariances), its decrease of the summed quadratic)."""
     nth, A = blocks.nth, blocks.A
     tau = 0.5 * (blocks.t0 + blocks.t1) - t_ref
     H = np.zeros((2 * nth, 2 * nth))
@@ -236,14 +334,20 @@ def _trend(blocks: Blocks, G: np.ndarray, theta_r: np.ndarray, t_ref: float, sum
     H[:nth, nth:] = H[nth:, :nth] = np.einsum("j,jab->ab", tau, A)
     H[nth:, nth:] = np.einsum("j,jab->ab", tau * tau, A)
     G2 = np.r_[G.sum(axis=0), tau @ G]
-    g_tr, step_tr, rank_tr, P2 = gain(G2, H)
-    c_tr = _dispersion(2 * (sum_own - g_tr), sum_rank - rank_tr)
-    fit = Fit(theta_r + step_tr[:nth], c_tr * P2[:nth, :nth], step_tr[nth:], c_tr * P2[nth:, nth:])
-    return fit, float(g_tr), c_tr
+    g_tr, step_tr, _, P2 = gain(G2, H)
+    fit = Fit(theta_r + step_tr[:nth], noise * P2[:nth, :nth], step_tr[nth:], noise * P2[nth:, nth:])
+    return fit, float(g_tr)
 
 
-def trend_fit(blocks: Blocks, theta_r: np.ndarray, t_ref: float) -> Fit:
-    """The linear trend over `blocks`: its value at t_ref, its rate, their covariances
-    (over-dispersion included)."""
-    G, above = blocks.at(theta_r)
-    return _trend(blocks, G, theta_r, t_ref, float(above.sum()), float(blocks.rank.sum()))[0]
+def trend_fit(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | None = None,
+              noise: float = 1.0) -> Fit:
+    """The linear trend over `blocks`: its value at t_ref and its rate, with covariances
+    (the regime covariance included, as in `analyse`)."""
+    G, _ = blocks.at(theta_r)
+    fit, _ = _trend(blocks, G, theta_r, t_ref, noise)
+    if regime is None:
+        return fit
+    total = float((blocks.t1 - blocks.t0).sum())
+    R = float(regime.scales[-1])
+    return Fit(fit.value, fit.cov + regime.at(total), fit.rate,
+               fit.rate_cov + regime.cov[-1] * 12 * R / max(total, R) ** 3)

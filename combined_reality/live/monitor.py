@@ -14,6 +14,7 @@ session's first sample.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -34,9 +35,10 @@ class MonitorOptions:
 
 @dataclass
 class _Span:
-    t_start: float
-    t_end: float | None
+    t_start: float  # the first window that the model did not explain began
+    t_end: float | None  # the first window it explained again began (None: it still does not)
     sigma_max: float
+    t_said: float  # when the session said so (the end of the window that made it hold_s)
 
 
 @dataclass
@@ -48,6 +50,10 @@ class SessionMonitor:
     options: MonitorOptions = MonitorOptions()
     explained: bool | None = None  # None before the first estimate
     sigma_recent: float | None = None
+    sigma_session: float | None = None  # RMS of the windows' residual sigma, each over the data it added
+    _ss: float = 0.0
+    _span_s: float = 0.0
+    _t_last: float | None = None
     mismatch: list[_Span] = field(default_factory=list)
     changes: list = field(default_factory=list)  # identify.tracking.Change, as estimated
     drifts: list[dict] = field(default_factory=list)
@@ -73,6 +79,12 @@ class SessionMonitor:
     def _validity(self, e: OnlineEstimate) -> list[str]:
         o, t = self.options, self.t0
         self.sigma_recent = e.sigma
+        new = e.t - (e.window[0] if self._t_last is None else max(self._t_last, e.window[0]))
+        self._t_last = e.t
+        if new > 0 and math.isfinite(e.sigma):
+            self._ss += e.sigma ** 2 * new
+            self._span_s += new
+            self.sigma_session = math.sqrt(self._ss / self._span_s)
         above = not e.sigma <= o.mismatch  # (a NaN sigma explains nothing)
         if self.explained is None:
             self.explained = True  # until the data say otherwise for hold_s
@@ -89,7 +101,7 @@ class SessionMonitor:
         self._pending = None
         if above:
             self.explained = False
-            self.mismatch.append(_Span(self._pending_start - t, None, self._pending_sigma))
+            self.mismatch.append(_Span(self._pending_start - t, None, self._pending_sigma, e.t - t))
             return [f"the model does not explain the rig (residual {e.sigma:.3g} x the sensor noise, above "
                     f"{o.mismatch:g}, since t = {self._pending_start - t:.1f} s): the estimate is not to be trusted; "
                     + WHAT_TO_DO]
@@ -119,8 +131,10 @@ class SessionMonitor:
 
     def to_json(self) -> dict:
         t = self.t0
-        return {"explained": self.explained, "sigma_recent": self.sigma_recent, "mismatch_limit": self.options.mismatch,
-                "mismatch": [{"t_start": s.t_start, "t_end": s.t_end, "sigma_max": s.sigma_max} for s in self.mismatch],
+        return {"explained": self.explained, "sigma_recent": self.sigma_recent, "sigma_session": self.sigma_session,
+                "mismatch_limit": self.options.mismatch,
+                "mismatch": [{"t_start": s.t_start, "t_end": s.t_end, "sigma_max": s.sigma_max, "t_said": s.t_said}
+                             for s in self.mismatch],
                 "changes": [{"t": c.t - t, "t_std": c.t_std, "z": c.z, "t_detected": c.t_detected - t,
                              "params": {n: {"before": c.before[n], "after": c.after[n], "std": c.std[n],
                                             "std_before": c.std_before[n], "std_after": c.std_after[n]}
