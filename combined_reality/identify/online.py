@@ -273,9 +273,7 @@ class MovingHorizonEstimator:
         self._restarting = False
         self._change: Change | None = None  # found by the update that restarts, reported by the refit
         self._t_tested = 0.0  # rig time of the last update tested
-        self._explained = False  # whether the last window's residual was within identify's limit (MISMATCH)
-        self._noise = 1.0  # its residual variance in units of the sensor noise (1 .. MISMATCH^2)
-        self._sigmas: list[float] = []  # the last ten windows' residual sigma
+        self._sigmas: list[tuple[float, float]] = []  # (rig time, residual sigma) of the windows of the history
         self._regime: np.ndarray | None = None  # the rig's regime variance per parameter (see _update_regime)
         self._regime_recent: np.ndarray | None = None  # that of the history alone
         self._regime_slide = 0.0  # s of data since they were last measured
@@ -712,8 +710,9 @@ class MovingHorizonEstimator:
         estimate at the change ("restart"); a drift is followed (its value and std now); else None."""
         opts = self.options
         self._history = self._history.since(t_last - opts.history_s)
+        self._sigmas = [(t, s_) for t, s_ in self._sigmas if t >= t_last - opts.history_s] + [(t_last, sigma)]
         if self._restarting:  # the refit after a step: its blocks are tested from the next update on
-            self._restarting, self._explained = False, sigma <= MISMATCH
+            self._restarting = False
             return None
         w["ranges"] = ranges = self._block_ranges(w["k0"], w["Kw"], w["piece_of"])
         # where neither this update nor the last took a step, the intervals both windows hold
@@ -727,32 +726,33 @@ class MovingHorizonEstimator:
         w["blocks"] = Blocks.of_rows(len(self.free), rows)
         self._block_cache = dict(zip(keys, rows)) if w["Sens"] is not None else None
         data = self._history.extend(w["blocks"])
-        # a model that did not explain the rig before these data says nothing of its changes
-        explained, self._explained = self._explained, sigma <= MISMATCH
-        self._sigmas = (self._sigmas + [sigma])[-10:]
-        noise, self._noise = self._noise, max(1.0, min(sigma, MISMATCH)) ** 2
         slide, self._t_tested = t_last - self._t_tested, t_last
         self._regime_slide += slide
         if self._regime_slide >= 1.0 or self._regime_recent is None:  # a slow quantity: once a second of data
-            self._update_regime(data, t_last, self._regime_slide)
+            self._update_regime(t_last, self._regime_slide)
             self._regime_slide = 0.0
         if len(data) < 2:
             return None
+        # the residual of the rig as it was: the windows before the data tested for a step
+        steady = self._sigma_before(t_last - opts.recent_s)
+        noise = max(1.0, min(steady if steady is not None else 1.0, MISMATCH)) ** 2
         an = self.analysis = analyse(data, self.theta, t_last, self._regime_now(), noise, cluster_s=opts.cluster_s,
                                      min_after_s=opts.min_after_s, recent_s=opts.recent_s)
         chi2 = an.dispersion
-        # a model that leaves sigma times the noise leaves it systematically, with a regime
-        # dependence that the history need not have shown in full: a step must be sigma times
-        # as large (a drift not: the residual of a rig that drifts away grows by itself)
-        if explained and an.z_step >= opts.change_z * math.sqrt(noise) and (an.z_drift < opts.drift_z
-                                                                             or chi2["step_chi2"] <= chi2["drift_chi2"]):
+        # a model that did not explain the rig before a step says nothing of it; one that left
+        # sigma times the noise left it systematically, with a regime dependence that the
+        # history need not have shown in full: a step must be sigma times as large
+        before = self._sigma_before(an.t_change) if an.z_step else None
+        if (before is not None and before <= MISMATCH and an.z_step >= opts.change_z * max(1.0, before)
+                and (an.z_drift < opts.drift_z or chi2["step_chi2"] <= chi2["drift_chi2"])):
             self._restart(an, data, w["k0"], t_last)
             return "restart"
         if self._drift is None:
             # (a rig that drifts away from its estimate leaves a growing residual: judged by the
-            # session's typical window rather than the last one)
-            typical = float(np.median(self._sigmas)) <= MISMATCH
-            if typical and math.isinf(opts.memory_s) and an.z_drift >= opts.drift_z:
+            # session's typical recent window rather than the last one)
+            typical = float(np.median([s_ for _, s_ in self._sigmas[-10:]])) <= MISMATCH
+            # (nor while a step may be on its way: a fresh step looks like a steep trend)
+            if typical and math.isinf(opts.memory_s) and an.z_drift >= opts.drift_z and an.pending < opts.change_z:
                 self._drift = self._drift_of(an, float(data.t0[0]))
                 self._drift_quiet = 0.0
         else:
@@ -767,7 +767,13 @@ class MovingHorizonEstimator:
         tr = an.trend
         return np.clip(tr.value, self.lower, self.upper), np.sqrt(np.maximum(np.diag(tr.cov), 0.0))
 
-    def _update_regime(self, data: Blocks, t_last: float, slide: float) -> None:
+    def _sigma_before(self, t: float) -> float | None:
+        """The typical residual sigma of the windows that ended by t (the median of the last ten
+        of them), or None when none did."""
+        past = [s_ for t_, s_ in self._sigmas if t_ <= t]
+        return float(np.median(past[-10:])) if past else None
+
+    def _update_regime(self, t_last: float, slide: float) -> None:
         """The rig's regime variance (identify/tracking.regime_variance) from the history but its
         last regime_s (where a change may be under way), averaged over the session with a
         time constant of regime_memory_s of data; a step does not reset it (the model lacks
@@ -775,9 +781,7 @@ class MovingHorizonEstimator:
         opts = self.options
         old = self._history.select(self._history.t1 < t_last - opts.regime_s)
         est = [regime_variance(old, self.theta, sc) for sc in self._scales]
-        if est[-1] is None:  # early in a session: what there is, the window too
-            est = [regime_variance(data, self.theta, sc) for sc in self._scales]
-        for i in range(1, len(est)):  # a scale the data are too short for: that of the one below
+        for i in range(1, len(est)):  # a scale the history is too short for: that of the one below
             if est[i] is None:
                 est[i] = est[i - 1]
         if est[0] is None:
@@ -823,7 +827,9 @@ class MovingHorizonEstimator:
         centre (what the data before the window say of it)."""
         if len(self._history) < 2:
             return
-        fit = trend_fit(self._history, self.theta, t_c, self._regime_now(), self._noise)
+        steady = self._sigma_before(t_c)
+        noise = max(1.0, min(steady if steady is not None else 1.0, MISMATCH)) ** 2
+        fit = trend_fit(self._history, self.theta, t_c, self._regime_now(), noise)
         self.info = pinv(fit.cov)[0] + self._weak
         self.prior_mean = np.clip(fit.value, self.lower, self.upper)
 

@@ -152,6 +152,7 @@ class Analysis:
     trend: Fit | None
     constant: Fit
     dispersion: dict = field(default_factory=dict)  # per model: the residual chi-square it leaves
+    pending: float = 0.0  # z of a step found where too little has come after it yet (0: none)
 
 
 @dataclass(frozen=True)
@@ -255,9 +256,10 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
             noise: float = 1.0, min_before_s: float = 1.0, min_after_s: float = 0.0,
             cluster_s: float = 1.0, recent_s: float = math.inf) -> Analysis:
     """The step and drift tests over `blocks` (in time order), re-centred at theta_r; the
-    trend's value is that at t_ref. A step is tested at the boundaries of the last recent_s
-    (a moving-window GLR: an older step would have been found when it was recent) with at
-    least min_before_s of data before and min_after_s (at least a block) after.
+    trend's value is that at t_ref. A step is looked for at the boundaries of the last
+    recent_s (a moving-window GLR: an older step would have been found when it was recent)
+    with at least min_before_s of data before it, and judged once min_after_s of data have
+    come after the boundary where it most likely lies (z_step is 0 until then).
 
     Each estimate's covariance is its noise part (the inverse information, times `noise`,
     the residual variance in units of the sensor noise when above 1) plus the rig's regime
@@ -281,12 +283,11 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
     constant = Fit(theta_r + step_all, noise * P_all + regime_cov(total))
 
     # a step at boundary b: the blocks before it and those from it on fitted apart
-    z_step, b_best, t_c, t_std, before, after = 0.0, -1, math.nan, math.nan, None, None
+    z_step, b_best, t_c, t_std, before, after, pending = 0.0, -1, math.nan, math.nan, None, None, 0.0
     chi2_step = math.inf
     span_before = np.r_[0.0, np.cumsum(dur)[:-1]]  # data before each block
     span_after = total - span_before
-    cand = np.flatnonzero((span_before >= min_before_s) & (span_after >= min_after_s) & (np.arange(J) >= 1)
-                          & (blocks.t0 >= t_ref - recent_s))
+    cand = np.flatnonzero((span_before >= min_before_s) & (np.arange(J) >= 1) & (blocks.t0 >= t_ref - recent_s))
     if len(cand):
         Gb, Ab = Gc[cand - 1], Ac[cand - 1]
         n = len(cand)  # before and after each boundary, in one stack
@@ -300,6 +301,8 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
         d = step2[n + i] - step2[i]
         W, _ = pinv(cov_a[i] + cov_b[i])
         b_best, z_step = int(cand[i]), math.sqrt(max(float(d @ W @ d), 0.0))
+        if span_after[b_best] < min_after_s:  # found where too little has come after it yet: wait
+            pending, z_step = z_step, 0.0
         # the change's time: the boundaries weighted by their likelihood ratios
         w = np.exp(0.5 * (glr - glr[i]) / max(1.0, noise))
         w /= w.sum()
@@ -322,7 +325,7 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
     W, _ = pinv(trend.rate_cov)
     z_drift = math.sqrt(max(float(trend.rate @ W @ trend.rate), 0.0))
     return Analysis(z_step, z_drift, b_best, t_c, t_std, before, after, trend, constant,
-                    {"step_chi2": chi2_step, "drift_chi2": 2 * (g_own - g_tr)})
+                    {"step_chi2": chi2_step, "drift_chi2": 2 * (g_own - g_tr)}, pending)
 
 
 def _trend(blocks: Blocks, G: np.ndarray, theta_r: np.ndarray, t_ref: float, noise: float = 1.0):
