@@ -753,7 +753,7 @@ class MovingHorizonEstimator:
             typical = float(np.median([s_ for _, s_ in self._sigmas[-10:]])) <= MISMATCH
             # (nor while a step may be on its way: a fresh step looks like a steep trend)
             if typical and math.isinf(opts.memory_s) and an.z_drift >= opts.drift_z and an.pending < opts.change_z:
-                self._drift = self._drift_of(an, float(data.t0[0]))
+                self._drift = self._drift_of(an, t_last)
                 self._drift_quiet = 0.0
         else:
             self._drift_quiet = 0.0 if an.z_drift >= 2.0 else self._drift_quiet + min(slide, opts.update_s)
@@ -1124,7 +1124,6 @@ class _ReducedWindow:
         par = Jth - Gf @ (Nk @ proj)
         rr = r[ks].reshape(k, -1)
         return (par.transpose(0, 2, 1) @ rr[:, :, None])[..., 0], par.transpose(0, 2, 1) @ par, rr
-
 
     def block_stats(self, ranges, r, after_gap):
         """Per block (a, b) of a piece's intervals a .. b - 1: the gradient of 0.5 |r|^2 by the

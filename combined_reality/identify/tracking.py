@@ -285,8 +285,10 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
     # a step at boundary b: the blocks before it and those from it on fitted apart
     z_step, b_best, t_c, t_std, before, after, pending = 0.0, -1, math.nan, math.nan, None, None, 0.0
     chi2_step = math.inf
-    span_before = np.r_[0.0, np.cumsum(dur)[:-1]]  # data before each block
-    span_after = total - span_before
+    # data before and after each block's start (a block's last sample holds for a period too)
+    period = float(np.median(blocks.t0[1:] - blocks.t1[:-1])) if J > 1 else 0.0
+    span_before = np.r_[0.0, np.cumsum(dur + period)[:-1]]
+    span_after = total + J * period - span_before
     cand = np.flatnonzero((span_before >= min_before_s) & (np.arange(J) >= 1) & (blocks.t0 >= t_ref - recent_s))
     if len(cand):
         Gb, Ab = Gc[cand - 1], Ac[cand - 1]

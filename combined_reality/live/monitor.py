@@ -122,7 +122,7 @@ class SessionMonitor:
             self.drifts.append({"t_start": d.since - self.t0, "t_end": None, "z": d.z,
                                 "rate": dict(d.rate), "rate_std": dict(d.rate_std)})
             rates = ", ".join(_per_minute(n, v, e.values[n], e.units.get(n, "")) for n, v in d.rate.items())
-            return [f"the friction drifts (since t = {d.since - self.t0:.1f} s, z = {d.z:.3g}): {rates}; the "
+            return [f"the friction drifts (found at t = {d.since - self.t0:.1f} s, z = {d.z:.3g}): {rates}; the "
                     "estimate follows it"]
         if d is not None:
             self.drifts[-1].update(z=max(self.drifts[-1]["z"], d.z), rate=dict(d.rate), rate_std=dict(d.rate_std))
