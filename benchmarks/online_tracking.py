@@ -51,7 +51,8 @@ if __name__ == "__main__":  # run as a script: make the project's packages impor
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from combined_reality.files import read_run, write_run  # noqa: E402
-from combined_reality.identify import IdentificationError, IdentifyOptions, OnlineOptions, identify  # noqa: E402
+from combined_reality.identify import (IdentificationError, IdentifyOptions, MovingHorizonEstimator,  # noqa: E402
+                                       OnlineOptions, identify)
 from combined_reality.live import InlineEstimator, simulate_run  # noqa: E402
 from sim.cylinder import cylinder_to_toml, load_cylinder  # noqa: E402
 from sim.effects import EFFECTS, make_friction_change  # noqa: E402
@@ -151,16 +152,17 @@ def judge_ramp(doc, cyl) -> dict:
 
 
 def today(cyl, run) -> dict:
-    """The final estimate of the estimator without tracking, fed as replay --speed max feeds it."""
-    est = InlineEstimator(cyl, run.sample_period, OnlineOptions(track=False), catch_up=True)
-    rows = np.vstack([run.t, run.u, run.x, run.p1, run.p2, np.zeros(run.n)])
+    """The final estimate of the estimator as it was before it tracked a rig (no tests, and
+    replay --speed max's windows a whole window apart)."""
+    mhe = MovingHorizonEstimator(cyl, run.sample_period, OnlineOptions(track=False))
     last = None
     for k in range(0, run.n, 20):
-        est.add(rows[:, k:k + 20])
-        for e in est.poll():
-            last = e
-    for e in est.finish():
-        last = e
+        mhe.add(run.t[k:k + 20], run.u[k:k + 20], run.x[k:k + 20], run.p1[k:k + 20], run.p2[k:k + 20])
+        while mhe.ready() and (mhe.backlog >= mhe.N or not mhe.started):
+            last = mhe.update()
+    mhe.flush()
+    while mhe.ready():
+        last = mhe.update()
     return {"values": last.values, "std": last.std}
 
 
