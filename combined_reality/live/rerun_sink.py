@@ -36,8 +36,8 @@ from sim.plant import build_plant, plant_for
 
 from ..files import Run
 from ..identify import MISMATCH, OnlineEstimate, friction_from_newton
-from .monitor import change_message
 from ..report.rerun import close_recording, display_available, open_recording
+from .monitor import change_message
 
 
 class RerunSink:
