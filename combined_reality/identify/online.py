@@ -91,6 +91,10 @@ class OnlineOptions:
     # new intervals, the gain is small (update p95 17.8 -> 14.4 ms in one benchmark run on a
     # 2-core machine, 17.9 -> 20.0 ms in another)
     threads: int = 1
+    # a window may grow to hold_s (when longer than window_s) before its oldest data leave it,
+    # a window's worth at once: what leaves enters the arrival cost with its own start state
+    # profiled out, so chunks of a whole window keep more of their information than halves
+    hold_s: float = 0.0
     bridge_s: float = 0.01  # lost samples up to this long are bridged (their command estimated)
     max_bridged: int = 100  # bridged gaps per window at most (each adds an unknown); more start new pieces
     cluster_s: float = 1.0  # residuals may be correlated within about this long (the robust std)
@@ -102,7 +106,7 @@ class OnlineOptions:
     block_s: float = 0.2
     history_s: float = 20.0
     change_z: float = 6.0
-    drift_z: float = 5.0
+    drift_z: float = 5.5
     # an effect the model lacks moves the locally best friction with the operating regime: by
     # how much is measured on stretches of regime_s / 8 to regime_s (averaged over the session
     # with a time constant of regime_memory_s), and at least regime_floor of the friction force
@@ -111,9 +115,13 @@ class OnlineOptions:
     recent_s: float = 6.0  # a step is looked for in the last recent_s (older ones were looked for when recent)
     # ... with at least min_after_s of data after it: the newest data of a window are the
     # least settled (their last node state has nothing after it)
-    min_after_s: float = 1.0
+    min_after_s: float = 1.5
     regime_memory_s: float = 60.0
     regime_floor: float = 0.005
+    # until settle_s of the history lies beyond regime_s (the regimes seen for a while), a
+    # step is judged against young_floor times the floor
+    settle_s: float = 12.0
+    young_floor: float = 4.0
 
 
 @dataclass
@@ -409,9 +417,12 @@ class MovingHorizonEstimator:
             return k0, k1 - k0, 0
         old0, old_end = self._prev["k0"], self._prev["k0"] + self._prev["Kw"]
         k0 = old0
-        while self._rows(k0, k1) > self.N and k0 < old_end:
-            k0 += 1
-        while self._rows(k0, k1) > self.N:
+        # (a window may grow to hold_s before its oldest data leave it, a window's worth at once)
+        hold = max(self.N, int(round(self.options.hold_s / self.dt)))
+        if self._rows(k0, k1) > hold:
+            while self._rows(k0, k1) > self.N and k0 < old_end:
+                k0 += 1
+        while self._rows(k0, k1) > max(hold if k0 == old0 else self.N, self.N):
             k1 -= 1  # fallen behind by more than a window: catch up over the next updates
         return k0, k1 - k0, k0 - old0
 
@@ -736,8 +747,15 @@ class MovingHorizonEstimator:
         # the residual of the rig as it was: the windows before the data tested for a step
         steady = self._sigma_before(t_last - opts.recent_s)
         noise = max(1.0, min(steady if steady is not None else 1.0, MISMATCH)) ** 2
-        an = self.analysis = analyse(data, self.theta, t_last, self._regime_now(), noise, cluster_s=opts.cluster_s,
-                                     min_after_s=opts.min_after_s, recent_s=opts.recent_s)
+        # until the history has shown the rig's regimes for a while, a step must be larger
+        settled = float(np.sum((self._history.t1 - self._history.t0)[self._history.t1 < t_last - opts.regime_s]))
+        young = 1.0 if settled >= opts.settle_s else opts.young_floor
+        an = self.analysis = analyse(data, self.theta, t_last, self._regime_now(young), noise,
+                                     cluster_s=opts.cluster_s, min_after_s=opts.min_after_s, recent_s=opts.recent_s)
+        if young > 1.0:  # (the drift's test keeps the usual floor)
+            drift = analyse(data, self.theta, t_last, self._regime_now(), noise, cluster_s=opts.cluster_s,
+                            min_after_s=math.inf)
+            an = self.analysis = replace(an, z_drift=drift.z_drift, trend=drift.trend)
         chi2 = an.dispersion
         # a model that did not explain the rig before a step says nothing of it; one that left
         # sigma times the noise left it systematically, with a regime dependence that the
@@ -795,18 +813,19 @@ class MovingHorizonEstimator:
             a = min(1.0, max(slide, 0.0) / opts.regime_memory_s)
             self._regime = (1 - a) * self._regime + a * est
 
-    def _regime_now(self) -> Regime:
+    def _regime_now(self, floor_factor: float = 1.0) -> Regime:
         """The regime covariance to count at each scale: the session's, or the recent
         history's where larger (the session's average is slow to learn), and at least the
         floor on the diagonal: regime_floor of each value, and for kp of the friction force
         Fc + Fv 0.1 m/s + kp 2 bar over 2 bar (the seal's pressure term is the least determined
         and moves with the regime more than the others)."""
-        floor = self.options.regime_floor * np.abs(self.theta)
+        f = self.options.regime_floor * floor_factor
+        floor = f * np.abs(self.theta)
         names = list(self.names)
         if "kp" in names:
             terms = {"Fc": 1.0, "Fv": 0.1, "kp": 2e5}  # each term's regressor at a typical state
             level = sum(abs(self.theta[names.index(n)]) * x for n, x in terms.items() if n in names)
-            floor[names.index("kp")] = max(floor[names.index("kp")], self.options.regime_floor * level / 2e5)
+            floor[names.index("kp")] = max(floor[names.index("kp")], f * level / 2e5)
         out = []
         for i in range(len(self._scales)):
             c = np.diag(floor ** 2)

@@ -18,7 +18,7 @@ import queue
 import signal
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Protocol, Sequence
 
 import numpy as np
@@ -117,13 +117,16 @@ class PacedRig:
 class InlineEstimator:
     """The moving-horizon estimator in the calling thread (replay as fast as possible).
 
-    With `catch_up`, it waits until half a window of new data is there and slides by that
-    much: the same data enter the estimate with a fifth of the updates, each a single
-    Gauss-Newton iteration on a window half of which it knows (whole windows cost the same
-    and let a change of the rig wait up to a window longer to be tested)."""
+    With `catch_up`, it updates once half a window of new data is there: the same data enter
+    the estimate with a fifth of the updates, each a single Gauss-Newton iteration on a
+    window it mostly knows, and a change of the rig is tested every half window. The window
+    grows to one and a half before the oldest whole window leaves it (OnlineOptions.hold_s):
+    the arrival cost takes in whole windows, as when whole windows were slid."""
 
     def __init__(self, cyl: Cylinder, sample_period: float, options: OnlineOptions, effects: Sequence[Effect] = (),
                  catch_up: bool = True):
+        if catch_up:
+            options = replace(options, hold_s=max(options.hold_s, 1.5 * options.window_s))
         self.mhe = MovingHorizonEstimator(cyl, sample_period, options, effects)
         self.catch_up = catch_up
 
