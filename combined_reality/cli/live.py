@@ -213,7 +213,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
     from ..files import clean_json, cylinder_tag, write_json_atomic
     from ..live import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, LockstepSimulator,
                         WHAT_TO_DO, PipelinedEstimator, ProcessEstimator, SessionMonitor, change_message,
-                        run_session, session_verdict)
+                        drift_message, run_session, session_verdict)
 
     options = _online_options(args, cyl)
     rr_sink = None
@@ -305,6 +305,8 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
               f"not to be trusted; {WHAT_TO_DO}.")
     for c in result.monitor.changes:
         print(f"  {change_message(c, final.units if final else {}, result.t0)}")
+    for d in result.monitor.drifts:
+        print(f"  {drift_message(d)}")
     if args.json:
         write_json_atomic(args.json, clean_json(_session_json(result, options, wall, link_events or [], no_estimate)))
         console.say(f"wrote {args.json}")

@@ -21,7 +21,7 @@ from typing import Sequence
 from ..files import Run, RunFormatError
 from ..identify import MISMATCH, OnlineEstimate, check_determinable
 
-__all__ = ["MonitorOptions", "SessionMonitor", "session_verdict", "WHAT_TO_DO"]
+__all__ = ["MonitorOptions", "SessionMonitor", "session_verdict", "change_message", "drift_message", "WHAT_TO_DO"]
 
 # samples of a recording that the end of a session looks at, at most (its motion, for the
 # determinability rules: 0.1 s on a 2-core machine; an hour at 1 kHz whole took 20 s)
@@ -121,11 +121,12 @@ class SessionMonitor:
             self._drift_on = True
             self.drifts.append({"t_start": d.since - self.t0, "t_end": None, "z": d.z,
                                 "rate": dict(d.rate), "rate_std": dict(d.rate_std)})
-            rates = ", ".join(_per_minute(n, v, e.values[n], e.units.get(n, "")) for n, v in d.rate.items())
-            return [f"the friction drifts (found at t = {d.since - self.t0:.1f} s, z = {d.z:.3g}): {rates}; the "
-                    "estimate follows it"]
+            self.drifts[-1]["units"], self.drifts[-1]["values"] = dict(e.units), dict(e.values)
+            return [f"the friction drifts (found at t = {d.since - self.t0:.1f} s, z = {d.z:.3g}): "
+                    f"{drift_rates(self.drifts[-1])}; the estimate follows it"]
         if d is not None:
-            self.drifts[-1].update(z=max(self.drifts[-1]["z"], d.z), rate=dict(d.rate), rate_std=dict(d.rate_std))
+            self.drifts[-1].update(z=max(self.drifts[-1]["z"], d.z), rate=dict(d.rate), rate_std=dict(d.rate_std),
+                                   values=dict(e.values))
         if d is None and self._drift_on:
             self._drift_on = False
             if self.drifts:
@@ -143,12 +144,23 @@ class SessionMonitor:
                              "params": {n: {"before": c.before[n], "after": c.after[n], "std": c.std[n],
                                             "std_before": c.std_before[n], "std_after": c.std_after[n]}
                                         for n in c.before}} for c in self.changes],
-                "drifts": self.drifts}
+                "drifts": [{k: v for k, v in d.items() if k not in ("units", "values")} for d in self.drifts]}
 
 
-def _per_minute(name: str, rate: float, value: float, unit: str) -> str:
-    rel = f" ({100 * 60 * rate / value:+.3g} %/min)" if value else ""
-    return f"{name} {60 * rate:+.3g} {unit}/min{rel}"
+def drift_rates(d: dict) -> str:
+    """'Fc +8.66 N/min (+37.4 %/min), ...': a drift's rates per minute, also relative to the values."""
+    out = []
+    for n, rate in d["rate"].items():
+        value = d.get("values", {}).get(n)
+        rel = f" ({100 * 60 * rate / value:+.3g} %/min)" if value else ""
+        out.append(f"{n} {60 * rate:+.3g} {d.get('units', {}).get(n, '')}/min{rel}")
+    return ", ".join(out)
+
+
+def drift_message(d: dict) -> str:
+    """A drift the session followed, in words (session times)."""
+    until = "on" if d["t_end"] is None else f"to {d['t_end']:.1f} s"
+    return f"the friction drifted from t = {d['t_start']:.1f} s {until}: {drift_rates(d)}"
 
 
 def change_message(c, units: dict[str, str], t0: float = 0.0) -> str:
