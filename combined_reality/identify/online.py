@@ -725,6 +725,10 @@ class MovingHorizonEstimator:
         if self._restarting:  # the refit after a step: its blocks are tested from the next update on
             self._restarting = False
             return None
+        if w["Sens"] is None:  # a step was taken: no block of the last window holds as it was
+            self._block_cache = None
+        if self._drift is None and t_last - self._t_tested < opts.block_s - 0.5 * self.dt:
+            return None  # less than a block since the last tests: nothing new to test
         w["ranges"] = ranges = self._block_ranges(w["k0"], w["Kw"], w["piece_of"])
         # where neither this update nor the last took a step, the intervals both windows hold
         # are linearised alike, and so are the blocks they make (a block's own start state is
@@ -749,13 +753,10 @@ class MovingHorizonEstimator:
         noise = max(1.0, min(steady if steady is not None else 1.0, MISMATCH)) ** 2
         # until the history has shown the rig's regimes for a while, a step must be larger
         settled = float(np.sum((self._history.t1 - self._history.t0)[self._history.t1 < t_last - opts.regime_s]))
-        young = 1.0 if settled >= opts.settle_s else opts.young_floor
-        an = self.analysis = analyse(data, self.theta, t_last, self._regime_now(young), noise,
-                                     cluster_s=opts.cluster_s, min_after_s=opts.min_after_s, recent_s=opts.recent_s)
-        if young > 1.0:  # (the drift's test keeps the usual floor)
-            drift = analyse(data, self.theta, t_last, self._regime_now(), noise, cluster_s=opts.cluster_s,
-                            min_after_s=math.inf)
-            an = self.analysis = replace(an, z_drift=drift.z_drift, trend=drift.trend)
+        regime = self._regime_now()
+        young = regime if settled >= opts.settle_s else self._regime_now(opts.young_floor)
+        an = self.analysis = analyse(data, self.theta, t_last, young, noise, cluster_s=opts.cluster_s,
+                                     min_after_s=opts.min_after_s, recent_s=opts.recent_s, drift_regime=regime)
         chi2 = an.dispersion
         # a model that did not explain the rig before a step says nothing of it; one that left
         # sigma times the noise left it systematically, with a regime dependence that the
@@ -826,14 +827,11 @@ class MovingHorizonEstimator:
             terms = {"Fc": 1.0, "Fv": 0.1, "kp": 2e5}  # each term's regressor at a typical state
             level = sum(abs(self.theta[names.index(n)]) * x for n, x in terms.items() if n in names)
             floor[names.index("kp")] = max(floor[names.index("kp")], f * level / 2e5)
-        out = []
-        for i in range(len(self._scales)):
-            c = np.diag(floor ** 2)
-            for v in (self._regime, self._regime_recent):
-                if v is not None:
-                    c = _psd_max(c, v[i])
-            out.append(c)
-        return Regime(self._scales, np.array(out))
+        var = np.tile(floor ** 2, (len(self._scales), 1))
+        for v in (self._regime, self._regime_recent):  # (diagonal: regime_variance's)
+            if v is not None:
+                var = np.maximum(var, np.diagonal(v, axis1=1, axis2=2))
+        return Regime(self._scales, var[:, :, None] * np.eye(len(floor)))
 
     def _drift_of(self, an, since: float) -> Drift:
         tr = an.trend
@@ -1181,15 +1179,6 @@ class _ReducedWindow:
             A[i] = np.einsum("kma,kmb->ab", Jth, Jth) - NtF.T @ proj
             S[i] = np.einsum("kma,km->a", Jth, rr) - proj.T @ Ntr
         return S, A
-
-
-def _psd_max(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """A covariance at least as large as A and as B in every direction (A plus the part of
-    B - A beyond it), on the unit-diagonal scale of A."""
-    d = np.sqrt(np.maximum(np.diag(A), 1e-300))
-    D = (B - A) / np.outer(d, d)
-    w, V = np.linalg.eigh(0.5 * (D + D.T))
-    return A + (V * np.maximum(w, 0.0)) @ V.T * np.outer(d, d)
 
 
 def _pinv_scaled(N: np.ndarray) -> np.ndarray:

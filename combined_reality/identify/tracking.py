@@ -254,7 +254,7 @@ class Regime:
 
 def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | None = None,
             noise: float = 1.0, min_before_s: float = 1.0, min_after_s: float = 0.0,
-            cluster_s: float = 1.0, recent_s: float = math.inf) -> Analysis:
+            cluster_s: float = 1.0, recent_s: float = math.inf, drift_regime: Regime | None = None) -> Analysis:
     """The step and drift tests over `blocks` (in time order), re-centred at theta_r; the
     trend's value is that at t_ref. A step is looked for at the boundaries of the last
     recent_s (a moving-window GLR: an older step would have been found when it was recent)
@@ -263,7 +263,8 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
 
     Each estimate's covariance is its noise part (the inverse information, times `noise`,
     the residual variance in units of the sensor noise when above 1) plus the rig's regime
-    covariance for a stretch of its length (`regime`): what one operating regime moves the
+    covariance for a stretch of its length (`regime`; `drift_regime` for the drift's test,
+    when another): what one operating regime moves the
     locally best parameters by, which more data of the same regime do not reduce. A step is
     then judged by the Wald statistic of the difference before and after it, a drift by that
     of its rate (whose regime part is that of a regression slope over the stretch with
@@ -271,7 +272,8 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
     J, nth = len(blocks), blocks.nth
     if regime is None:
         regime = Regime(np.array([1.0]), np.zeros((1, nth, nth)))
-    R, reg = float(regime.scales[-1]), regime.cov[-1]
+    drift_regime = regime if drift_regime is None else drift_regime
+    R, reg = float(drift_regime.scales[-1]), drift_regime.cov[-1]
     G, _ = blocks.at(theta_r)
     A = blocks.A
     dur = blocks.t1 - blocks.t0
@@ -322,7 +324,7 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
 
     # a drift: theta_now + beta (t - t_ref)
     trend, g_tr = _trend(blocks, G, theta_r, t_ref, noise)
-    trend = Fit(trend.value, trend.cov + regime_cov(total), trend.rate,
+    trend = Fit(trend.value, trend.cov + drift_regime.at(total), trend.rate,
                 trend.rate_cov + reg * 12 * R / max(total, R) ** 3)
     W, _ = pinv(trend.rate_cov)
     z_drift = math.sqrt(max(float(trend.rate @ W @ trend.rate), 0.0))
