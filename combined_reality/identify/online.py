@@ -142,6 +142,7 @@ class OnlineEstimate:
     params: np.ndarray = field(repr=False, default=None)  # the full plant parameter vector
     change: Change | None = None  # a change of the rig detected by this update (the estimate is after it)
     drift: Drift | None = None  # the rig's friction drifts: its rate (the estimate follows it)
+    step_pending: bool = False  # a step found where too little has come after it yet (judged later)
 
 
 _NEW_PIECE, _JOINED, _BRIDGED = 0, 1, 2  # how an interval joins the one before it
@@ -692,7 +693,9 @@ class MovingHorizonEstimator:
             t=t_last, values=dict(zip(self.names, value.tolist())), std=dict(zip(self.names, std.tolist())),
             units=self.units, window=(t_first, t_last), samples_seen=int(seen), sigma=sigma, rmse=rmse,
             iterations=it, wall_s=time.perf_counter() - t_wall, pieces=R, gaps=G, state=state.copy(),
-            params=self.p.copy(), change=change, drift=self._drift)
+            params=self.p.copy(), change=change, drift=self._drift,
+            step_pending=bool(self.analysis is not None and self.analysis.pending >= self.options.change_z
+                              and self._t_tested == t_last))
 
     # ------------------------------------------------------------ a rig that changes
     def _block_ranges(self, k0: int, end: int, piece_of: np.ndarray) -> list[tuple[int, int]]:

@@ -92,7 +92,8 @@ class SessionMonitor:
         above = not e.sigma <= o.mismatch  # (a NaN sigma explains nothing)
         if self.explained is None:
             self.explained = True  # until the data say otherwise for hold_s
-        if self.explained and not above or not self.explained and above:
+        # (a step of the rig the estimator is about to judge explains a residual well enough)
+        if self.explained and (not above or e.step_pending) or not self.explained and above:
             self._pending = None
             if not self.explained:
                 self.mismatch[-1].sigma_max = max(self.mismatch[-1].sigma_max, e.sigma)
