@@ -58,7 +58,8 @@ if __name__ == "__main__":  # run as a script: make the project's packages impor
 from combined_reality.files import Run, cylinder_tag, read_run, write_run  # noqa: E402
 from sim.cylinder import Cylinder, cylinder_to_toml, load_cylinder, parse_cylinder  # noqa: E402
 
-__all__ = ["Case", "Calibration", "SensorDepartures", "Effect", "Param", "EFFECT_FORMS", "WORDS", "make_effect",
+__all__ = ["Case", "Calibration", "SensorDepartures", "Effect", "Param", "EFFECT_FORMS", "TIME_FORMS", "WORDS",
+           "FrictionSchedule", "make_effect",
            "forms_of", "parse_effect", "random_effect", "ValveShape", "Linear", "PowerLaw", "Smoothstep", "Logistic",
            "Progressive", "SHAPES", "make_shape", "random_shape", "Result", "simulate", "simulate_detailed",
            "substeps_for", "main"]
@@ -1362,6 +1363,59 @@ class SupplyLine(Effect):
         return c.RT / P["V_l"] * P["_k"] / np.sqrt(P["_dp0"])
 
 
+# ---- a rig that changes during the run (a truth for the online estimator's benchmarks, not a
+# word of the diagnosis vocabulary: kept out of EFFECT_FORMS and WORDS)
+
+
+@dataclass(frozen=True)
+class FrictionSchedule(Effect):
+    """Coulomb and viscous friction that change with time t (the run's time column): a jump by
+    the fractions step_Fc, step_Fv at t_step, and from t_ramp on a linear rise by ramp_Fc,
+    ramp_Fv per second (fractions of the cylinder's Fc, Fv):
+
+        Fc(t) = Fc (1 + step_Fc H(t - t_step) + ramp_Fc (t - t_ramp)+)
+        Fv(t) = Fv (1 + step_Fv H(t - t_step) + ramp_Fv (t - t_ramp)+)
+    """
+
+    WORD: ClassVar[str] = "friction_change"
+    FORM: ClassVar[str] = "schedule"
+    PARAMS: ClassVar[dict[str, Param]] = {
+        "t_step": Param("s", "time of the jump", 0.0, 60.0, "shape", positive=False),
+        "step_Fc": Param("1", "jump of Fc, fraction of Fc", 0.05, 0.5, "signed"),
+        "step_Fv": Param("1", "jump of Fv, fraction of Fv", 0.05, 0.5, "signed"),
+        "t_ramp": Param("s", "time the rise begins", 0.0, 60.0, "shape", positive=False),
+        "ramp_Fc": Param("1/s", "rise of Fc per second, fraction of Fc", 1e-3, 1e-2, "signed"),
+        "ramp_Fv": Param("1/s", "rise of Fv per second, fraction of Fv", 1e-3, 1e-2, "signed"),
+    }
+    NEUTRAL: ClassVar[dict[str, float]] = {"step_Fc": 0.0, "step_Fv": 0.0, "ramp_Fc": 0.0, "ramp_Fv": 0.0}
+    HOOKS: ClassVar[tuple[str, ...]] = ("friction",)
+    t_step: float = 0.0
+    step_Fc: float = 0.0
+    step_Fv: float = 0.0
+    t_ramp: float = 0.0
+    ramp_Fc: float = 0.0
+    ramp_Fv: float = 0.0
+
+    @staticmethod
+    def _fractions(P, t):
+        jump = (t >= P["t_step"]).astype(float)
+        rise = np.maximum(t - P["t_ramp"], 0.0)
+        return P["step_Fc"] * jump + P["ramp_Fc"] * rise, P["step_Fv"] * jump + P["ramp_Fv"] * rise
+
+    @classmethod
+    def friction(cls, P, Y, dY, s):
+        k, i, j = s.pos
+        c = s.c
+        t = (k + (i + STAGES[j]) / c.N) * c.dt
+        dc, dv = cls._fractions(P, t)
+        s.Ff = s.Ff + c.Fc * dc * s.sgn + c.Fv * dv * s.v
+
+    @classmethod
+    def friction_level(cls, P, c):
+        dc, _ = cls._fractions(P, np.full(c.n, c.t_end))
+        return c.Fc * np.maximum(np.abs(dc), np.abs(P["step_Fc"]))
+
+
 # The order of this list is the order in which forms act within one evaluation.
 EFFECT_FORMS: dict[tuple[str, str], type[Effect]] = {(c.WORD, c.FORM): c for c in (
     DelayTransport, DelaySpool, DelaySlew, DeadzoneHard, DeadzoneSoft,
@@ -1370,7 +1424,10 @@ EFFECT_FORMS: dict[tuple[str, str], type[Effect]] = {(c.WORD, c.FORM): c for c i
     DynamicsDahl, DynamicsMaxwell, MassAdded, MassPayload, HeatPolytropic, HeatWall)}
 WORDS: tuple[str, ...] = ("stiction", "friction_asymmetry", "friction_position", "friction_dynamics", "mass",
                           "valve_deadzone", "valve_delay", "leakage", "heat_transfer", "supply_droop")
-_ORDER = {cls: i for i, cls in enumerate(EFFECT_FORMS.values())}
+# forms a Case may hold besides the vocabulary's: a friction that changes during the run
+TIME_FORMS: dict[tuple[str, str], type[Effect]] = {(FrictionSchedule.WORD, FrictionSchedule.FORM): FrictionSchedule}
+_ALL_FORMS = {**EFFECT_FORMS, **TIME_FORMS}
+_ORDER = {cls: i for i, cls in enumerate(_ALL_FORMS.values())}
 
 
 def forms_of(word: str) -> list[type[Effect]]:
@@ -1380,9 +1437,9 @@ def forms_of(word: str) -> list[type[Effect]]:
 def make_effect(word: str, form: str, values: Mapping[str, float] | None = None, cyl: Cylinder | None = None) -> Effect:
     """An effect form by word and form name. Parameters not given keep the class defaults (sized
     for the default 32 x 100 cylinder), or with `cyl` the mid-range values for that cylinder."""
-    cls = EFFECT_FORMS.get((word, form))
+    cls = _ALL_FORMS.get((word, form))
     if cls is None:
-        known = ", ".join(f"{w}:{f}" for w, f in EFFECT_FORMS)
+        known = ", ".join(f"{w}:{f}" for w, f in _ALL_FORMS)
         raise ValueError(f"unknown effect form {word}:{form} (known: {known}).")
     values = dict(values or {})
     unknown = [k for k in values if k not in cls.PARAMS]
@@ -1559,6 +1616,7 @@ class _Batch:
         n = len(cases)
         rate = cases[0].rate
         self.n, self.dt = n, 1.0 / rate
+        self.t_end = max(c.duration for c in cases)
         self.cols = np.arange(n)
 
         def arr(fn):
@@ -2002,7 +2060,7 @@ def _parse_departure(spec: str) -> tuple[str, Any]:
 
 def _listing() -> str:
     lines = []
-    for (word, form), cls in EFFECT_FORMS.items():
+    for (word, form), cls in _ALL_FORMS.items():
         doc = " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split())  # the first paragraph
         lines.append(f"{word}:{form}  {doc}")
         for k, p in cls.PARAMS.items():

@@ -38,7 +38,7 @@ from .extension import Effect, ParamInfo, make_from, parse_spec, seal_friction_r
 from .flow import KAPPA, R_AIR, choked_flow, mass_flow
 
 __all__ = ["EFFECTS", "Effect", "ParamInfo", "make_effect", "parse_effect_spec", "seal_friction_reference",
-           "Stiction", "FrictionAsymmetry", "FrictionPosition", "FrictionDynamics", "Mass", "ValveDeadzone",
+           "FRICTION_CHANGES", "FrictionChange", "make_friction_change", "Stiction", "FrictionAsymmetry", "FrictionPosition", "FrictionDynamics", "Mass", "ValveDeadzone",
            "ValveDelay", "Leakage", "HeatTransfer", "SupplyDroop"]
 
 
@@ -452,6 +452,69 @@ class SupplyDroop(Effect):
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
     Stiction, FrictionAsymmetry, FrictionPosition, FrictionDynamics, Mass,
     ValveDeadzone, ValveDelay, Leakage, HeatTransfer, SupplyDroop)}
+
+
+# ================================================================ a rig that changes during a run
+
+@dataclass(frozen=True)
+class FrictionChange(Effect):
+    """The rig's friction changes during a run (seals that warm up or wear, a payload or a
+    seal exchanged): a step of Fc and Fv at t_step and a ramp from t_ramp on, both relative
+    to the cylinder's values. A truth for the virtual rig, `simulate` and the benchmarks, not
+    a word of the diagnosis vocabulary (the identifier's friction is constant by design):
+
+        c(t) = step_Fc [t >= t_step] + ramp_Fc max(t - t_ramp, 0)
+        f(t) = step_Fv [t >= t_step] + ramp_Fv max(t - t_ramp, 0)
+        Fseal += Fc c(t),   Fvisc *= 1 + f(t)
+
+    t is the time since the plant started (a run's t), held in the state `clock`
+    (dclock/dt = 1, integrated exactly: its error estimate is zero). The step is a jump at
+    t_step (the integrator refines the step that holds it); a ramp of +40 %/min is
+    ramp = 0.4 / 60 = 0.00667 1/s.
+    """
+
+    name: ClassVar[str] = "friction_change"
+    subsystem: ClassVar[str] = "mechanical"
+    FRICTION: ClassVar[str | None] = "reshapes"
+    description: ClassVar[str] = "the friction changes during the run (a step and a ramp of Fc and Fv)"
+    PARAMS: ClassVar[dict[str, ParamInfo]] = {
+        "t_step": ParamInfo("s", 0.0, 1e6, "time of the step"),
+        "step_Fc": ParamInfo("1", -0.9, 10.0, "relative step of Fc at t_step"),
+        "step_Fv": ParamInfo("1", -0.9, 10.0, "relative step of Fv at t_step"),
+        "t_ramp": ParamInfo("s", 0.0, 1e6, "time the ramp starts"),
+        "ramp_Fc": ParamInfo("1/s", -0.1, 0.1, "relative rate of change of Fc from t_ramp on"),
+        "ramp_Fv": ParamInfo("1/s", -0.1, 0.1, "relative rate of change of Fv from t_ramp on"),
+    }
+    STATES: ClassVar[tuple[str, ...]] = ("clock",)
+    NEUTRAL: ClassVar[dict[str, float]] = {"step_Fc": 0.0, "step_Fv": 0.0, "ramp_Fc": 0.0, "ramp_Fv": 0.0}
+    t_step: float = 0.0
+    step_Fc: float = 0.0
+    step_Fv: float = 0.0
+    t_ramp: float = 0.0
+    ramp_Fc: float = 0.0
+    ramp_Fv: float = 0.0
+
+    def relative(self, t):
+        """(c, f): the relative changes of Fc and Fv at time t (numbers or arrays)."""
+        on = np.asarray(t, float) >= self.t_step
+        ramp = np.maximum(np.asarray(t, float) - self.t_ramp, 0.0)
+        return self.step_Fc * on + self.ramp_Fc * ramp, self.step_Fv * on + self.ramp_Fv * ramp
+
+    def on_friction_terms(self, sig, q, s) -> None:
+        t = s["clock"]
+        sig.deriv[self.key("clock")] = ca.SX(1.0)
+        on = ca.if_else(t >= q["t_step"], 1.0, 0.0)
+        ramp = ca.fmax(t - q["t_ramp"], 0.0)
+        sig.Fseal = sig.Fseal + sig.par["Fc"] * (q["step_Fc"] * on + q["ramp_Fc"] * ramp)
+        sig.Fvisc = sig.Fvisc * (1 + q["step_Fv"] * on + q["ramp_Fv"] * ramp)
+
+
+FRICTION_CHANGES: dict[str, type[Effect]] = {FrictionChange.name: FrictionChange}
+
+
+def make_friction_change(values: Mapping[str, Any] | None = None) -> Effect:
+    """A FrictionChange with parameter values (others default), checked against the bounds."""
+    return make_from(FRICTION_CHANGES, "friction change", FrictionChange.name, values)
 
 
 def make_effect(name: str, values: Mapping[str, Any] | None = None) -> Effect:

@@ -47,7 +47,7 @@ from typing import Any, Callable, ClassVar, Mapping, Sequence
 import casadi as ca
 import numpy as np
 
-from .effects import EFFECTS, parse_effect_spec
+from .effects import EFFECTS, FRICTION_CHANGES, make_friction_change, parse_effect_spec
 from .extension import Effect, ParamInfo, make_from, parse_spec
 
 __all__ = ["FrictionModel", "CV", "Karnopp", "Threlfall", "CVS", "LuGre", "CVLoad", "CVSLoad", "Belforte",
@@ -605,14 +605,17 @@ def parse_friction_spec(spec: str) -> FrictionModel:
 
 
 def parse_truth_spec(spec: str) -> Effect:
-    """'name:k=v,...' naming a word of the effect vocabulary or a friction model of the family
-    (what the virtual rig can be given as truth)."""
+    """'name:k=v,...' naming a word of the effect vocabulary, a friction model of the family or
+    friction_change (a friction that changes during the run): what the virtual rig can be
+    given as truth."""
     name = spec.partition(":")[0].strip()
     if name in FRICTION_MODELS and name not in EFFECTS:
         return parse_friction_spec(spec)
+    if name in FRICTION_CHANGES:
+        return parse_spec(spec, lambda _, values: make_friction_change(values), "friction change")
     if name not in EFFECTS:
         raise ValueError(f"unknown effect or friction model '{name}' (effects: {', '.join(EFFECTS)}; "
-                         f"friction models: {', '.join(FRICTION_MODELS)})")
+                         f"friction models: {', '.join(FRICTION_MODELS)}; friction_change)")
     return parse_effect_spec(spec)
 
 

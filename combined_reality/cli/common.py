@@ -27,8 +27,9 @@ __all__ = ["UsageError", "OneLineParser", "typed", "check_paths", "add_max_rows"
            "EFFECT_HELP"]
 
 EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 (repeatable; any word of the "
-               "vocabulary, see docs/effects.md), or a friction model of the family as the friction, e.g. "
-               "cvs:Fc_pos=1.59,Fs_pos=6 (docs/friction.md)")
+               "vocabulary, see docs/effects.md), a friction model of the family as the friction, e.g. "
+               "cvs:Fc_pos=1.59,Fs_pos=6 (docs/friction.md), or a friction that changes during the run, e.g. "
+               "friction_change:t_step=30,step_Fc=0.3,step_Fv=0.3 or friction_change:ramp_Fc=0.00667")
 
 
 class UsageError(ValueError):

@@ -29,7 +29,8 @@ def _add_online_arguments(a) -> None:
     a.add_argument("--update", type=typed(options.update), default=0.2,
                    help=f"data between estimator updates, s (default 0.2, at least {options.MIN_UPDATE:g})")
     a.add_argument("--memory", type=typed(options.positive_seconds, "--memory", allow_inf=True), default=math.inf,
-                   help="forgetting time constant of old data, s (default inf: keep all)")
+                   help="forgetting time constant of old data, s (default inf: keep all data, and follow a change "
+                        "or a drift of the friction by itself; a finite memory replaces following a drift)")
     a.add_argument("--give-up", type=typed(options.positive_seconds, "--give-up"), default=5.0,
                    help="end the session after this long without samples, s")
     a.add_argument("-q", "--quiet", action="store_true",
@@ -153,21 +154,23 @@ def _rerun_sink(args, cyl, window_s: float, near: str, say):
                             say=say)
 
 
-def _session_json(result, options, wall_s: float, link_events: list[str]) -> dict:
+def _session_json(result, options, wall_s: float, link_events: list[str], no_estimate: str | None = None) -> dict:
     import numpy as np
 
-    final = result.final
+    final = None if no_estimate else result.final
     walls = np.array([e.wall_s for e in result.estimates]) * 1e3
     out = {"params": {}, "fit": {}, "solver": {
         "status": "online" if final else "no_estimate", "method": "moving-horizon multiple shooting",
+        **({"reason": no_estimate} if no_estimate else {}), "explains_run": result.monitor.trusted,
         "updates": len(result.estimates), "window_s": options.window_s, "wall_s": round(wall_s, 3),
         "update_ms_p50": float(np.percentile(walls, 50)) if len(walls) else None,
         "update_ms_p95": float(np.percentile(walls, 95)) if len(walls) else None,
         "n_samples": int(result.run.n), "stop_reason": result.stop_reason, "rig_time_at_start": result.t0},
         "link": result.counters, "events": result.events + list(link_events),
         # t: s since the session's first sample; t_rig: the rig's clock (the recording's t)
-        "history": [{"t": e.t - result.t0, "t_rig": e.t, "values": e.values, "std": e.std, "sigma": e.sigma}
-                    for e in result.estimates]}
+        "history": [{"t": e.t - result.t0, "t_rig": e.t, "values": e.values, "std": e.std, "sigma": e.sigma,
+                     **({"drift": e.drift.rate} if e.drift else {})} for e in result.estimates],
+        "monitor": result.monitor.to_json()}
     if final:
         out["params"] = {n: {"value": final.values[n], "std": final.std[n], "unit": final.units[n]}
                          for n in final.values}
@@ -209,7 +212,8 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
 
     from ..files import clean_json, cylinder_tag, write_json_atomic
     from ..live import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, LockstepSimulator,
-                        PipelinedEstimator, ProcessEstimator, run_session)
+                        WHAT_TO_DO, PipelinedEstimator, ProcessEstimator, SessionMonitor, change_message,
+                        drift_message, run_session, session_verdict)
 
     options = _online_options(args, cyl)
     rr_sink = None
@@ -232,7 +236,8 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
                 return {}
             return {"lost": stats.samples_lost, "corrupt": stats.frames_corrupt, "late": stats.commands_late}
 
-        sinks = [s for s in (ConsoleSink(console, link_counters), rr_sink) if s is not None]
+        monitor = SessionMonitor()
+        sinks = [s for s in (ConsoleSink(console, link_counters, monitor), rr_sink) if s is not None]
         if not args.quiet:
             console.say("preparing the model (compiled once, then cached) ...")
         # the lock-step model's traces are for the viewer: without one nothing reads them, and
@@ -260,7 +265,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, record_to=record,
                              record_comments=comments, sinks=sinks, simulator=simulator, on_event=console.warn,
                              give_up_s=args.give_up, expected_period=sample_period, stop=signals.stop,
-                             realtime=realtime)
+                             realtime=realtime, monitor=monitor, on_judgement=console.say)
     finally:
         signals.restore()
         if estimator is not None:
@@ -286,16 +291,31 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         console.say(f"recorded {result.run.n} samples to {record}"
                     + ("" if "host_overflow" not in c else f" (the link received {received})"))
     final = result.final
-    if final:
+    no_estimate = session_verdict(result.run, final, options.estimate, cyl)
+    trusted = result.monitor.trusted
+    if no_estimate is None:
         print(f"online estimate at t = {final.t - result.t0:.2f} s of the session ({len(result.estimates)} updates, "
-              f"residual σ = {final.sigma:.2f} × noise):")
+              f"residual σ = {final.sigma:.2f} × noise)" + ("" if trusted else ", NOT TO BE TRUSTED") + ":")
         for n, v in final.values.items():
             print(f"  {n:4s} = {v:.6g} ± {final.std[n]:.2g} {final.units[n]}")
     else:
-        print("no online estimate: fewer samples than one estimation window.")
+        print(f"no estimate: {no_estimate}")
+    if not trusted:
+        print(f"the model does not explain the rig (residual {final.sigma:.3g} × the sensor noise): the estimate is "
+              f"not to be trusted; {WHAT_TO_DO}.")
+    for c in result.monitor.changes:
+        print(f"  {change_message(c, final.units if final else {}, result.t0)}")
+    for d in result.monitor.drifts:
+        print(f"  {drift_message(d)}")
     if args.json:
-        write_json_atomic(args.json, clean_json(_session_json(result, options, wall, link_events or [])))
+        write_json_atomic(args.json, clean_json(_session_json(result, options, wall, link_events or [], no_estimate)))
         console.say(f"wrote {args.json}")
     if getattr(estimator, "error", None):
         return 1
-    return 1 if result.stop_reason.startswith("no samples") else 0
+    if result.stop_reason.startswith("no samples"):
+        return 1
+    # a replayed run ends as identify ends on it: 1 where the model does not explain it, 2 where
+    # it cannot determine the parameters (a live session has made its recording either way)
+    if args.command == "replay" and result.estimates:
+        return 1 if not trusted else 2 if no_estimate is not None else 0
+    return 0

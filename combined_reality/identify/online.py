@@ -44,7 +44,7 @@ from __future__ import annotations
 import bisect
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -57,10 +57,12 @@ from sim.plant import plant_for
 
 from ..files import Run
 from .newton import equation_error_friction
+from .offline import MISMATCH
 from .shooting import (ShootingProblem, free_parameters, line_search, linearize, node_transitions,
                        normal_equations, parameter_bounds, parameter_unit, residual_scales, scaled_inverse,
                        shooting_residuals, solve_bounded)
 from .smoothing import fill_missing, velocity_estimate
+from .tracking import Blocks, Change, Drift, Regime, analyse, pinv, regime_variance, trend_fit
 
 
 @dataclass(frozen=True)
@@ -89,9 +91,37 @@ class OnlineOptions:
     # new intervals, the gain is small (update p95 17.8 -> 14.4 ms in one benchmark run on a
     # 2-core machine, 17.9 -> 20.0 ms in another)
     threads: int = 1
+    # a window may grow to hold_s (when longer than window_s) before its oldest data leave it,
+    # a window's worth at once: what leaves enters the arrival cost with its own start state
+    # profiled out, so chunks of a whole window keep more of their information than halves
+    hold_s: float = 0.0
     bridge_s: float = 0.01  # lost samples up to this long are bridged (their command estimated)
     max_bridged: int = 100  # bridged gaps per window at most (each adds an unknown); more start new pieces
     cluster_s: float = 1.0  # residuals may be correlated within about this long (the robust std)
+    # a rig that changes (identify/tracking.py): blocks of about block_s of the stream say what
+    # they alone tell about the parameters; over the last history_s of them a step is announced
+    # beyond change_z standard deviations and a drift followed beyond drift_z (False: the
+    # estimator of a rig that never changes). A finite memory_s replaces the drift's model
+    track: bool = True
+    block_s: float = 0.2
+    history_s: float = 20.0
+    change_z: float = 6.0
+    drift_z: float = 5.5
+    # an effect the model lacks moves the locally best friction with the operating regime: by
+    # how much is measured on stretches of regime_s / 8 to regime_s (averaged over the session
+    # with a time constant of regime_memory_s), and at least regime_floor of the friction force
+    # for each of its terms (the smallest change worth a word is some times this)
+    regime_s: float = 4.0
+    recent_s: float = 6.0  # a step is looked for in the last recent_s (older ones were looked for when recent)
+    # ... with at least min_after_s of data after it: the newest data of a window are the
+    # least settled (their last node state has nothing after it)
+    min_after_s: float = 1.5
+    regime_memory_s: float = 60.0
+    regime_floor: float = 0.005
+    # until settle_s of the history lies beyond regime_s (the regimes seen for a while), a
+    # step is judged against young_floor times the floor
+    settle_s: float = 12.0
+    young_floor: float = 4.0
 
 
 @dataclass
@@ -110,6 +140,9 @@ class OnlineEstimate:
     gaps: int = 0  # bridged gaps in the window (their held command estimated)
     state: np.ndarray = field(repr=False, default=None)  # model state at t, to resynchronise a simulation
     params: np.ndarray = field(repr=False, default=None)  # the full plant parameter vector
+    change: Change | None = None  # a change of the rig detected by this update (the estimate is after it)
+    drift: Drift | None = None  # the rig's friction drifts: its rate (the estimate follows it)
+    step_pending: bool = False  # a step found where too little has come after it yet (judged later)
 
 
 _NEW_PIECE, _JOINED, _BRIDGED = 0, 1, 2  # how an interval joins the one before it
@@ -239,6 +272,24 @@ class MovingHorizonEstimator:
         # squares, residual count, node states fitted, and gradient contributions per cluster
         self._ssr = self._nres = self._nstates = 0.0
         self._clusters = _Clusters(len(self.free))
+        self._weak = self.info.copy()  # the weak prior, kept under every prior built later
+        # a rig that changes: the stream in blocks of SUB intervals; the blocks that left the
+        # window (the tests' history), the drift being followed, and a restart after a step
+        self.SUB = max(1, int(round(options.block_s / (M * self.dt))))
+        self._history = Blocks(len(self.free))
+        self._drift: Drift | None = None
+        self._drift_quiet = 0.0  # s of data since the drift last tested significant
+        self._restarting = False
+        self._change: Change | None = None  # found by the update that restarts, reported by the refit
+        self._t_tested = 0.0  # rig time of the last update tested
+        self._sigmas: list[tuple[float, float]] = []  # (rig time, residual sigma) of the windows of the history
+        self._regime: np.ndarray | None = None  # the rig's regime variance per parameter (see _update_regime)
+        self._regime_recent: np.ndarray | None = None  # that of the history alone
+        self._regime_slide = 0.0  # s of data since they were last measured
+        self._block_cache: dict | None = None  # the last window's blocks by global intervals (see _track)
+        # its scales: doubling from regime_s / 8 up to regime_s
+        self._scales = options.regime_s / 2.0 ** np.arange(3, -1, -1)
+        self.analysis = None  # the last update's tests (identify/tracking.Analysis)
 
     # ------------------------------------------------------------ data
     def add(self, t, u, x, p1, p2, lost_before=None) -> None:
@@ -348,8 +399,8 @@ class MovingHorizonEstimator:
         return self._prev is not None
 
     def ready(self) -> bool:
-        if self._prev is None:
-            return self.backlog >= self.N
+        if self._prev is None:  # (after a step: as soon as a block is there)
+            return self.backlog >= (self.SUB * self.M if self._restarting else self.N)
         # intervals end early at gaps, so the data come in uneven steps: slide as soon as the
         # nearest whole-interval amount to update_s is there, so updates keep their rate
         return self.backlog >= self.slide_min - self.M // 2 or (self._ended and self.backlog > 0)
@@ -367,9 +418,12 @@ class MovingHorizonEstimator:
             return k0, k1 - k0, 0
         old0, old_end = self._prev["k0"], self._prev["k0"] + self._prev["Kw"]
         k0 = old0
-        while self._rows(k0, k1) > self.N and k0 < old_end:
-            k0 += 1
-        while self._rows(k0, k1) > self.N:
+        # (a window may grow to hold_s before its oldest data leave it, a window's worth at once)
+        hold = max(self.N, int(round(self.options.hold_s / self.dt)))
+        if self._rows(k0, k1) > hold:
+            while self._rows(k0, k1) > self.N and k0 < old_end:
+                k0 += 1
+        while self._rows(k0, k1) > max(hold if k0 == old0 else self.N, self.N):
             k1 -= 1  # fallen behind by more than a window: catch up over the next updates
         return k0, k1 - k0, k0 - old0
 
@@ -457,6 +511,8 @@ class MovingHorizonEstimator:
 
         if prev is not None:
             self._absorb(prev, left)
+            if self._drift is not None:
+                self._drift_prior(0.5 * (t_first + t_last))
         elif self.options.prefit and not self._fitted and {"Fc", "Fv", "kp"} & set(self.names):
             b = self._buf[:, r_first:r_last + 1]
             start = equation_error_friction(self.cyl, [Run(t=b[0], u=b[1], x=b[2], p1=b[3], p2=b[4])])
@@ -595,8 +651,9 @@ class MovingHorizonEstimator:
         # residuals at the accepted point, as the last linearisation (red) predicts them
         r_acc = red.r0 if step_taken is None else red.r0 + red.apply(*step_taken)
         t0 = self._buf[0, lay["starts"]]
+        t1 = self._buf[0, lay["starts"] + lay["lens"] - 1]
         self._prev = {"k0": k0, "Kw": Kw, "S": S, "X": X, "red": red, "r": r_acc, "theta": self.theta,
-                      "piece_of": piece_of, "mask": lay["mask"], "t0": t0,
+                      "piece_of": piece_of, "mask": lay["mask"], "t0": t0, "t1": t1, "after_gap": lay["after_gap"],
                       "Sens": lin_sens if step_taken is None else None}
         seen = self._base + r_last + 1 - self._virtual_gone - bisect.bisect_right(self._virtual, self._base + r_last)
         # what later windows can still need
@@ -612,17 +669,232 @@ class MovingHorizonEstimator:
             self._iv_base = k0
 
         nres = float(lay["mask"].sum())
-        sigma2 = float(np.sum(E * E)) / max(1.0, nres - R * nx - nu)
+        sigma = math.sqrt(float(np.sum(E * E)) / max(1.0, nres - R * nx - nu))
+        value = self.theta
         std = self._std(Nm, R, piece_of, red, r_acc, lay["mask"], t0, self.theta)
+        if self.options.track:
+            followed = self._track(self._prev, t_last, sigma)
+            if followed == "restart":
+                again = self.update()  # the window again, from the change on
+                if again is not None:
+                    return again
+            elif followed is not None:  # a drift: the trend's value now
+                value, std = followed
+        change, self._change = self._change, None
+        if change is not None:  # after the step: as this refit of the data after it finds it
+            change = replace(change, after=dict(zip(self.names, value.tolist())),
+                             std_after=dict(zip(self.names, std.tolist())),
+                             std={n: math.hypot(change.std_before[n], s_) for n, s_ in zip(self.names, std.tolist())})
         w = self.wts
         rmse = {f"rmse_{n}": float(np.sqrt(np.sum(E[..., j] ** 2) / max(lay["mask"][..., j].sum(), 1))) / w[j]
                 for j, n in enumerate(self.plant.output_names)}
         state = S[:, last_k] if last_row == 0 else X[:, last_k, last_row - 1]
         return OnlineEstimate(
-            t=t_last, values=dict(zip(self.names, self.theta.tolist())), std=dict(zip(self.names, std.tolist())),
-            units=self.units, window=(t_first, t_last), samples_seen=int(seen), sigma=math.sqrt(sigma2), rmse=rmse,
+            t=t_last, values=dict(zip(self.names, value.tolist())), std=dict(zip(self.names, std.tolist())),
+            units=self.units, window=(t_first, t_last), samples_seen=int(seen), sigma=sigma, rmse=rmse,
             iterations=it, wall_s=time.perf_counter() - t_wall, pieces=R, gaps=G, state=state.copy(),
-            params=self.p.copy())
+            params=self.p.copy(), change=change, drift=self._drift,
+            step_pending=bool(self.analysis is not None and self.analysis.pending >= self.options.change_z
+                              and self._t_tested == t_last))
+
+    # ------------------------------------------------------------ a rig that changes
+    def _block_ranges(self, k0: int, end: int, piece_of: np.ndarray) -> list[tuple[int, int]]:
+        """The window's intervals 0 .. end - 1 (window k0) in blocks: (first, one past the
+        last), cut where a piece begins and at the global multiples of SUB (so that the same
+        intervals make the same blocks in every window)."""
+        out, a = [], 0
+        for k in range(1, end):
+            if piece_of[k] != piece_of[k - 1] or (k0 + k) % self.SUB == 0:
+                out.append((a, k))
+                a = k
+        if end > a:
+            out.append((a, end))
+        return out
+
+    def _blocks(self, w: dict, ranges: list[tuple[int, int]]) -> Blocks:
+        """What each block of window `w` (an update's _prev) alone says about the parameters."""
+        s, A = w["red"].block_stats(ranges, w["r"], w["after_gap"])
+        a = np.array([x for x, _ in ranges], int)
+        b = np.array([y for _, y in ranges], int)
+        return Blocks(len(self.free), w["t0"][a], w["t1"][b - 1], w["k0"] + a,
+                      np.repeat(w["theta"][None, :], len(a), axis=0), s, A)
+
+    def _track(self, w: dict, t_last: float, sigma: float):
+        """The tests over the history and this window (w: its _prev). A step restarts the
+        estimate at the change ("restart"); a drift is followed (its value and std now); else None."""
+        opts = self.options
+        self._history = self._history.since(t_last - opts.history_s)
+        self._sigmas = [(t, s_) for t, s_ in self._sigmas if t >= t_last - opts.history_s] + [(t_last, sigma)]
+        if self._restarting:  # the refit after a step: its blocks are tested from the next update on
+            self._restarting = False
+            return None
+        if w["Sens"] is None:  # a step was taken: no block of the last window holds as it was
+            self._block_cache = None
+        if self._drift is None and t_last - self._t_tested < opts.block_s - 0.5 * self.dt:
+            return None  # less than a block since the last tests: nothing new to test
+        w["ranges"] = ranges = self._block_ranges(w["k0"], w["Kw"], w["piece_of"])
+        # where neither this update nor the last took a step, the intervals both windows hold
+        # are linearised alike, and so are the blocks they make (a block's own start state is
+        # profiled out, whichever node the window starts from)
+        kept = self._block_cache if w["Sens"] is not None else None
+        keys = [(w["k0"] + a, w["k0"] + b) for a, b in ranges]
+        todo = [r for r, key in zip(ranges, keys) if not kept or key not in kept]
+        fresh = iter(self._blocks(w, todo).rows() if todo else ())
+        rows = [kept[key] if kept and key in kept else next(fresh) for key in keys]
+        w["blocks"] = Blocks.of_rows(len(self.free), rows)
+        self._block_cache = dict(zip(keys, rows)) if w["Sens"] is not None else None
+        data = self._history.extend(w["blocks"])
+        slide, self._t_tested = t_last - self._t_tested, t_last
+        self._regime_slide += slide
+        if self._regime_slide >= 1.0 or self._regime_recent is None:  # a slow quantity: once a second of data
+            self._update_regime(t_last, self._regime_slide)
+            self._regime_slide = 0.0
+        if len(data) < 2:
+            return None
+        # the residual of the rig as it was: the windows before the data tested for a step
+        steady = self._sigma_before(t_last - opts.recent_s)
+        noise = max(1.0, min(steady if steady is not None else 1.0, MISMATCH)) ** 2
+        # until the history has shown the rig's regimes for a while, a step must be larger
+        settled = float(np.sum((self._history.t1 - self._history.t0)[self._history.t1 < t_last - opts.regime_s]))
+        regime = self._regime_now()
+        young = regime if settled >= opts.settle_s else self._regime_now(opts.young_floor)
+        an = self.analysis = analyse(data, self.theta, t_last, young, noise, cluster_s=opts.cluster_s,
+                                     min_after_s=opts.min_after_s, recent_s=opts.recent_s, drift_regime=regime)
+        chi2 = an.dispersion
+        # a model that did not explain the rig before a step says nothing of it; one that left
+        # sigma times the noise left it systematically, with a regime dependence that the
+        # history need not have shown in full: a step must be sigma times as large
+        before = self._sigma_before(an.t_change) if an.z_step else None
+        if (before is not None and before <= MISMATCH and an.z_step >= opts.change_z * max(1.0, before)
+                and (an.z_drift < opts.drift_z or chi2["step_chi2"] <= chi2["drift_chi2"])):
+            self._restart(an, data, w["k0"], t_last)
+            return "restart"
+        if self._drift is None:
+            # (a rig that drifts away from its estimate leaves a growing residual: judged by the
+            # session's typical recent window rather than the last one)
+            typical = float(np.median([s_ for _, s_ in self._sigmas[-10:]])) <= MISMATCH
+            # (nor while a step may be on its way: a fresh step looks like a steep trend)
+            if typical and math.isinf(opts.memory_s) and an.z_drift >= opts.drift_z and an.pending < opts.change_z:
+                self._drift = self._drift_of(an, t_last)
+                self._drift_quiet = 0.0
+        else:
+            self._drift_quiet = 0.0 if an.z_drift >= 2.0 else self._drift_quiet + min(slide, opts.update_s)
+            if self._drift_quiet >= 5.0:  # the drift has stopped: constant again
+                self._constant_prior(data.since(t_last - 5.0))
+                self._drift = None
+            else:
+                self._drift = self._drift_of(an, self._drift.since)
+        if self._drift is None:
+            return None
+        tr = an.trend
+        return np.clip(tr.value, self.lower, self.upper), np.sqrt(np.maximum(np.diag(tr.cov), 0.0))
+
+    def _sigma_before(self, t: float) -> float | None:
+        """The typical residual sigma of the windows that ended by t (the median of the last ten
+        of them), or None when none did."""
+        past = [s_ for t_, s_ in self._sigmas if t_ <= t]
+        return float(np.median(past[-10:])) if past else None
+
+    def _update_regime(self, t_last: float, slide: float) -> None:
+        """The rig's regime variance (identify/tracking.regime_variance) from the history but its
+        last regime_s (where a change may be under way), averaged over the session with a
+        time constant of regime_memory_s of data; a step does not reset it (the model lacks
+        what it lacked before)."""
+        opts = self.options
+        old = self._history.select(self._history.t1 < t_last - opts.regime_s)
+        est = [regime_variance(old, self.theta, sc) for sc in self._scales]
+        for i in range(1, len(est)):  # a scale the history is too short for: that of the one below
+            if est[i] is None:
+                est[i] = est[i - 1]
+        if est[0] is None:
+            self._regime_recent = None
+            return
+        est = np.array(est)
+        self._regime_recent = est
+        if self._regime is None:
+            self._regime = est
+        else:
+            a = min(1.0, max(slide, 0.0) / opts.regime_memory_s)
+            self._regime = (1 - a) * self._regime + a * est
+
+    def _regime_now(self, floor_factor: float = 1.0) -> Regime:
+        """The regime covariance to count at each scale: the session's, or the recent
+        history's where larger (the session's average is slow to learn), and at least the
+        floor on the diagonal: regime_floor of each value, and for kp of the friction force
+        Fc + Fv 0.1 m/s + kp 2 bar over 2 bar (the seal's pressure term is the least determined
+        and moves with the regime more than the others)."""
+        f = self.options.regime_floor * floor_factor
+        floor = f * np.abs(self.theta)
+        names = list(self.names)
+        if "kp" in names:
+            terms = {"Fc": 1.0, "Fv": 0.1, "kp": 2e5}  # each term's regressor at a typical state
+            level = sum(abs(self.theta[names.index(n)]) * x for n, x in terms.items() if n in names)
+            floor[names.index("kp")] = max(floor[names.index("kp")], f * level / 2e5)
+        var = np.tile(floor ** 2, (len(self._scales), 1))
+        for v in (self._regime, self._regime_recent):  # (diagonal: regime_variance's)
+            if v is not None:
+                var = np.maximum(var, np.diagonal(v, axis1=1, axis2=2))
+        return Regime(self._scales, var[:, :, None] * np.eye(len(floor)))
+
+    def _drift_of(self, an, since: float) -> Drift:
+        tr = an.trend
+        rate_std = np.sqrt(np.maximum(np.diag(tr.rate_cov), 0.0))
+        return Drift(rate=dict(zip(self.names, tr.rate.tolist())), rate_std=dict(zip(self.names, rate_std.tolist())),
+                     z=an.z_drift, since=since)
+
+    def _drift_prior(self, t_c: float) -> None:
+        """While a drift is followed: the window's prior is the history's trend at the window's
+        centre (what the data before the window say of it)."""
+        if len(self._history) < 2:
+            return
+        steady = self._sigma_before(t_c)
+        noise = max(1.0, min(steady if steady is not None else 1.0, MISMATCH)) ** 2
+        fit = trend_fit(self._history, self.theta, t_c, self._regime_now(), noise)
+        self.info = pinv(fit.cov)[0] + self._weak
+        self.prior_mean = np.clip(fit.value, self.lower, self.upper)
+
+    def _constant_prior(self, blocks: Blocks) -> None:
+        """The prior from what `blocks` say of constant parameters (and the weak prior)."""
+        if not len(blocks):
+            return
+        G, A = blocks.at(self.theta)[0].sum(axis=0), blocks.A.sum(axis=0)
+        info = A + self._weak
+        self.prior_mean = np.clip(_solve_scaled(info, A @ self.theta - G + self._weak @ self.theta),
+                                  self.lower, self.upper)
+        self.info = info
+
+    def _restart(self, an, data: Blocks, k0: int, t_last: float) -> None:
+        """After a step at the located boundary: the data before it lose their weight. The
+        prior becomes the estimate before the step, widened to cover the step (and what the
+        history after it says); the window restarts at the step when the step lies in it; the
+        session's residual statistics start anew."""
+        b = an.boundary
+        before, after = an.before, an.after
+        sb = np.sqrt(np.maximum(np.diag(before.cov), 0.0))
+        sa = np.sqrt(np.maximum(np.diag(after.cov), 0.0))
+        jump = np.abs(after.value - before.value)
+        width = np.maximum.reduce([2 * jump + 3 * np.hypot(sb, sa), 0.1 * np.abs(before.value),
+                                   1e-3 * (self.upper - self.lower)])
+        self.info = np.diag(1.0 / width ** 2) + self._weak
+        self.prior_mean = np.clip(before.value, self.lower, self.upper)
+        self._history = self._history.since(float(data.t0[b]))
+        self.theta = np.clip(after.value, self.lower, self.upper)
+        if len(self._history):  # the history after the step (it lies before the window) is information
+            G, A = self._history.at(self.theta)[0].sum(axis=0), self._history.A.sum(axis=0)
+            info = self.info + A
+            self.prior_mean = np.clip(_solve_scaled(info, self.info @ self.prior_mean + A @ self.theta - G),
+                                      self.lower, self.upper)
+            self.info = info
+        self.p[self.free] = self.theta
+        self._prev, self._w, self._restarting = None, max(int(data.k[b]), k0), True
+        self._ssr = self._nres = self._nstates = 0.0
+        self._clusters = _Clusters(len(self.free))
+        self._drift = None
+        n = self.names
+        self._change = Change(t=an.t_change, t_std=an.t_change_std, z=an.z_step, t_detected=t_last,
+                              before=dict(zip(n, before.value.tolist())), after=dict(zip(n, after.value.tolist())),
+                              std_before=dict(zip(n, sb.tolist())), std_after=dict(zip(n, sa.tolist())),
+                              std=dict(zip(n, np.hypot(sb, sa).tolist())))
 
     def _with_gap_offsets(self, lin, S, X, p, W, lay, k0: int):
         """The linearisation with the command offsets over the bridged gaps as further
@@ -693,6 +965,15 @@ class MovingHorizonEstimator:
             self._ssr += float(np.sum(r * r))
             self._nstates += self.plant.nx
         self._nres += float(prev["mask"][:left].sum())
+        if self.options.track:  # the leaving blocks, as the last tests saw them where they can
+            ranges = self._block_ranges(prev["k0"], left, prev["piece_of"])
+            seen, n = prev.get("ranges", []), 0
+            while n < len(ranges) and n < len(seen) and ranges[n] == seen[n]:
+                n += 1
+            if n:
+                self._history = self._history.extend(prev["blocks"].select(slice(0, n)))
+            if n < len(ranges):
+                self._history = self._history.extend(self._blocks(prev, ranges[n:]))
         self.info = info_old + A
         # the leaving data's cost around theta, 0.5 d'A d + b'd, merged with the prior
         self.prior_mean = _solve_scaled(self.info, info_old @ self.prior_mean + A @ theta - b)
@@ -863,6 +1144,44 @@ class _ReducedWindow:
         par = Jth - Gf @ (Nk @ proj)
         rr = r[ks].reshape(k, -1)
         return (par.transpose(0, 2, 1) @ rr[:, :, None])[..., 0], par.transpose(0, 2, 1) @ par, rr
+
+    def block_stats(self, ranges, r, after_gap):
+        """Per block (a, b) of a piece's intervals a .. b - 1: the gradient of 0.5 |r|^2 by the
+        parameters and its Gauss-Newton information, with the block's own start state (and
+        the command offsets over gaps inside it) profiled out: what the block alone says."""
+        nth = self.nth
+        S, A = np.empty((len(ranges), nth)), np.empty((len(ranges), nth, nth))
+        inner = [[j for j, kk in enumerate(after_gap) if a < kk < b] for a, b in ranges]
+        plain = np.array([not g for g in inner])
+        if plain.any():  # blocks without a gap inside: their sums over intervals at once
+            ks = np.concatenate([np.arange(a, b) for (a, b), p in zip(ranges, plain) if p])
+            firsts = np.cumsum([0] + [b - a for (a, b), p in zip(ranges, plain) if p][:-1])
+            K = len(ks)
+            Gf, P = self.Gf[ks], self.P[ks]
+            Gt = Gf.transpose(0, 2, 1)
+            Jth = self.Jth[ks].reshape(K, -1, nth)
+            rr = r[ks].reshape(K, -1, 1)
+            Pt = P.transpose(0, 2, 1)
+            per = [Pt @ (Gt @ Gf) @ P, Pt @ (Gt @ Jth), (Pt @ (Gt @ rr))[..., 0],
+                   Jth.transpose(0, 2, 1) @ Jth, (Jth.transpose(0, 2, 1) @ rr)[..., 0]]
+            NtCN, NtF, Ntr, JJ, Jr = (np.add.reduceat(x, firsts, axis=0) for x in per)
+            proj = pinv(NtCN)[0] @ NtF
+            A[plain] = JJ - NtF.transpose(0, 2, 1) @ proj
+            S[plain] = Jr - (proj.transpose(0, 2, 1) @ Ntr[..., None])[..., 0]
+        for i in np.flatnonzero(~plain):  # a block with gaps: their command offsets too
+            (a, b), gaps = ranges[i], inner[i]
+            k = b - a
+            Nk = np.concatenate([self.P[a:b], self.Qg[a:b][:, :, gaps]], axis=-1)
+            Gf, Jth = self.Gf[a:b], self.Jth[a:b].reshape(k, -1, nth)
+            rr = r[a:b].reshape(k, -1)
+            Gt = Gf.transpose(0, 2, 1)
+            NtCN = np.einsum("kai,kab,kbj->ij", Nk, Gt @ Gf, Nk)
+            NtF = np.einsum("kai,kaj->ij", Nk, Gt @ Jth)
+            Ntr = np.einsum("kai,ka->i", Nk, (Gt @ rr[:, :, None])[..., 0])
+            proj = _pinv_scaled(NtCN) @ NtF
+            A[i] = np.einsum("kma,kmb->ab", Jth, Jth) - NtF.T @ proj
+            S[i] = np.einsum("kma,km->a", Jth, rr) - proj.T @ Ntr
+        return S, A
 
 
 def _pinv_scaled(N: np.ndarray) -> np.ndarray:

@@ -3,6 +3,7 @@ session (recording, lock-step simulation, online estimation, sinks), its console
 Rerun view."""
 from .console import Console
 from .experiment import run_program, simulate_run
+from .monitor import WHAT_TO_DO, MonitorOptions, SessionMonitor, change_message, drift_message, session_verdict
 from .programs import PROGRAMS, PositionProgram, ProgramOptions, guarded, make_program
 from .session import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, InlineEstimator, LockstepSimulator,
                       PacedRig, PipelinedEstimator, ProcessEstimator, ReplayRig, SessionResult, run_session, set_estimator_priority)
@@ -11,4 +12,5 @@ __all__ = ["Console", "run_program", "simulate_run", "PROGRAMS", "PositionProgra
            "make_program", "ConsoleSink", "InlineEstimator", "LockstepSimulator", "PacedRig", "PipelinedEstimator",
            "ProcessEstimator",
            "ReplayRig", "SessionResult", "run_session", "ESTIMATOR_NICE_AHEAD", "ESTIMATOR_NICE_BEHIND",
-           "set_estimator_priority"]
+           "set_estimator_priority", "WHAT_TO_DO", "MonitorOptions", "SessionMonitor", "change_message",
+           "drift_message", "session_verdict"]

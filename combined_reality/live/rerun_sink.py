@@ -13,6 +13,9 @@ Entity paths (SI units; the timeline `time` is the rig clock):
   residual/x, residual/p1, residual/p2                       measured - simulated
   params/NAME/value, params/NAME/upper, params/NAME/lower    estimate and +-2 sigma band
   fit/sigma                                                  residual RMS in noise units
+  fit/mismatch_limit                                         above it the model does not explain the rig
+  events/changes     TextLog at each detected change's located time (the change in words)
+  events/monitor     TextLog of what the session judged, when it said so (validity, changes, drift)
   friction/measured  Points2D (v, F) from Newton's law with measured pressures, last window
   friction/model     LineStrips2D, the identified friction curve at the window's mean |p1-p2|
 """
@@ -32,8 +35,9 @@ from sim.cylinder import Cylinder
 from sim.plant import build_plant, plant_for
 
 from ..files import Run
-from ..identify import OnlineEstimate, friction_from_newton
+from ..identify import MISMATCH, OnlineEstimate, friction_from_newton
 from ..report.rerun import close_recording, display_available, open_recording
+from .monitor import change_message
 
 
 class RerunSink:
@@ -72,7 +76,15 @@ class RerunSink:
                 rec.log(f"params/{n}/upper", rr.Scalars(v + 2 * s))
                 rec.log(f"params/{n}/lower", rr.Scalars(v - 2 * s))
         rec.log("fit/sigma", rr.Scalars(e.sigma))
+        rec.log("fit/mismatch_limit", rr.Scalars(MISMATCH))
         self._log_friction(e)
+        if e.change is not None:  # marked on the time line where it happened
+            rec.set_time("time", duration=e.change.t)
+            rec.log("events/changes", rr.TextLog(change_message(e.change, e.units), level=rr.TextLogLevel.WARN))
+
+    def note(self, t: float, text: str) -> None:
+        self.rec.set_time("time", duration=t)
+        self.rec.log("events/monitor", rr.TextLog(text, level=rr.TextLogLevel.INFO))
 
     def _log_friction(self, e: OnlineEstimate) -> None:
         b = self._buf
@@ -124,6 +136,8 @@ def _rerun_main(mode: str, target: str | None, fallback: str | None, cyl: Cylind
                 sink.rows(*value)
             elif kind == "estimate":
                 sink.estimate(value)
+            elif kind == "note":
+                sink.note(*value)
             else:  # "close"
                 ok = sink.close()
                 outbox.put(("closed", ok))
@@ -166,6 +180,10 @@ class RerunProcessSink:
     def estimate(self, e: OnlineEstimate) -> None:
         if not self.failed:
             self.inbox.put(("estimate", e))
+
+    def note(self, t: float, text: str) -> None:
+        if not self.failed:
+            self.inbox.put(("note", (t, text)))
 
     def _poll(self) -> bool | None:
         """Pass on what the sink process said; its "closed" answer, if any."""

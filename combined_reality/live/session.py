@@ -18,7 +18,7 @@ import queue
 import signal
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Protocol, Sequence
 
 import numpy as np
@@ -37,6 +37,7 @@ from ..files import Run, RunRecorder, measured_value
 from ..files.plausibility import COMMAND_LIMIT
 from ..identify import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
 from .console import Console
+from .monitor import SessionMonitor
 
 
 class EndOfRun(Exception):
@@ -116,11 +117,16 @@ class PacedRig:
 class InlineEstimator:
     """The moving-horizon estimator in the calling thread (replay as fast as possible).
 
-    With `catch_up`, it waits until a whole window of new data is there and slides by that
-    window: the same data enter the estimate with a tenth of the updates."""
+    With `catch_up`, it updates once half a window of new data is there: the same data enter
+    the estimate with a fifth of the updates, each a single Gauss-Newton iteration on a
+    window it mostly knows, and a change of the rig is tested every half window. The window
+    grows to one and a half before the oldest whole window leaves it (OnlineOptions.hold_s):
+    the arrival cost takes in whole windows, as when whole windows were slid."""
 
     def __init__(self, cyl: Cylinder, sample_period: float, options: OnlineOptions, effects: Sequence[Effect] = (),
                  catch_up: bool = True):
+        if catch_up:
+            options = replace(options, hold_s=max(options.hold_s, 1.5 * options.window_s))
         self.mhe = MovingHorizonEstimator(cyl, sample_period, options, effects)
         self.catch_up = catch_up
 
@@ -129,7 +135,7 @@ class InlineEstimator:
 
     def poll(self, final: bool = False) -> list[OnlineEstimate]:
         out = []
-        while self.mhe.ready() and (final or not self.catch_up or self.mhe.backlog >= self.mhe.N
+        while self.mhe.ready() and (final or not self.catch_up or self.mhe.backlog >= self.mhe.N // 2
                                     or not out and not self.mhe.started):
             out.append(self.mhe.update())
         return out
@@ -485,11 +491,12 @@ class Sink(Protocol):
 
 class ConsoleSink:
     """The session's status line: session time, sample rate, link counters, the latest
-    estimate with its standard deviation (times from the session's first sample, not the
-    rig's clock)."""
+    estimate with its standard deviation, and with a monitor whether the model explains the
+    rig and the last change (times from the session's first sample, not the rig's clock)."""
 
-    def __init__(self, console: Console, counters: Callable[[], dict] | None = None):
-        self.console, self.counters = console, counters
+    def __init__(self, console: Console, counters: Callable[[], dict] | None = None,
+                 monitor: SessionMonitor | None = None):
+        self.console, self.counters, self.monitor = console, counters, monitor
         self._t0: float | None = None
         self._e: OnlineEstimate | None = None
         self._rate = (time.monotonic(), 0, 0.0)  # (wall, samples, rate) of the last rate update
@@ -514,6 +521,13 @@ class ConsoleSink:
                          + f"  σ {self._e.sigma:.2f}")
         else:
             parts.append("estimate: waiting for the first window")
+        m = self.monitor
+        if m is not None and m.explained is not None:
+            parts.append("model explains the rig" if m.trusted else "MODEL DOES NOT EXPLAIN THE RIG: estimate untrusted")
+            if m.changes:
+                parts.append(f"changed at {m.changes[-1].t - m.t0:.1f} s")
+            if m.drifts and m.drifts[-1]["t_end"] is None:
+                parts.append("drifting")
         return " | ".join(parts)
 
     def estimate(self, e: OnlineEstimate) -> None:
@@ -533,6 +547,7 @@ class SessionResult:
     counters: dict
     events: list[str] = field(default_factory=list)
     t0: float = 0.0  # rig time of the first sample: session times are rig times minus this
+    monitor: SessionMonitor = field(default_factory=SessionMonitor)  # what the session judged of the rig
 
     @property
     def final(self) -> OnlineEstimate | None:
@@ -580,7 +595,8 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
                 on_event: Callable[[str], None] | None = None, block: int = 20,
                 give_up_s: float = 3.0, expected_period: float | None = None,
                 stop: Callable[[], str | None] | None = None, finish_timeout_s: float = 30.0,
-                realtime: int | None = None) -> SessionResult:
+                realtime: int | None = None, monitor: SessionMonitor | None = None,
+                on_judgement: Callable[[str], None] | None = None) -> SessionResult:
     """Acquire until `duration` of rig time, the end of a replayed run, a rig that stays
     silent for `give_up_s`, Ctrl-C, or `stop()` returning a reason (checked at least every
     0.1 s: a signal handler sets it). Every sample received is recorded the moment it
@@ -589,8 +605,11 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     at most 0.1 s to finish (the session ends within a second), else `finish_timeout_s`.
     With `realtime`, acquisition (this thread and the rig's reader) runs under SCHED_FIFO
     at that priority where the OS grants it: other processes then cannot delay the answer
-    to a sample."""
+    to a sample. `monitor` judges every estimate (validity, changes of the rig); what it says
+    joins the events and goes to `on_judgement` (else on_event) and to every sink with a
+    `note(t, text)`."""
     events: list[str] = []
+    monitor = monitor if monitor is not None else SessionMonitor()
 
     def event(msg: str) -> None:
         events.append(msg)
@@ -638,8 +657,16 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         counters["estimates"] += 1
         if simulator is not None:
             simulator.set_estimate(e)
+        monitor.t0 = t0
+        judged = monitor.take(e)
         for s in sinks:
             s.estimate(e)
+        for msg in judged:
+            events.append(msg)
+            (on_judgement or on_event or (lambda m: None))(msg)
+            for s in sinks:
+                if hasattr(s, "note"):
+                    s.note(e.t, msg)
 
     def take_sample(s: Sample) -> bool:
         """Record one sample and queue it for the model; False if it cannot be a row."""
@@ -752,4 +779,4 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         counters.update({("received" if k == "samples" else k): v for k, v in vars(stats).items()
                          if isinstance(v, (int, float))})
     return SessionResult(run=rec.run(), estimates=estimates, stop_reason=reason, counters=counters, events=events,
-                         t0=0.0 if t0 is None else t0)
+                         t0=0.0 if t0 is None else t0, monitor=monitor)
