@@ -65,6 +65,7 @@ class SessionMonitor:
     _pending_start: float | None = None
     _pending_sigma: float = 0.0
     _drift_on: bool = False
+    _seen_explained: bool = False  # some window so far was explained
 
     def take(self, e: OnlineEstimate) -> list[str]:
         out = []
@@ -92,8 +93,10 @@ class SessionMonitor:
         above = not e.sigma <= o.mismatch  # (a NaN sigma explains nothing)
         if self.explained is None:
             self.explained = True  # until the data say otherwise for hold_s
-        # (a step of the rig the estimator is about to judge explains a residual well enough)
-        if self.explained and (not above or e.step_pending) or not self.explained and above:
+        # a step the estimator is about to judge may explain a residual, if a window before it was explained
+        step_may_explain = e.step_pending and self._seen_explained
+        self._seen_explained = self._seen_explained or not above
+        if self.explained and (not above or step_may_explain) or not self.explained and above:
             self._pending = None
             if not self.explained:
                 self.mismatch[-1].sigma_max = max(self.mismatch[-1].sigma_max, e.sigma)
