@@ -3,9 +3,13 @@ the critical ratio, dead volumes, moving mass, pressure sensor offsets, a consta
 force) together with the friction, staged the way the physics separates them."""
 from .identifiability import Identifiability, assess, flow_coverage
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets
-from .stages import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, calibrate, smooth_valve_prior,
-                     validation_figures, with_model_error)
+from .stages import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, applies, calibrate,
+                     effect_names, finish, first_stages, force_balance, force_balance_in_model, joint_start,
+                     misfit_note, model_start, run_stage, smooth_valve_prior, stage_summaries, validation_figures,
+                     valve_and_chambers, whole_model, with_model_error)
 
 __all__ = ["Identifiability", "assess", "flow_coverage", "chamber_prefit", "force_balance_prefit", "settled_offsets",
-           "CALIBRATED", "MECHANICAL", "PNEUMATIC", "CalibrateOptions", "Calibration", "calibrate",
-           "smooth_valve_prior", "validation_figures", "with_model_error"]
+           "CALIBRATED", "MECHANICAL", "PNEUMATIC", "CalibrateOptions", "Calibration", "applies", "calibrate",
+           "effect_names", "finish", "first_stages", "force_balance", "force_balance_in_model", "joint_start",
+           "misfit_note", "model_start", "run_stage", "smooth_valve_prior", "stage_summaries", "validation_figures",
+           "valve_and_chambers", "whole_model", "with_model_error"]
