@@ -15,7 +15,9 @@ def add_parser(sub) -> None:
                                     "score it on VALID. Prints the verdict (the effect that best explains the gap, "
                                     "or none), the ranking with each candidate's shrink of the validation error, "
                                     "and where the gap lies (operating regimes, subsystems).")
-    dg.add_argument("train", help="run CSV the models are identified on")
+    dg.add_argument("train", nargs="+", metavar="TRAIN.csv",
+                    help="run CSV the models are identified on; with --calibrate several (a calibration run and an "
+                         "ordinary one) are calibrated together")
     dg.add_argument("--validate", required=True, help="run CSV the models are scored on (never fitted)")
     dg.add_argument("--config", help="cylinder TOML (default: the one TRAIN's header names, else the built-in "
                                      "cylinder A)")
@@ -29,8 +31,9 @@ def add_parser(sub) -> None:
                     help="parallel processes for the candidates (default: the number of CPUs)")
     dg.add_argument("--calibrate", action="store_true",
                     help="calibrate the cylinder file's valve characteristic, dead volumes, mass and sensor offsets on "
-                         "TRAIN first and diagnose the calibrated model: mis-set quantities are reported as such, "
-                         "not taken for an effect")
+                         "TRAIN with every candidate effect and compare the calibrated models on VALID: mis-set "
+                         "quantities are reported as such, not taken for an effect, and an effect is not bent into "
+                         "them")
     dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     dg.set_defaults(func=run)
 
@@ -41,9 +44,12 @@ def run(args) -> int:
     from ..diagnose import DiagnoseOptions, diagnose
     from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
 
-    train, valid = read_run(args.train), read_run(args.validate)
-    cyl, which = cylinder_for_runs(args.config, [train, valid])
-    check_train_and_valid(cyl, train, valid, args.train, args.validate)
+    if len(args.train) > 1 and not args.calibrate:
+        raise UsageError("several TRAIN runs are calibrated together with --calibrate; without it, give one.")
+    train, valid = [read_run(p) for p in args.train], read_run(args.validate)
+    cyl, which = cylinder_for_runs(args.config, [*train, valid])
+    for run, name in zip(train, args.train):
+        check_train_and_valid(cyl, run, valid, name, args.validate)
     names = tuple(n.strip() for n in args.candidates.split(",") if n.strip()) if args.candidates else tuple(EFFECTS)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:
@@ -55,10 +61,11 @@ def run(args) -> int:
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers),
                            calibrate=args.calibrate)
-    preflight_runs(cyl, [train, valid])  # last: its notes follow no refusal
+    preflight_runs(cyl, [*train, valid])  # last: its notes follow no refusal
     if which and not args.quiet:
         eprint(which)
-    diagnosis = diagnose(cyl, train, valid, opts, progress=progress_printer(args.quiet))
+    diagnosis = diagnose(cyl, train if args.calibrate else train[0], valid, opts,
+                         progress=progress_printer(args.quiet))
     result = diagnosis.to_json()
     print(format_summary(result, args.horizon))
     if args.json:
@@ -86,11 +93,16 @@ def run(args) -> int:
 def format_summary(result: dict, horizon_s: float) -> str:
     """The console view of a diagnosis (its JSON form): baseline, verdict, ranking, where."""
     base = result["baseline"]
-    lines = [f"validation position RMSE of the nominal model: {base['rmse_x_validation'] * 1e6:.1f} um "
+    cal = result.get("calibration") or {}
+    by = f" with {cal['model']}" if cal.get("model", "none") != "none" else ""
+    lines = [f"validation position RMSE of the nominal model{' (calibrated on TRAIN)' if cal else ''}: "
+             f"{base['rmse_x_validation'] * 1e6:.1f} um "
              f"(segments of {horizon_s:g} s, all outputs {base['normalized_rms']:.2f} x the sensor noise)",
-             *(f"mis-set in the cylinder file (calibrated on TRAIN): {m['quantity']} {m['file']:.4g} -> "
-               f"{m['calibrated']:.4g} {m['unit']} ({m['change']:+.1%})"
-               for m in (result.get("calibration") or {}).get("mis_set", [])),
+             *(f"mis-set in the cylinder file (calibrated on TRAIN{by}): {m['quantity']} {m['file']:.4g} -> "
+               f"{m['calibrated']:.4g} {m['unit']} ({m['change']:+.1%})" for m in cal.get("mis_set", [])),
+             *(f"these runs cannot separate {c['effect']}.{c['parameter']} from {c['quantity']} "
+               f"(correlation {c['r']:+.3f})" for c in cal.get("confounded", [])),
+             *([f"calibration: {cal['misfit']}"] if cal.get("misfit") else []),
              f"verdict: {result['verdict']}" + (f" ({result['verdict_note']})" if result.get("verdict_note") else ""),
              f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'z':>6s} {'rmse_x [um]':>12s}  parameters"]
     for c in result["ranking"]:
