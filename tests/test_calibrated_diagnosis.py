@@ -146,3 +146,23 @@ def test_a_leak_on_a_rig_whose_file_is_off_is_named_with_the_file_calibrated_bes
 def test_options_name_the_calibrated_diagnosis_rules():
     o = DiagnoseOptions()
     assert 0 < o.screen_min < 1 and o.nominal_give_up > 1 and 0 < o.train_dominant <= 1
+
+
+def test_separability_names_what_a_run_lacks_to_tell_an_effect_from_calibrated_quantities(cyl_a):
+    """A run that holds the valve closed at 2 bar for 2 s and jumps its command 12 times, but
+    moves only one way and never opens the valve wide: leakage and valve_delay are separable,
+    friction_asymmetry and supply_droop are not, and the report says what would separate them."""
+    from combined_reality.calibrate import separability
+    from combined_reality.files import Run
+
+    n = 6000
+    t = np.arange(n) * 1e-3
+    u = np.zeros(n)
+    u[2000:] = np.where((np.arange(n - 2000) // 150) % 2 == 0, 0.35, 0.2)  # 26 command jumps of 0.15
+    x = np.where(t < 2.0, 0.02, 0.02 + 0.01 * (t - 2.0))  # at rest, then extending at 10 mm/s
+    p1, p2 = np.full(n, 4e5), np.full(n, 2e5)
+    rows = {e["effect"]: e for e in separability(cyl_a, [Run(t, u, x, p1, p2)])}
+    assert "leakage" not in rows and "valve_delay" not in rows
+    assert rows["friction_asymmetry"]["amount"] == 0.0 and "both directions" in rows["friction_asymmetry"]["needs"]
+    assert "external force" in rows["friction_asymmetry"]["from"]
+    assert rows["supply_droop"]["amount"] == 0.0 and "large openings" in rows["supply_droop"]["from"]

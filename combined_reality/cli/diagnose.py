@@ -102,6 +102,8 @@ def format_summary(result: dict, horizon_s: float) -> str:
                f"{m['calibrated']:.4g} {m['unit']} ({m['change']:+.1%})" for m in cal.get("mis_set", [])),
              *(f"these runs cannot separate {c['effect']}.{c['parameter']} from {c['quantity']} "
                f"(correlation {c['r']:+.3f})" for c in cal.get("confounded", [])),
+             *(f"{e['effect']} may be imitated by {e['from']}: what separates them best, {e['needs']}: "
+               f"{e['found']}" for e in cal.get("not_separated", [])),
              *([f"calibration: {cal['misfit']}"] if cal.get("misfit") else []),
              f"verdict: {result['verdict']}" + (f" ({result['verdict_note']})" if result.get("verdict_note") else ""),
              f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'z':>6s} {'rmse_x [um]':>12s}  parameters"]

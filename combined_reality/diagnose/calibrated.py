@@ -50,8 +50,9 @@ import numpy as np
 from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect
 
-from ..calibrate import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, finish, first_stages, force_balance_in_model,
-                         misfit_note, model_start, run_stage, stage_summaries, whole_model)
+from ..calibrate import (CALIBRATED, MECHANICAL, OTHER_STARTS_ABOVE, PNEUMATIC, CalibrateOptions, finish,
+                         first_stages, force_balance_in_model, misfit_note, model_start, run_stage, separability,
+                         stage_summaries, whole_model)
 from ..files import Run
 from ..identify import IdentificationError, IdentifyResult, validate, validation_segments
 from ..parallel import run_jobs, workers_here
@@ -65,6 +66,12 @@ __all__ = ["ABSORBED", "Screen", "WholeFit", "absorbed_note", "calibrated_candid
 # effects that are a calibrated quantity under another name: not fitted beside the calibration
 ABSORBED = {"mass": ("mass",), "valve_deadzone": ("overlap_extend", "overlap_retract")}
 SCREEN_ITER = 10  # Gauss-Newton iterations of a screen at most
+# a screen that has not removed this share of its stage's excess above the noise within
+# IdentifyOptions.give_up_after iterations is given up (half of what DiagnoseOptions.screen_min asks)
+SCREEN_GIVE_UP = 0.1
+# a stage fitted to within this of the noise (x) has nothing for its candidates to explain (the
+# valve and chambers of the benchmark's effect-free runs: 1.005-1.03)
+AT_NOISE = OTHER_STARTS_ABOVE
 STALLED = 2  # a nested screen that ends within this many iterations without a gain did not move
 STRONG_CORRELATION = 0.95  # |r| above which an effect parameter and a calibrated quantity trade off
 
@@ -109,12 +116,16 @@ def _quiet(_msg: str) -> None:
     pass
 
 
+def _excess(base: IdentifyResult) -> float:
+    """A fit's cost above what the sensor noise alone leaves (its cost / residual sigma^2)."""
+    sigma = base.solver["residual_sigma"]
+    return base.solver["cost"] * (1.0 - 1.0 / sigma ** 2) if sigma > 1.0 else 0.0
+
+
 def _excess_share(base: IdentifyResult, cost: float) -> float:
     """The share of `base`'s excess above the noise (its cost less what the noise alone leaves,
     base cost / residual sigma^2) that a fit of cost `cost` removes (capped at 1)."""
-    sigma = base.solver["residual_sigma"]
-    b = base.solver["cost"]
-    excess = b * (1.0 - 1.0 / sigma ** 2) if sigma > 1.0 else 0.0
+    b, excess = base.solver["cost"], _excess(base)
     if excess <= 0:
         return 0.0 if cost >= b else math.inf
     return min(1.0, (b - cost) / excess)
@@ -129,7 +140,7 @@ def _screen_fit(base: IdentifyResult, runs: Sequence[Run], drive: str, estimate:
     try:
         with np.errstate(all="ignore"):
             res = run_stage(f"screen {effect.name}", base.cylinder, runs, drive, estimate, opts, _quiet, base.nodes,
-                            (effect,), start_only=False, give_up_above=base.solver["cost"])
+                            (effect,), start_only=False, give_up_above=base.solver["cost"] - SCREEN_GIVE_UP * _excess(base))
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         sc.error = f"the fit could not be computed ({type(e).__name__}: {e})"
         sc.wall_s = time.perf_counter() - t0
@@ -270,7 +281,8 @@ def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[st
                           say: Callable[[str], None]) -> dict:
     """Steps 1 and 2 of the module docstring: the calibration's first stages and every candidate's
     screen. Returns a dict with `stages` (stage 1 and 2), `base` (the force balance through the
-    model), `screens` (list of Screen), `absorbed` ({effect: note}), `t0` and `wall_s` per step."""
+    model), `screens` (list of Screen), `absorbed` ({effect: note}), `quiet` ({effect: why it was
+    not screened: its stage is at the noise}), `t0` and `wall_s` per step."""
     t0 = time.perf_counter()
     # the critical ratio's other starts are left to the screens: where the valve and chambers stay
     # above the noise, a pneumatic candidate is screened there from the same fit
@@ -283,6 +295,11 @@ def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[st
     fitted = [n for n in names if n not in ABSORBED]
     pneumatic = [n for n in fitted if EFFECTS[n].subsystem != "mechanical"]
     mechanical = [n for n in fitted if EFFECTS[n].subsystem == "mechanical"]
+    quiet = {}  # a stage at the noise: its candidates have nothing there to explain
+    if pneumatic and pneu.solver["residual_sigma"] <= AT_NOISE:
+        quiet.update({n: f"the valve and chambers are calibrated to the noise ({pneu.solver['residual_sigma']:.3g} x): "
+                         "no pneumatic effect shows there; not screened" for n in pneumatic})
+        pneumatic = []
     t1 = time.perf_counter()
     say(f"the force balance through the whole model, and {len(pneumatic)} pneumatic candidates screened in the valve "
         f"and chambers ({min(workers, 1 + len(pneumatic))} processes) ...")
@@ -292,6 +309,11 @@ def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[st
     screens: list[Screen] = [s for ss in done[1:] for s in ss]
     say(f"  the force balance through the whole model (the valve and chambers as calibrated): residual "
         f"{base.solver['residual_sigma']:.3g} x noise")
+    if mechanical and base.solver["residual_sigma"] <= AT_NOISE:
+        quiet.update({n: f"the force balance through the whole model is calibrated to the noise "
+                         f"({base.solver['residual_sigma']:.3g} x): no mechanical effect shows there; not screened"
+                      for n in mechanical})
+        mechanical = []
     t2 = time.perf_counter()
     if mechanical:
         say(f"screening {len(mechanical)} mechanical candidates through the whole model "
@@ -302,7 +324,7 @@ def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[st
         say(f"  screen {s.effect:20s} ({s.stage}): " + (
             f"{max(s.share, 0.0):.0%} of the excess above the noise, cost {-s.gain:+.2%}" if s.result is not None
             else s.error or s.status))
-    return {"stages": (mech, pneu), "base": base, "screens": screens, "absorbed": absorbed, "t0": t0,
+    return {"stages": (mech, pneu), "base": base, "screens": screens, "absorbed": absorbed, "quiet": quiet, "t0": t0,
             "wall_s": {"first_stages": round(t1 - t0, 3), "pneumatic_screens": round(t2 - t1, 3),
                        "mechanical_screens": round(time.perf_counter() - t2, 3)}}
 
@@ -450,6 +472,8 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     for name in opts.candidates:
         if name in found["absorbed"]:
             c = _unfitted(name, "absorbed", found["absorbed"][name])
+        elif name in found["quiet"]:
+            c = _unfitted(name, "screened_out", found["quiet"][name])
         elif name in scored:
             c = scored[name]
         elif closer is not None and any(s.effect == name for s in chosen):
@@ -470,12 +494,21 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     if opts.pair and best is not None:
         pair = _calibrated_pair(cyl, runs, valid, ranking, fitting, base_val, base_rmse, segments, opts, say, fits)
     verdict, verdict_note = decide(base_val, best, pair, opts)
+    if verdict == "unexplained" and best is None and sigma <= CalibrateOptions.misfit:
+        # the calibration fits TRAIN to the noise and no candidate improves VALID: no effect shows in
+        # TRAIN; what VALID keeps is where the calibrated model extrapolates
+        verdict, verdict_note = "none", (
+            f"the calibration without an effect fits TRAIN to {sigma:.2f} x the sensor noise and no candidate improves "
+            f"VALID significantly; VALID keeps {base_val.normalized_rms():.2f} x where it leaves what TRAIN covers "
+            "(see where the gap lies)")
     if verdict_note:
         say(f"  verdict {verdict}: {verdict_note}")
     shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None
     found["wall_s"].update({"first_candidate": round(t4 - t3, 3), "nominal_whole": round(t5 - t4, 3),
                             "candidates_and_validation": round(t6 - t5, 3)})
-    calibration = _calibration_doc(cyl, nominal, found, fits, [s.effect for s in chosen], verdict)
+    calibration = _calibration_doc(cyl, nominal, found, fits, [n for n in fits if "+" not in n], verdict)
+    calibration["not_separated"] = separability(nominal.cylinder, runs,
+                                                [n for n in opts.candidates if n not in ABSORBED])
     for m in calibration["mis_set"]:
         say(f"  mis-set in the cylinder file: {m['quantity']} {m['file']:.4g} -> {m['calibrated']:.4g} {m['unit']} "
             f"({m['change']:+.1%})")
