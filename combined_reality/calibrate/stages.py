@@ -39,7 +39,8 @@ from .dead_band import dead_band_in_overlap, overlap_as_dead_band
 from .identifiability import Identifiability, assess
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets
 
-__all__ = ["MECHANICAL", "PNEUMATIC", "CALIBRATED", "OTHER_STARTS_ABOVE", "CalibrateOptions", "Calibration", "applies", "calibrate",
+__all__ = ["MECHANICAL", "PNEUMATIC", "CALIBRATED", "OTHER_STARTS_ABOVE", "CalibrateOptions", "Calibration", "applies",
+           "calibrate",
            "effect_names", "finish", "first_stages", "force_balance", "force_balance_in_model", "joint_start",
            "misfit_note", "model_start", "run_stage", "smooth_valve_prior", "stage_summaries", "validation_figures",
            "valve_and_chambers", "whole_model", "with_model_error"]

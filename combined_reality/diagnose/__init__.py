@@ -15,7 +15,7 @@ from .analysis import (MIN_REGION_FRACTION, NESTED_START, Candidate, DiagnoseOpt
 from .calibrated import ABSORBED, diagnose_calibrated
 from .entry import diagnose
 
-__all__ = ["ABSORBED", "diagnose_as_filed", "diagnose_calibrated", "MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",
-           "best_of_starts", "candidate_starts", "decide", "diagnose", "equation_errors", "explained_share",
-           "fit_candidate", "further_starts", "has_nested_start", "neutral_start", "operating_regions", "regions",
-           "regressor_correlations", "subsystem_split", "whiteness"]
+__all__ = ["ABSORBED", "MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",
+           "best_of_starts", "candidate_starts", "decide", "diagnose", "diagnose_as_filed", "diagnose_calibrated",
+           "equation_errors", "explained_share", "fit_candidate", "further_starts", "has_nested_start", "neutral_start",
+           "operating_regions", "regions", "regressor_correlations", "subsystem_split", "whiteness"]

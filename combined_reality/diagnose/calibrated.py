@@ -140,7 +140,8 @@ def _screen_fit(base: IdentifyResult, runs: Sequence[Run], drive: str, estimate:
     try:
         with np.errstate(all="ignore"):
             res = run_stage(f"screen {effect.name}", base.cylinder, runs, drive, estimate, opts, _quiet, base.nodes,
-                            (effect,), start_only=False, give_up_above=base.solver["cost"] - SCREEN_GIVE_UP * _excess(base))
+                            (effect,), start_only=False,
+                            give_up_above=base.solver["cost"] - SCREEN_GIVE_UP * _excess(base))
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         sc.error = f"the fit could not be computed ({type(e).__name__}: {e})"
         sc.wall_s = time.perf_counter() - t0
@@ -445,12 +446,12 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
             fits[s.effect] = calibrate_staged(cyl, runs, staged_start(s, base_fit), opts.workers)
         w = nested(fits[s.effect], cyl, runs, base, (_neutral(s.effect),), opts.workers)
         if w.result is None:
-            scored[s.effect] = _unfitted(s.effect, "failed", f"the calibration with it could not be computed ({w.error})",
-                                         s)
+            scored[s.effect] = _unfitted(s.effect, "failed",
+                                         f"the calibration with it could not be computed ({w.error})", s)
             continue
         c = _candidate(s.effect, w, s, base.solver["cost"])
-        say(f"  {s.effect}: residual {w.result.solver['residual_sigma']:.3g} x noise on TRAIN ({w.result.solver['status']}, "
-            f"from the {w.start} start, cost {-c.calibration['train_gain']:+.1%} against the calibration without it)")
+        say(f"  {s.effect}: residual {w.result.solver['residual_sigma']:.3g} x noise on TRAIN "
+            f"({w.result.solver['status']}, from the {w.start} start, cost {-c.calibration['train_gain']:+.1%} against the calibration without it)")
         if c.calibration["train_gain"] < opts.min_train_gain:
             c.status, c.error = "no_gain_on_train", (
                 f"calibrated with it, TRAIN is fitted no better than without it ({-c.calibration['train_gain']:+.2%} "
@@ -463,8 +464,8 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
             break
         share = train_share(base, w.result)
         if c.validation is not None and _significant(c, base_val, base_rmse, opts) and share >= opts.train_dominant:
-            closer, why = c, (f"explains {share:.0%} of what the calibration without an effect leaves on TRAIN above the "
-                              "noise, and significantly improves VALID")
+            closer, why = c, (f"explains {share:.0%} of what the calibration without an effect leaves on TRAIN "
+                              "above the noise, and significantly improves VALID")
             break
     t6 = time.perf_counter()
     top = max((s.share for s in screens.values() if s.result is not None), default=0.0)
@@ -583,7 +584,8 @@ def _calibration_doc(file_cyl: Cylinder, nominal, found: dict, fits: dict, chose
         "model": verdict if named is not nominal.result else "none",
         "status": named.solver["status"], "residual_sigma": named.solver["residual_sigma"],
         "misfit": misfit_note(named) or None,
-        "nominal": {"status": nominal.result.solver["status"], "residual_sigma": nominal.result.solver["residual_sigma"],
+        "nominal": {"status": nominal.result.solver["status"],
+                    "residual_sigma": nominal.result.solver["residual_sigma"],
                     "iterations": nominal.result.solver["iterations"], "misfit": nominal.misfit or None,
                     "given_up": nominal.result.solver["status"] == "above_reference"},
         "screens": [s.to_json() for s in found["screens"]],
