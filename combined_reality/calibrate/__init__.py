@@ -10,6 +10,6 @@ from .stages import (CALIBRATED, MECHANICAL, OTHER_STARTS_ABOVE, PNEUMATIC, Cali
 
 __all__ = ["Identifiability", "assess", "flow_coverage", "separability", "chamber_prefit", "force_balance_prefit",
            "settled_offsets", "CALIBRATED", "MECHANICAL", "OTHER_STARTS_ABOVE", "PNEUMATIC", "CalibrateOptions",
-           "Calibration", "applies", "calibrate", "effect_names", "finish", "first_stages", "force_balance", "force_balance_in_model", "joint_start",
-           "misfit_note", "model_start", "run_stage", "smooth_valve_prior", "stage_summaries", "validation_figures",
+           "Calibration", "applies", "calibrate", "effect_names", "finish", "first_stages", "force_balance",
+           "force_balance_in_model", "joint_start", "misfit_note", "model_start", "run_stage", "smooth_valve_prior", "stage_summaries", "validation_figures",
            "valve_and_chambers", "whole_model", "with_model_error"]

@@ -451,7 +451,8 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
             continue
         c = _candidate(s.effect, w, s, base.solver["cost"])
         say(f"  {s.effect}: residual {w.result.solver['residual_sigma']:.3g} x noise on TRAIN "
-            f"({w.result.solver['status']}, from the {w.start} start, cost {-c.calibration['train_gain']:+.1%} against the calibration without it)")
+            f"({w.result.solver['status']}, from the {w.start} start, cost {-c.calibration['train_gain']:+.1%} against "
+            "the calibration without it)")
         if c.calibration["train_gain"] < opts.min_train_gain:
             c.status, c.error = "no_gain_on_train", (
                 f"calibrated with it, TRAIN is fitted no better than without it ({-c.calibration['train_gain']:+.2%} "
