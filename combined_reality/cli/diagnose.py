@@ -99,7 +99,8 @@ def format_summary(result: dict, horizon_s: float) -> str:
              f"{base['rmse_x_validation'] * 1e6:.1f} um "
              f"(segments of {horizon_s:g} s, all outputs {base['normalized_rms']:.2f} x the sensor noise)",
              *(f"mis-set in the cylinder file (calibrated on TRAIN{by}): {m['quantity']} {m['file']:.4g} -> "
-               f"{m['calibrated']:.4g} {m['unit']} ({m['change']:+.1%})" for m in cal.get("mis_set", [])),
+               f"{m['calibrated']:.4g} {m['unit']}" + (f" ({m['change']:+.1%})" if math.isfinite(m['change']) else "")
+               for m in cal.get("mis_set", [])),
              *(f"these runs cannot separate {c['effect']}.{c['parameter']} from {c['quantity']} "
                f"(correlation {c['r']:+.3f})" for c in cal.get("confounded", [])),
              *(f"{e['effect']} may be imitated by {e['from']}: what separates them best, {e['needs']}: "

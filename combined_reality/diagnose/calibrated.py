@@ -506,8 +506,8 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     calibration["not_separated"] = separability(nominal.cylinder, runs,
                                                 [n for n in opts.candidates if n not in ABSORBED])
     for m in calibration["mis_set"]:
-        say(f"  mis-set in the cylinder file: {m['quantity']} {m['file']:.4g} -> {m['calibrated']:.4g} {m['unit']} "
-            f"({m['change']:+.1%})")
+        say(f"  mis-set in the cylinder file: {m['quantity']} {m['file']:.4g} -> {m['calibrated']:.4g} {m['unit']}"
+            + (f" ({m['change']:+.1%})" if math.isfinite(m["change"]) else ""))
     for c in calibration["confounded"]:
         say(f"  on these runs {c['effect']}.{c['parameter']} trades off against {c['quantity']} (r = {c['r']:+.3f})")
     x_idx = base_val.outputs.index("x")
