@@ -655,11 +655,7 @@ def diagnose_as_filed(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOp
         cands = best_of_starts(cands + done, start)
         for c in cands:
             score_candidate(c, base_val, base_rmse, opts)
-    for c in cands:
-        say(f"  {c.effect:20s} " + (f"shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  z {c.z:6.1f}"
-                                     if math.isfinite(c.shrink) else f"not scored: {c.error or c.status}"))
-    ranking = sorted(cands, key=lambda c: (not c.significant, -c.score))
-    best = ranking[0] if ranking and ranking[0].significant else None
+    ranking, best = ranked(cands, say)
 
     pair = None
     if opts.pair and best is not None:
@@ -683,6 +679,16 @@ def diagnose_as_filed(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOp
         regions=regions(nominal, valid, base_val, shown.validation if shown is not None else None),
         subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
         correlations=correlations, base_validation=base_val, wall_s=time.perf_counter() - t_start)
+
+
+def ranked(cands: list[Candidate], say: Callable[[str], None]) -> tuple[list[Candidate], Candidate | None]:
+    """The scored candidates, each said in a line; ranked, the significant ones first by score; and
+    the best one when it is significant."""
+    for c in cands:
+        say(f"  {c.effect:20s} " + (f"shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  z {c.z:6.1f}"
+                                     if math.isfinite(c.shrink) else f"not scored: {c.error or c.status}"))
+    ranking = sorted(cands, key=lambda c: (not c.significant, -c.score))
+    return ranking, ranking[0] if ranking and ranking[0].significant else None
 
 
 def further_starts(cands: list[Candidate], base: Validation, order: list[str], tried: set[tuple[str, int]],

@@ -57,8 +57,9 @@ from ..files import Run
 from ..identify import IdentificationError, IdentifyResult, validate, validation_segments
 from ..parallel import run_jobs, workers_here
 from .analysis import (NESTED_START, Candidate, DiagnoseOptions, Diagnosis, NominalFit, candidate_starts, closes_gap,
-                       decide, gain_over, has_nested_start, mis_set_quantities, neutral_start, pair_need, regions,
-                       regressor_correlations, score_candidate, subsystem_split, validate_candidate, whiteness)
+                       decide, gain_over, has_nested_start, mis_set_quantities, neutral_start, pair_need, ranked,
+                       regions, regressor_correlations, score_candidate, subsystem_split, validate_candidate,
+                       whiteness)
 
 __all__ = ["ABSORBED", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
            "choose", "confounded", "diagnose_calibrated"]
@@ -480,11 +481,7 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
             c = _unfitted(name, "screened_out", _screen_words(sc, opts, top) if sc is not None else "not screened", sc)
         score_candidate(c, base_val, base_rmse, opts)
         cands.append(c)
-    for c in cands:
-        say(f"  {c.effect:20s} " + (f"shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  z {c.z:6.1f}"
-                                     if math.isfinite(c.shrink) else f"not scored: {c.error or c.status}"))
-    ranking = sorted(cands, key=lambda c: (not c.significant, -c.score))
-    best = ranking[0] if ranking and ranking[0].significant else None
+    ranking, best = ranked(cands, say)
 
     pair = None
     if opts.pair and best is not None:
