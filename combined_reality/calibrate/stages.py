@@ -57,7 +57,10 @@ CALIBRATED = (*MECHANICAL, *PNEUMATIC)
 # 1.12 x, and the whole model crawled 40 iterations to 7.8 x with kp doubled; from the overlaps at
 # zero it ended at 1.01 x, the whole model at 1.08 x with the friction within 1.5 %
 OTHER_STARTS_ABOVE = 1.05
-OTHER_CRITICAL_RATIOS = (0.2, 0.45)  # the critical ratio's other starts (its realistic span 0.15-0.5)
+OTHER_CRITICAL_RATIOS = (0.2, 0.45)
+# a whole-model fit that runs out of iterations above this (x the noise) crawled in a wrong basin:
+# started once more (as identify restarts a fit that converged above it)
+CRAWLING = 1.5  # the critical ratio's other starts (its realistic span 0.15-0.5)
 
 # the flow characteristic's slope may change from one grid segment to the next by about this much
 # (in units of the linear law's slope) without cost: a smooth valve; what the runs do not open
@@ -304,17 +307,21 @@ def whole_model(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, s
     joint = run_stage("3/3 the whole model (driven by the command)", start, runs, "command", estimate, options, say,
                       nodes, effects, give_up_above=give_up_above)
     stages.append({"stage": "whole model", "drive": "command", **_summary(joint)})
-    if joint.solver["status"] == "line_search_failed":
-        # a failed line search is no result: once more from where it ended, node states afresh
-        # from the data (as identify restarts a misfit); the lower cost kept
+    status = joint.solver["status"]
+    if status == "line_search_failed" or (status == "max_iterations"
+                                          and joint.solver["residual_sigma"] > CRAWLING):
+        # a failed line search is no result, nor a fit that ran out of iterations far above the noise
+        # (a crawl in a wrong basin): once more from where it ended, node states afresh from the data
+        # (as identify restarts a misfit that converged), given up where it stays above the first;
+        # the lower cost kept
+        why = "a failed line search" if status == "line_search_failed" else "running out of iterations"
         try:
-            again = run_stage("3/3 again after a failed line search", joint.cylinder, runs, "command", estimate,
-                              options, say, None, joint.effects, give_up_above=min(give_up_above, joint.solver["cost"]))
+            again = run_stage(f"3/3 again after {why}", joint.cylinder, runs, "command", estimate, options, say,
+                              None, joint.effects, give_up_above=min(give_up_above, joint.solver["cost"]))
         except IdentificationError as e:
             say(f"  that start failed ({e})")
         else:
-            stages.append({"stage": "whole model, again after a failed line search", "drive": "command",
-                           **_summary(again)})
+            stages.append({"stage": f"whole model, again after {why}", "drive": "command", **_summary(again)})
             # the converged one where the two end alike (within 0.1 % of the cost)
             bound = joint.solver["cost"] * (1 + 1e-3 if again.solver["status"] == "converged" else 1)
             if again.solver["cost"] < bound:
