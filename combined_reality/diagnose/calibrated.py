@@ -508,7 +508,10 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     for c in calibration["confounded"]:
         say(f"  on these runs {c['effect']}.{c['parameter']} trades off against {c['quantity']} (r = {c['r']:+.3f})")
     x_idx = base_val.outputs.index("x")
+    t7 = time.perf_counter()
     subsystems = subsystem_split(nominal.cylinder, nominal.cylinder, runs[0], valid, base_val, opts, segments)
+    found["wall_s"]["pair_and_subsystems"] = round(time.perf_counter() - t6, 3)
+    found["wall_s"]["subsystems"] = round(time.perf_counter() - t7, 3)
     return Diagnosis(
         cylinder=nominal.cylinder, train=runs[0], valid=valid, options=opts,
         baseline={"rmse_x_validation": base_rmse, "rmse_p1_validation": base_val.rmse("p1"),
