@@ -7,8 +7,9 @@ nothing (a leak: critical ratio 0.66 for 0.38, every candidate without gain). He
 candidate effect is calibrated WITH the file's quantities, and the calibrated models are compared
 on VALID; the nominal calibration is one of them (`none`), not the ground the others stand on.
 
-1. The calibration's first two stages, as `calibrate` runs them: the force balance (pressure
-   drive) and the valve and chambers (chambers drive, driven by the measured motion).
+1. The calibration's first stages, as `calibrate` runs them: the force balance (pressure drive),
+   the valve and chambers (chambers drive, driven by the measured motion), and the force
+   balance once more through the command-driven model with that valve.
 2. Every candidate is screened in the stage that sees it, where it is cheap to fit and cannot be
    imitated by what the other subsystem would bend:
    - pneumatic effects (leakage, heat transfer, valve delay, supply droop) in the valve and
@@ -22,20 +23,25 @@ on VALID; the nominal calibration is one of them (`none`), not the ground the ot
      seen through the pressures the model itself computes. (The pressure drive's own cost is
      dominated by the random walk its noisy input pressures drive: a leak case's friction
      asymmetry "gained" 54 % there with its parameters at 3 % and its interval residual up.)
-   Meanwhile the whole model is calibrated without an effect: the nominal calibration.
-3. The candidates that remove a clear share of their screen's excess above the noise are
-   calibrated as a whole (every calibrated quantity and the effect, command drive) from their
-   own staged start (the screen's values and node states, the other subsystem's from its
-   stage); where that ends above the nominal calibration's TRAIN cost, once more nested from the
-   nominal calibration with the effect neutral, so a candidate never fits TRAIN worse than `none`.
-4. The calibrated models are scored on VALID and the verdict decided by the rules of the
-   diagnosis (analysis.decide): significance against the nominal calibration, the share of the
-   gap explained, the pair.
+3. The candidates that remove a clear share of their stage's excess above the noise (choose)
+   are calibrated as a whole (every calibrated quantity and the effect, command drive) from
+   their staged start (the screen's values and node states, the other subsystem's from its
+   stage), the best screen first. Then the whole model without an effect (the nominal
+   calibration, `none`), given up once it stays well above the best candidate on TRAIN (it
+   cannot become the better model). Where a candidate ends above the nominal calibration's
+   TRAIN cost, it is fitted once more nested from it with the effect neutral: a candidate never
+   fits TRAIN worse than `none`.
+4. The calibrated models are scored on VALID, the best screen first, ending at the first that
+   closes the gap or removes nearly all of what `none` leaves on TRAIN; the verdict by the
+   rules of the diagnosis (analysis.decide): significance against the nominal calibration, the
+   share of the gap explained, the pair. Where no candidate improves VALID and the nominal
+   calibration fits TRAIN to the noise, the verdict is `none` (no effect shows in TRAIN).
 
 Two effects of the vocabulary are quantities the calibration estimates under another name
 (ABSORBED: the moving mass, the valve's overlap): they are not fitted, and a mis-set mass or
 overlap says so. What a run cannot separate beyond that is read from the calibrated candidates'
-correlations: an effect parameter that trades off against a calibrated quantity.
+correlations (an effect parameter that trades off against a calibrated quantity) and from the
+runs themselves (calibrate.separability: the motion that tells an effect from what it imitates).
 """
 from __future__ import annotations
 
