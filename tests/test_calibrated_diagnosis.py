@@ -44,11 +44,12 @@ def _screen(effect: str, share: float, gain: float = 0.1) -> Screen:
 
 
 def test_the_screen_passes_the_clear_shares_of_both_stages_best_first():
-    screens = [_screen("leakage", 0.95, 0.8), _screen("heat_transfer", 0.35), _screen("supply_droop", 0.05),
-               _screen("friction_asymmetry", 0.3), _screen("friction_position", 0.08),
+    screens = [_screen("leakage", 0.95, 0.8), _screen("heat_transfer", 0.35, 0.05), _screen("supply_droop", 0.05),
+               _screen("friction_asymmetry", 0.3, 0.2), _screen("friction_position", 0.08),
+               _screen("friction_dynamics", 0.5, 0.004),  # under half a percent of its stage's cost
                Screen(effect="valve_delay", stage="valve and chambers", error="failed")]
     chosen = [s.effect for s in choose(screens, screen_min=0.2, screen_share=0.1, leaders=3)]
-    assert chosen == ["leakage", "heat_transfer", "friction_asymmetry"]
+    assert chosen == ["leakage", "friction_asymmetry", "heat_transfer"]  # by the share of the stage's cost
     # a share under screen_share of the best one's is left out, however large on its own
     assert [s.effect for s in choose(screens, 0.2, 0.4, 3)] == ["leakage"]
     assert choose([_screen("leakage", 0.9, gain=0.0)], 0.2, 0.1, 3) == []  # no gain on the stage's cost
