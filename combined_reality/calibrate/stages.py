@@ -178,11 +178,13 @@ def effect_names(effects: Sequence[Effect], drive: str = "command") -> tuple[str
 def run_stage(name: str, cyl: Cylinder, runs: Sequence[Run], drive: str, estimate: Sequence[str],
               opts: CalibrateOptions, say: Callable[[str], None], nodes: np.ndarray | None = None,
               effects: Sequence[Effect] = (), start_only: bool | None = None,
-              give_up_above: float = math.inf, held: Sequence[str] = ()) -> IdentifyResult | None:
+              give_up_above: float = math.inf, held: Sequence[str] = (), restart: bool | None = None,
+              give_up_after: int = IdentifyOptions.give_up_after) -> IdentifyResult | None:
     """One stage: the one identifier on the plant of `drive` with the effects that stage sees,
     their parameters estimated too (but for the effects named in `held`). The first two stages
     only start the whole model's fit (`start_only` by default), which settles their node states
-    and escapes a wrong basin itself (it is restarted when it ends above the noise)."""
+    and escapes a wrong basin itself (`restart`, by default in the command drive: a fit that ends
+    above the noise is started again)."""
     effects = tuple(e for e in effects if applies(e, drive))
     estimate = tuple(estimate) + effect_names([e for e in effects if e.name not in held], drive)
     if not estimate:
@@ -191,8 +193,9 @@ def run_stage(name: str, cyl: Cylinder, runs: Sequence[Run], drive: str, estimat
     start_only = drive != "command" if start_only is None else start_only
     res = identify(cyl, runs, IdentifyOptions(drive=drive, estimate=estimate, interval_s=opts.interval_s,
                                               max_iter=opts.max_iter, prefit=False, threads=opts.threads,
-                                              start_only=start_only, restart_misfit=drive == "command",
-                                              give_up_above=give_up_above),
+                                              start_only=start_only,
+                                              restart_misfit=drive == "command" if restart is None else restart,
+                                              give_up_above=give_up_above, give_up_after=give_up_after),
                    effects=effects, prior=smooth_valve_prior(), nodes=nodes, progress=stage_steps(say, name))
     say(f"  {name}: {res.solver['status']} after {res.solver['iterations']} iterations, "
         f"{time.perf_counter() - t0:.1f} s, residual {res.solver['residual_sigma']:.3g} x noise")

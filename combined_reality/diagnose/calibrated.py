@@ -80,8 +80,10 @@ SCREEN_ITER = 10  # Gauss-Newton iterations of a screen at most
 # were 0.8 % and less
 SCREEN_MIN_GAIN = 0.005
 # a screen that has not removed a tenth of its stage's excess above the noise, or half of
-# SCREEN_MIN_GAIN of its cost, within IdentifyOptions.give_up_after iterations is given up
+# SCREEN_MIN_GAIN of its cost, within SCREEN_GIVE_UP_AFTER iterations is given up (a screen only
+# ranks: a fit that leads somewhere gains that much in its first iterations)
 SCREEN_GIVE_UP = 0.1
+SCREEN_GIVE_UP_AFTER = 4
 STALLED = 2  # a nested screen that ends within this many iterations without a gain did not move
 STRONG_CORRELATION = 0.95  # |r| above which an effect parameter and a calibrated quantity trade off
 
@@ -150,7 +152,7 @@ def _screen_fit(base: IdentifyResult, runs: Sequence[Run], drive: str, estimate:
     try:
         with np.errstate(all="ignore"):
             res = run_stage(f"screen {effect.name}", base.cylinder, runs, drive, estimate, opts, _quiet, base.nodes,
-                            (effect,), start_only=False,
+                            (effect,), start_only=False, restart=False, give_up_after=SCREEN_GIVE_UP_AFTER,
                             give_up_above=base.solver["cost"] - max(SCREEN_GIVE_UP * _excess(base),
                                                                     0.5 * SCREEN_MIN_GAIN * base.solver["cost"]))
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
