@@ -271,7 +271,8 @@ def force_balance_in_model(cyl: Cylinder, runs: Sequence[Run], options: Calibrat
     start, nodes, effects = joint_start(cyl, mech, pneu)
     return run_stage("2/3 the force balance through the whole model (the valve and chambers as found)", start, runs,
                      "command", estimate, replace(options, max_iter=min(options.max_iter, 20)), say, nodes, effects,
-                     start_only=start_only, held=[e.name for e in effects if e.subsystem != "mechanical"])
+                     start_only=start_only, held=[e.name for e in effects if e.subsystem != "mechanical"],
+                     restart=False)
 
 
 def model_start(cyl: Cylinder, mech: IdentifyResult | None, pneu: IdentifyResult | None,
