@@ -67,6 +67,12 @@ class DiagnoseOptions:
     # ... and a significant candidate whose calibration removes this share of what the calibration
     # without an effect leaves on TRAIN above the noise leaves the lower screens uncalibrated
     train_dominant: float = 0.9
+    # ... and a candidate that removes train_explains of what the calibration without an effect
+    # leaves on TRAIN above the noise, where that is train_gap x the noise or more, counts when it
+    # improves VALID significantly (z) by less than min_shrink: VALID holds what the calibrated
+    # model extrapolates to beside the effect (diagnose.calibrated.by_train)
+    train_explains: float = 0.5
+    train_gap: float = 1.1
     leaders: int = 3  # further starts for this many of the best significant candidates
     # a candidate that explains this share of the gap after the first pass leaves nothing for
     # the other effects' further starts: only its own run (they can only improve its figure)
