@@ -50,7 +50,7 @@ import numpy as np
 if __name__ == "__main__":  # run as a script: make the project's packages importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from combined_reality.files import read_run, write_run  # noqa: E402
+from combined_reality.files import write_run  # noqa: E402
 from combined_reality.identify import (IdentificationError, IdentifyOptions, MovingHorizonEstimator,  # noqa: E402
                                        OnlineOptions, identify)
 from combined_reality.live import InlineEstimator, simulate_run  # noqa: E402

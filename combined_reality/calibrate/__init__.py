@@ -1,11 +1,15 @@
 """Calibration: estimate what the cylinder file only guesses (the valve's flow characteristic,
 the critical ratio, dead volumes, moving mass, pressure sensor offsets, a constant external
 force) together with the friction, staged the way the physics separates them."""
-from .identifiability import Identifiability, assess, flow_coverage
+from .identifiability import Identifiability, assess, flow_coverage, separability
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets
-from .stages import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, calibrate, smooth_valve_prior,
-                     validation_figures, with_model_error)
+from .stages import (CALIBRATED, MECHANICAL, OTHER_STARTS_ABOVE, PNEUMATIC, CalibrateOptions, Calibration, applies,
+                     calibrate, effect_names, finish, first_stages, force_balance, force_balance_in_model,
+                     joint_start, misfit_note, model_start, run_stage, smooth_valve_prior, stage_summaries,
+                     validation_figures, valve_and_chambers, whole_model, with_model_error)
 
-__all__ = ["Identifiability", "assess", "flow_coverage", "chamber_prefit", "force_balance_prefit", "settled_offsets",
-           "CALIBRATED", "MECHANICAL", "PNEUMATIC", "CalibrateOptions", "Calibration", "calibrate",
-           "smooth_valve_prior", "validation_figures", "with_model_error"]
+__all__ = ["Identifiability", "assess", "flow_coverage", "separability", "chamber_prefit", "force_balance_prefit",
+           "settled_offsets", "CALIBRATED", "MECHANICAL", "OTHER_STARTS_ABOVE", "PNEUMATIC", "CalibrateOptions",
+           "Calibration", "applies", "calibrate", "effect_names", "finish", "first_stages", "force_balance",
+           "force_balance_in_model", "joint_start", "misfit_note", "model_start", "run_stage", "smooth_valve_prior", "stage_summaries", "validation_figures",
+           "valve_and_chambers", "whole_model", "with_model_error"]

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from sim.cylinder import OPENING_GRID, VALVE_DIRECTIONS, Cylinder, flow_levels_at
 
-__all__ = ["CLOSED_LEVEL", "dead_band_in_overlap"]
+__all__ = ["CLOSED_LEVEL", "dead_band_in_overlap", "overlap_as_dead_band"]
 
 # a grid level below this fraction of the full opening's level counts as closed (a fit leaves a
 # closed segment's rise at its bound, 0)
@@ -43,4 +43,25 @@ def dead_band_in_overlap(cyl: Cylinder) -> dict[str, dict[str, float]]:
         new_levels = flow_levels_at(OPENING_GRID, levels, [s0 + s * (1.0 - s0) for s in OPENING_GRID])
         out[d] = {f"overlap_{d}": new_overlap,
                   **{f"flow_{d}_{k + 1}": b - a for k, (a, b) in enumerate(zip((0.0, *new_levels), new_levels))}}
+    return out
+
+
+def overlap_as_dead_band(cyl: Cylinder) -> dict[str, dict[str, float]]:
+    """The other way round: per direction with an overlap, the overlap at zero and the same
+    curve on the grid from there (closed up to the old overlap, then rising as before), by
+    parameter name. An overlap and a curve that starts flat fit the runs alike, and a fit can
+    stay on the wrong side of that choice: from zero, the rises below the old overlap may grow."""
+    v = cyl.valve
+    out: dict[str, dict[str, float]] = {}
+    for d in VALVE_DIRECTIONS:
+        o = getattr(v, f"overlap_{d}")
+        if o <= 0:
+            continue
+        levels = getattr(v, f"flow_{d}")
+        # an opening a of the new grid is the opening (a - o) / (1 - o) beyond the old overlap
+        beyond = [a for a in OPENING_GRID if a > o]
+        at = flow_levels_at(OPENING_GRID, levels, [(a - o) / (1.0 - o) for a in beyond])
+        new = [0.0] * (len(OPENING_GRID) - len(beyond)) + list(at)  # levels never fall (flow_levels_at)
+        out[d] = {f"overlap_{d}": 0.0,
+                  **{f"flow_{d}_{k + 1}": b - a for k, (a, b) in enumerate(zip((0.0, *new), new))}}
     return out

@@ -16,9 +16,9 @@ import numpy as np
 from sim.cylinder import OPENING_GRID, PARAMETERS, Cylinder
 
 from ..files import Run
-from ..identify import IdentifyResult
+from ..identify import IdentifyResult, velocity_estimate
 
-__all__ = ["Identifiability", "assess", "MIN_COVERAGE", "STRONG_CORRELATION"]
+__all__ = ["Identifiability", "assess", "separability", "MIN_COVERAGE", "STRONG_CORRELATION"]
 
 MIN_COVERAGE = 0.003  # share of the samples a flow segment needs to count as measured
 STRONG_CORRELATION = 0.95  # |r| above which two estimates are not told apart
@@ -47,10 +47,11 @@ class Identifiability:
     undetermined: list[dict] = field(default_factory=list)  # name, why, advice
     correlated: list[dict] = field(default_factory=list)  # a, b, r
     coverage: dict[str, float] = field(default_factory=dict)  # flow segment -> share of the samples
+    effects: list[dict] = field(default_factory=list)  # separability: the effects the runs cannot tell apart
 
     def to_json(self) -> dict:
         return {"determined": self.determined, "undetermined": self.undetermined, "correlated": self.correlated,
-                "flow_coverage": self.coverage}
+                "flow_coverage": self.coverage, "effects_not_separated": self.effects}
 
     def lines(self) -> list[str]:
         """The report for people, a sentence per line: what the runs lacked (neighbouring
@@ -66,6 +67,9 @@ class Identifiability:
             out += [f"  {c['a']} and {c['b']} (correlation {c['r']:+.2f})" for c in self.correlated]
         if not out:
             out.append("Every calibrated parameter is determined by these runs.")
+        if self.effects:
+            out.append("Effects these runs cannot tell from calibrated quantities (what they would need):")
+            out += [f"  {e['effect']} from {e['from']}: {e['found']}; record {e['needs']}." for e in self.effects]
         return out
 
 
@@ -129,9 +133,93 @@ def flow_coverage(cyl: Cylinder, runs: Sequence[Run]) -> dict[str, float]:
     return out
 
 
+# what tells each effect from the calibrated quantities it can imitate: (the quantities, the
+# run content that separates them, how much of it is enough). An effect the runs hold too little
+# of that content for is fitted all the same, but a calibrated quantity may stand in for it
+SEPARATES = {
+    "leakage": ("the valve's opening near closed (overlap, first segments) and the dead volumes",
+                "holds with the valve closed at a pressure difference of 1 bar or more (the pressures relax "
+                "towards each other)", 1.0, "s"),
+    "heat_transfer": ("the dead volumes and the critical ratio",
+                      "holds with the valve closed right after moves (the pressures relax as the air's temperature "
+                      "returns)", 1.0, "s"),
+    "valve_delay": ("the flow characteristic at small openings",
+                    "steps or pulses of the command (a jump of 0.1 or more from one sample to the next)", 10, "steps"),
+    "supply_droop": ("the flow characteristic at large openings",
+                     "sustained large openings (|u| above 0.5)", 0.5, "s"),
+    "friction_asymmetry": ("the constant external force and the pressure sensors' offsets",
+                           "slow moves in both directions (5 to 50 mm/s)", 1.0, "s each way"),
+    "friction_position": ("the friction's level (Fc, kp)", "moves over the whole stroke", 0.8, "of the stroke"),
+    "stiction": ("the Coulomb friction Fc", "starts from rest in both directions", 10, "starts"),
+    "friction_dynamics": ("the Coulomb and viscous friction", "reversals of the motion", 10, "reversals"),
+}
+_CLOSED = 0.01  # a command below this (or below the valve's overlap) leaves the valve all but closed
+_AT_REST = 1e-3  # m/s
+
+
+def separability(cyl: Cylinder, runs: Sequence[Run], names: Sequence[str] = tuple(SEPARATES)) -> list[dict]:
+    """The effects (of `names`) whose separating content (SEPARATES) these runs hold too little of:
+    effect, from (the quantities), needs, found (in words), amount and enough."""
+    out = []
+    L = cyl.geometry.stroke
+    closed_below = max(_CLOSED, cyl.valve.overlap_extend, cyl.valve.overlap_retract)
+    amount = {n: 0.0 for n in SEPARATES}
+    ext = ret = 0.0
+    lo, hi = math.inf, -math.inf
+    for r in runs:
+        ok = np.isfinite(r.x) & np.isfinite(r.p1) & np.isfinite(r.p2)
+        if r.n < 30 or ok.sum() < 30:
+            continue
+        dt = r.sample_period
+        v = velocity_estimate(r.t, np.where(ok, r.x, np.interp(r.t, r.t[ok], r.x[ok])))
+        rest = np.abs(v) < _AT_REST
+        closed = np.abs(r.u) < closed_below
+        moving = np.abs(v) > 5 * _AT_REST
+        # within 2 s after motion
+        last_move = np.maximum.accumulate(np.where(moving, np.arange(r.n), -10 ** 9))
+        after_move = (np.arange(r.n) - last_move) * dt < 2.0
+        amount["leakage"] += dt * float(np.sum(ok & rest & closed & (np.abs(r.p1 - r.p2) > 1e5)))
+        amount["heat_transfer"] += dt * float(np.sum(ok & rest & closed & after_move))
+        amount["valve_delay"] += float(np.sum(np.abs(np.diff(r.u)) >= 0.1))
+        amount["supply_droop"] += dt * float(np.sum(np.abs(r.u) > 0.5))
+        slow = (np.abs(v) > 5e-3) & (np.abs(v) < 5e-2)
+        ext += dt * float(np.sum(slow & (v > 0)))
+        ret += dt * float(np.sum(slow & (v < 0)))
+        lo, hi = min(lo, float(np.nanmin(r.x))), max(hi, float(np.nanmax(r.x)))
+        # the motion as a sequence of rest (0) and directions (+-1), samples in between left out
+        label = np.where(rest, 0, np.where(moving, np.sign(v), 9))
+        keep = label != 9
+        seq, idx = label[keep], np.flatnonzero(keep)
+        change = np.flatnonzero(np.diff(seq) != 0) + 1
+        runs_of = np.split(seq, change)
+        firsts = np.r_[0, change]
+        lengths = np.diff(np.r_[idx[firsts], r.n])
+        kinds = [int(x[0]) for x in runs_of]
+        moves = [k for k in kinds if k != 0]
+        amount["friction_dynamics"] += float(sum(a != b for a, b in zip(moves[:-1], moves[1:])))
+        # a start: 50 ms or more at rest, then motion
+        started = [(k1, n0) for k0, k1, n0 in zip(kinds[:-1], kinds[1:], lengths[:-1]) if k0 == 0 and k1 != 0
+                   and n0 * dt >= 0.05]
+        amount["stiction"] += 2.0 * min(sum(k > 0 for k, _ in started), sum(k < 0 for k, _ in started))
+    amount["friction_asymmetry"] = min(ext, ret)
+    amount["friction_position"] = max(0.0, hi - lo) / L if math.isfinite(hi) else 0.0
+    for n in names:
+        if n not in SEPARATES:
+            continue
+        quantities, needs, enough, unit = SEPARATES[n]
+        have = amount[n]
+        if have >= enough:
+            continue
+        shown = f"{have:.2g} {unit}" if unit not in ("steps", "starts", "reversals") else f"{have:.0f} {unit}"
+        out.append({"effect": n, "from": quantities, "needs": needs, "amount": have, "enough": enough, "unit": unit,
+                    "found": f"these runs hold {shown} of it ({enough:g} needed)"})
+    return out
+
+
 def assess(result: IdentifyResult, runs: Sequence[Run]) -> Identifiability:
     """The identifiability of the estimates of a fit on these runs (module docstring)."""
-    rep = Identifiability(coverage=flow_coverage(result.cylinder, runs))
+    rep = Identifiability(coverage=flow_coverage(result.cylinder, runs),
+                          effects=separability(result.cylinder, runs))
     duration = sum(r.duration for r in runs)
     names = list(result.params)
     for n in names:

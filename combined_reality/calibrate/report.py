@@ -116,8 +116,9 @@ def _stages_html(cal: Calibration) -> str:
                    f"<td class=\"num\">{s['residual_sigma']:.3g} ×</td></tr>" for s in cal.stages)
     return (f"<table><tr><th>stage</th><th>driven by</th><th>status</th><th>iterations</th><th>time</th>"
             f"<th>residual (sensor noise)</th></tr>{rows}</table><p class=\"explain\">The piston's force balance "
-            "driven by the measured pressures and the valve and chambers driven by the measured motion start the "
-            "whole model, driven by the command alone.</p>")
+            "driven by the measured pressures and the valve and chambers driven by the measured motion, then the "
+            "force balance once more through the command-driven model with that valve, start the whole model, driven "
+            "by the command alone.</p>")
 
 
 def _identifiability_html(cal: Calibration) -> str:
@@ -134,6 +135,11 @@ def _identifiability_html(cal: Calibration) -> str:
                      f"<ul>{items}</ul>")
     if not parts:
         parts.append("<p>Every calibrated parameter is determined by these runs.</p>")
+    if ident.effects:
+        items = "".join(f"<li><code>{escape(e['effect'])}</code> from {escape(e['from'])}: {escape(e['found'])}; "
+                        f"record {escape(e['needs'])}.</li>" for e in ident.effects)
+        parts.append("<p>Effects these runs hold too little of what tells them from a calibrated quantity:</p>"
+                     f"<ul>{items}</ul>")
     return "".join(parts)
 
 
@@ -148,9 +154,11 @@ def write_calibration_report(cal: Calibration, start: Cylinder, runs: Sequence[R
     named["valve"] = png_bytes(_valve_figure(cal, start))
     s = result.solver
     ok = result.explains_run
-    box = [f"The calibrated model explains the runs to {s['residual_sigma']:.2f} × the sensor noise." if ok else
+    box = [f"The calibrated model explains the runs to {s['residual_sigma']:.2f} × the sensor noise." if ok and
+           not cal.misfit else (f"Not explained: {cal.misfit}." if ok else
            f"Even calibrated, the model does not explain the runs: the residual is {s['residual_sigma']:.3g} × the "
-           "sensor noise; an effect the model lacks is at work (combined-reality diagnose with the calibrated file)."]
+           "sensor noise; an effect the model lacks is at work (combined-reality diagnose --calibrate finds it and "
+           "calibrates with it).")]
     if validation is not None:
         box.append(f"On VALID, a run no fit saw: {validation.normalized_rms():.2f} × the sensor noise (position RMSE "
                    f"{um(validation.rmse('x'))}).")

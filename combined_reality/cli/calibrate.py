@@ -115,6 +115,8 @@ def run(args) -> int:
     print(f"fit: rmse_x {f['rmse_x'] * 1e6:.2f} um, rmse_p1 {f['rmse_p1']:.0f} Pa, rmse_p2 {f['rmse_p2']:.0f} Pa; "
           f"solver: {s['status']}, residual sigma {s['residual_sigma']:.3g} x noise, "
           f"{time.perf_counter() - t0:.1f} s in all")
+    if cal.misfit:
+        print(f"not explained: {cal.misfit}")
     validation = None
     if valid is not None:
         validation = validate(cal.cylinder, (), valid, args.horizon)

@@ -17,7 +17,9 @@ def add_parser(sub) -> None:
                                     "score it on VALID. Prints the verdict (the effect that best explains the gap, "
                                     "or none), the ranking with each candidate's shrink of the validation error, "
                                     "and where the gap lies (operating regimes, subsystems).")
-    dg.add_argument("train", help="run CSV the models are identified on")
+    dg.add_argument("train", nargs="+", metavar="TRAIN.csv",
+                    help="run CSV the models are identified on; with --calibrate several (a calibration run and an "
+                         "ordinary one) are calibrated together")
     dg.add_argument("--validate", required=True, help="run CSV the models are scored on (never fitted)")
     dg.add_argument("--config", help="cylinder TOML (default: the one TRAIN's header names, else the built-in "
                                      "cylinder A)")
@@ -33,8 +35,9 @@ def add_parser(sub) -> None:
                                                       "of CPUs)")
     dg.add_argument("--calibrate", action="store_true",
                     help="calibrate the cylinder file's valve characteristic, dead volumes, mass and sensor offsets on "
-                         "TRAIN first and diagnose the calibrated model: mis-set quantities are reported as such, "
-                         "not taken for an effect")
+                         "TRAIN with every candidate effect and compare the calibrated models on VALID: mis-set "
+                         "quantities are reported as such, not taken for an effect, and an effect is not bent into "
+                         "them")
     add_max_rows(dg)
     dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     dg.set_defaults(func=run)
@@ -46,6 +49,8 @@ def run(args) -> int:
     from ..diagnose import DiagnoseOptions, diagnose
     from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
 
+    if len(args.train) > 1 and not args.calibrate:
+        raise UsageError("several TRAIN runs are calibrated together with --calibrate; without it, give one.")
     names = options.parameter_names(args.candidates, "--candidates") if args.candidates is not None else tuple(EFFECTS)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:
@@ -54,18 +59,20 @@ def run(args) -> int:
     if args.report and not args.report.lower().endswith((".html", ".htm")):
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     check_paths({"--json": args.json, "--report": args.report, "--rerun save": target if mode == "save" else None},
-                inputs=[args.config, args.train, args.validate])
-    train, valid = read_run(args.train, args.max_rows), read_run(args.validate, args.max_rows)
-    cyl, which = cylinder_for_runs(args.config, [train, valid])
-    warning = check_train_and_valid(cyl, train, valid, args.train, args.validate)
+                inputs=[args.config, *args.train, args.validate])
+    train, valid = [read_run(p, args.max_rows) for p in args.train], read_run(args.validate, args.max_rows)
+    cyl, which = cylinder_for_runs(args.config, [*train, valid])
+    warnings = [w for run, name in zip(train, args.train)
+                if (w := check_train_and_valid(cyl, run, valid, name, args.validate))]
     opts = DiagnoseOptions(candidates=names, horizon_s=args.horizon, workers=max(1, args.workers),
                            calibrate=args.calibrate)
-    preflight_runs(cyl, [train, valid])  # last: its notes follow no refusal
+    preflight_runs(cyl, [*train, valid])  # last: its notes follow no refusal
     if which and not args.quiet:
         eprint(which)
-    if warning:
+    for warning in warnings:
         eprint(f"combined-reality diagnose: warning: {warning}")
-    diagnosis = diagnose(cyl, train, valid, opts, progress=progress_printer(args.quiet))
+    diagnosis = diagnose(cyl, train if args.calibrate else train[0], valid, opts,
+                         progress=progress_printer(args.quiet))
     result = diagnosis.to_json()
     print(format_summary(result, args.horizon))
     if args.json:
@@ -93,11 +100,19 @@ def run(args) -> int:
 def format_summary(result: dict, horizon_s: float) -> str:
     """The console view of a diagnosis (its JSON form): baseline, verdict, ranking, where."""
     base = result["baseline"]
-    lines = [f"validation position RMSE of the nominal model: {base['rmse_x_validation'] * 1e6:.1f} um "
+    cal = result.get("calibration") or {}
+    by = f" with {cal['model']}" if cal.get("model", "none") != "none" else ""
+    lines = [f"validation position RMSE of the nominal model{' (calibrated on TRAIN)' if cal else ''}: "
+             f"{base['rmse_x_validation'] * 1e6:.1f} um "
              f"(segments of {horizon_s:g} s, all outputs {base['normalized_rms']:.2f} x the sensor noise)",
-             *(f"mis-set in the cylinder file (calibrated on TRAIN): {m['quantity']} {m['file']:.4g} -> "
-               f"{m['calibrated']:.4g} {m['unit']} ({m['change']:+.1%})"
-               for m in (result.get("calibration") or {}).get("mis_set", [])),
+             *(f"mis-set in the cylinder file (calibrated on TRAIN{by}): {m['quantity']} {m['file']:.4g} -> "
+               f"{m['calibrated']:.4g} {m['unit']}" + (f" ({m['change']:+.1%})" if math.isfinite(m['change']) else "")
+               for m in cal.get("mis_set", [])),
+             *(f"these runs cannot separate {c['effect']}.{c['parameter']} from {c['quantity']} "
+               f"(correlation {c['r']:+.3f})" for c in cal.get("confounded", [])),
+             *(f"{e['effect']} may be imitated by {e['from']}: what separates them best, {e['needs']}: "
+               f"{e['found']}" for e in cal.get("not_separated", [])),
+             *([f"calibration: {cal['misfit']}"] if cal.get("misfit") else []),
              f"verdict: {result['verdict']}" + (f" ({result['verdict_note']})" if result.get("verdict_note") else ""),
              f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'z':>6s} {'rmse_x [um]':>12s}  parameters"]
     for c in result["ranking"]:

@@ -53,7 +53,26 @@ class DiagnoseOptions:
     # cut by time would make the verdict depend on the machine's load
     closed_gap: float = 1.2  # a candidate leaving at most this x the noise has closed the gap
     explained: float = 0.5  # a verdict must explain this share of the gap (excess error variance)
-    calibrate: bool = False  # calibrate the cylinder file's guesses on TRAIN first (the nominal baseline)
+    # calibrate the cylinder file's guesses on TRAIN with every candidate (diagnose.calibrated): the
+    # nominal calibration is the candidate `none`
+    calibrate: bool = False
+    # with calibrate: a candidate is calibrated as a whole when its screen (in the stage that sees
+    # it) removes this share of that stage's excess above the noise, and screen_share of the best
+    # screen's; the `leaders` best of them
+    screen_min: float = 0.2
+    # ... and the calibration without an effect is given up (status above_reference) once it stays
+    # above this multiple of the best screened candidate's calibrated TRAIN cost for
+    # IdentifyOptions.give_up_after iterations in a row: it cannot become the better model
+    nominal_give_up: float = 1.25
+    # ... and a significant candidate whose calibration removes this share of what the calibration
+    # without an effect leaves on TRAIN above the noise leaves the lower screens uncalibrated
+    train_dominant: float = 0.9
+    # ... and a candidate that removes train_explains of what the calibration without an effect
+    # leaves on TRAIN above the noise, where that is train_gap x the noise or more, counts when it
+    # improves VALID significantly (z) by less than min_shrink: VALID holds what the calibrated
+    # model extrapolates to beside the effect (diagnose.calibrated.by_train)
+    train_explains: float = 0.5
+    train_gap: float = 1.1
     leaders: int = 3  # further starts for this many of the best significant candidates
     # a candidate that explains this share of the gap after the first pass leaves nothing for
     # the other effects' further starts: only its own run (they can only improve its figure)
@@ -182,6 +201,7 @@ class Candidate:
     effects: tuple[Effect, ...] = field(default=(), repr=False)
     nodes: np.ndarray | None = field(default=None, repr=False)  # TRAIN node states of the fit
     cylinder: Cylinder | None = field(default=None, repr=False)  # the fitted model, for its validation
+    calibration: dict | None = None  # with DiagnoseOptions.calibrate: how the candidate was calibrated
 
     @property
     def n_params(self) -> int:
@@ -196,8 +216,11 @@ class Candidate:
         if self.validation is not None:
             out["rmse_p1_validation"] = self.validation.rmse("p1")
             out["rmse_p2_validation"] = self.validation.rmse("p2")
+            out["normalized_rms_validation"] = self.validation.normalized_rms()
         if self.error:
             out["error"] = self.error
+        if self.calibration is not None:
+            out["calibration"] = self.calibration
         return out
 
 
@@ -476,11 +499,13 @@ def validate_screened(cands: list[Candidate], nominal: NominalFit, valid: Run, s
     scored = {d.effect: d for d in done}
     out = [scored.get(c.effect, c) for c in cands]
     for c in out:
-        _score(c, base, base_rmse_x, opts)
+        score_candidate(c, base, base_rmse_x, opts)
     return out
 
 
-def _score(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOptions) -> None:
+def score_candidate(c: Candidate, base: Validation, base_rmse_x: float, opts: DiagnoseOptions) -> None:
+    """A validated candidate's figures against the baseline `base` (shrink, z, significance,
+    score), in place; one whose simulation of VALID diverges is marked so."""
     if c.validation is None or not c.validation.normalized_rms() < 1e6 * base.normalized_rms():
         if c.validation is not None:
             c.status, c.error = "diverged", ("the re-identified model's simulation of VALID diverges (not finite, "
@@ -558,15 +583,16 @@ _MIS_SET_ABSOLUTE = {"offset_p1": 1000.0, "offset_p2": 1000.0, "external_force":
 _MIS_SET_RELATIVE = 0.02
 
 
-def mis_set_quantities(file_cyl: Cylinder, cal) -> list[dict]:
-    """The cylinder file's quantities that the calibration on TRAIN found off (beyond 3 std and
-    2 %, offsets 1 kPa, a constant force 1 N): name, file and calibrated value, std, unit. The
-    valve characteristic is one row: its largest departure over the knots of both directions."""
+def mis_set_quantities(file_cyl: Cylinder, params: dict) -> list[dict]:
+    """The cylinder file's quantities that a calibration on TRAIN found off (beyond 3 std and
+    2 %, offsets 1 kPa, a constant force 1 N), from its estimates (`params`: name -> Estimate):
+    name, file and calibrated value, std, unit. The valve characteristic is one row: its largest
+    departure over the knots of both directions."""
     from sim.cylinder import FLOW_CHARACTERISTIC
 
     out, flow = [], []
-    for n, e in cal.result.params.items():
-        if n in ("Fc", "Fv", "kp"):
+    for n, e in params.items():
+        if n in ("Fc", "Fv", "kp") or "." in n:
             continue
         f = file_cyl.value(n)
         d = e.value - f
@@ -586,25 +612,13 @@ def mis_set_quantities(file_cyl: Cylinder, cal) -> list[dict]:
     return out
 
 
-def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = DiagnoseOptions(),
-             progress: Callable[[str], None] | None = None) -> Diagnosis:
+def diagnose_as_filed(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = DiagnoseOptions(),
+                      progress: Callable[[str], None] | None = None) -> Diagnosis:
+    """The diagnosis with the cylinder file's values as they are: the nominal model's friction
+    identified on TRAIN, every candidate nested from it (module docstring)."""
     t_start = time.perf_counter()
     say = progress or (lambda _m: None)
     opts = options
-    calibration = None
-    if opts.calibrate:
-        # the nominal baseline from what the file only guesses, calibrated on TRAIN: a mis-set
-        # valve, volume, mass or offset is then reported as such, not taken for an effect
-        from ..calibrate import calibrate
-
-        say("calibrating the cylinder file's valve, volumes, mass and offsets on TRAIN ...")
-        cal = calibrate(cyl, [train], progress=say)
-        calibration = {"mis_set": mis_set_quantities(cyl, cal), "status": cal.result.solver["status"],
-                       "wall_s": round(cal.wall_s, 3)}
-        for m in calibration["mis_set"]:
-            say(f"  mis-set in the cylinder file: {m['quantity']} {m['file']:.4g} -> {m['calibrated']:.4g} "
-                f"{m['unit']} ({m['change']:+.1%})")
-        cyl = cal.cylinder
     say("identifying the nominal model on TRAIN ...")
     base = identify(cyl, [train], IdentifyOptions(restart_misfit=False), progress=stage_steps(progress, "nominal"))
     nominal = base.cylinder
@@ -646,12 +660,8 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
                 "further starts after it were not needed")
         cands = best_of_starts(cands + done, start)
         for c in cands:
-            _score(c, base_val, base_rmse, opts)
-    for c in cands:
-        say(f"  {c.effect:20s} " + (f"shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  z {c.z:6.1f}"
-                                     if math.isfinite(c.shrink) else f"not scored: {c.error or c.status}"))
-    ranking = sorted(cands, key=lambda c: (not c.significant, -c.score))
-    best = ranking[0] if ranking and ranking[0].significant else None
+            score_candidate(c, base_val, base_rmse, opts)
+    ranking, best = ranked(cands, say)
 
     pair = None
     if opts.pair and best is not None:
@@ -671,10 +681,20 @@ def diagnose(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOptions = D
                   "rmse_x_train": base.fit["rmse_x"], "train_cost": base.solver["cost"],
                   "horizon_s": opts.horizon_s,
                   "noise": {"x": float(base_val.noise[0]), "p": float(cyl.sensors.pressure_noise)}},
-        verdict=verdict, verdict_note=verdict_note, calibration=calibration, ranking=ranking, pair=pair,
+        verdict=verdict, verdict_note=verdict_note, ranking=ranking, pair=pair,
         regions=regions(nominal, valid, base_val, shown.validation if shown is not None else None),
         subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
         correlations=correlations, base_validation=base_val, wall_s=time.perf_counter() - t_start)
+
+
+def ranked(cands: list[Candidate], say: Callable[[str], None]) -> tuple[list[Candidate], Candidate | None]:
+    """The scored candidates, each said in a line; ranked, the significant ones first by score; and
+    the best one when it is significant."""
+    for c in cands:
+        say(f"  {c.effect:20s} " + (f"shrink {c.shrink:7.1%}  all outputs {c.shrink_all:7.1%}  z {c.z:6.1f}"
+                                     if math.isfinite(c.shrink) else f"not scored: {c.error or c.status}"))
+    ranking = sorted(cands, key=lambda c: (not c.significant, -c.score))
+    return ranking, ranking[0] if ranking and ranking[0].significant else None
 
 
 def further_starts(cands: list[Candidate], base: Validation, order: list[str], tried: set[tuple[str, int]],
@@ -705,7 +725,7 @@ def closes_gap(c: Candidate, base: Validation, base_rmse_x: float, opts: Diagnos
     """Whether one fit (of one start) leaves VALID significantly better and near the noise
     (`closed_gap`): then no further start can change the verdict much. Scored on a copy."""
     c = copy.copy(c)
-    _score(c, base, base_rmse_x, opts)
+    score_candidate(c, base, base_rmse_x, opts)
     return _near_noise(c, opts)
 
 
@@ -790,8 +810,8 @@ def _best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, 
                    f"leaves on TRAIN above the sensor noise; to change the verdict the pair needs {need:.0%} of "
                    f"it, and its fit stayed under {opts.pair_give_up * need:.0%} for {IdentifyOptions.give_up_after} "
                    "iterations in a row: given up, not validated")
-    _score(c, base_val, base_rmse, opts)
-    c.significant = c.significant and _gain_over(best.validation, c.validation, opts)
+    score_candidate(c, base_val, base_rmse, opts)
+    c.significant = c.significant and gain_over(best.validation, c.validation, opts)
     if math.isfinite(c.shrink):
         say(f"  {c.effect}: shrink {c.shrink:.1%}, all outputs {c.shrink_all:.1%}"
             + ("" if c.significant else " (not significantly better than the verdict alone)"))
@@ -814,7 +834,8 @@ def pair_need(base: Validation, best: Validation, opts: DiagnoseOptions) -> floa
     return max(need, 0.0)
 
 
-def _gain_over(ref: Validation, cand: Validation | None, opts: DiagnoseOptions) -> bool:
+def gain_over(ref: Validation, cand: Validation | None, opts: DiagnoseOptions) -> bool:
+    """Whether `cand` improves VALID significantly over `ref` (min_z and min_shrink)."""
     if cand is None:
         return False
     shrink, z = validation_gain(ref, cand)

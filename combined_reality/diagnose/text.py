@@ -67,8 +67,10 @@ def headline(d, strong: Callable[[str], str] = lambda s: s, esc: Callable[[str],
     cal = getattr(d, "calibration", None)
     if cal is not None:  # right after the headline: the baseline it speaks of is the calibrated model
         mis = cal.get("mis_set") or []
-        text = ("The cylinder file's valve, dead volumes, mass and sensor offsets were calibrated on TRAIN first "
-                "(the nominal model is the calibrated one); ")
+        model = cal.get("model", "none")
+        text = ("The cylinder file's valve, dead volumes, mass and sensor offsets were calibrated on TRAIN together "
+                "with each candidate (the nominal model is the calibration without an effect); "
+                + (f"as calibrated with {model}, " if model != "none" else ""))
         if mis:
             text += "mis-set in the file: " + "; ".join(
                 f"{m['quantity']} {format_value(m['file'], None, m['unit'])} → "

@@ -318,7 +318,9 @@ def warm_nodes(plant: Plant, cyl: Cylinder, S: np.ndarray, warm: np.ndarray) -> 
         raise ValueError(f"warm-start nodes of shape {warm.shape} do not fit {S.shape[1]} intervals")
     out = S.copy()
     out[:nb] = warm[:nb]
-    if plant.nx > nb:
+    # the chambers drive has no motion states (x, v are its inputs): its added states keep S's,
+    # which run_layout took from the measured motion
+    if plant.nx > nb and "x" in plant.state_names:
         names = plant.state_names
         ix, iv = names.index("x"), names.index("v")
         ip1 = names.index("p1") if "p1" in names else None

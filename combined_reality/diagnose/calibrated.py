@@ -1,0 +1,640 @@
+"""Calibration and diagnosis together (`diagnose --calibrate`): the cylinder file's values are
+off AND an effect the model lacks may be at work.
+
+A calibration alone bends what it calibrates (the valve, the volumes, the offsets, the friction
+law) to imitate an effect it lacks, and a diagnosis that starts from that bent model finds
+nothing (a leak: critical ratio 0.66 for 0.38, every candidate without gain). Here each
+candidate effect is calibrated WITH the file's quantities, and the calibrated models are compared
+on VALID; the nominal calibration is one of them (`none`), not the ground the others stand on.
+
+1. The calibration's first stages, as `calibrate` runs them: the force balance (pressure drive),
+   the valve and chambers (chambers drive, driven by the measured motion), and the force
+   balance once more through the command-driven model with that valve.
+2. Every candidate is screened in the stage that sees it, where it is cheap to fit and cannot be
+   imitated by what the other subsystem would bend:
+   - pneumatic effects (leakage, heat transfer, valve delay, supply droop) in the valve and
+     chambers, with the effect's parameters and the stage's own (the flow characteristic, the
+     critical ratio, the dead volumes, the offsets) free, nested from stage 2: the motion is
+     measured, so no friction law can imitate them. (With the characteristic held as stage 2 had
+     bent it, a leak removed 10 % of that stage's excess above the noise; with it free, 85 %.)
+   - mechanical effects (stiction, friction asymmetry, friction along the stroke, friction
+     with memory) in the whole command-driven model with the valve and chambers fixed as stage
+     2 left them, with the friction, the mass and the constant force free: the force balance
+     seen through the pressures the model itself computes. (The pressure drive's own cost is
+     dominated by the random walk its noisy input pressures drive: a leak case's friction
+     asymmetry "gained" 54 % there with its parameters at 3 % and its interval residual up.)
+3. The candidates that remove a clear share of their stage's excess above the noise (choose)
+   are calibrated as a whole (every calibrated quantity and the effect, command drive) from
+   their staged start (the screen's values and node states, the other subsystem's from its
+   stage), the best screen first. Then the whole model without an effect (the nominal
+   calibration, `none`), given up once it stays well above the best candidate on TRAIN (it
+   cannot become the better model). Where a candidate ends above the nominal calibration's
+   TRAIN cost, it is fitted once more nested from it with the effect neutral: a candidate never
+   fits TRAIN worse than `none`.
+4. The calibrated models are scored on VALID, the best screen first, ending at the first that
+   closes the gap or removes nearly all of what `none` leaves on TRAIN; the verdict by the
+   rules of the diagnosis (analysis.decide): significance against the nominal calibration, the
+   share of the gap explained, the pair. Where no candidate improves VALID and the nominal
+   calibration fits TRAIN to the noise, the verdict is `none` (no effect shows in TRAIN).
+
+Two effects of the vocabulary are quantities the calibration estimates under another name
+(ABSORBED: the moving mass, the valve's overlap): they are not fitted, and a mis-set mass or
+overlap says so. What a run cannot separate beyond that is read from the calibrated candidates'
+correlations (an effect parameter that trades off against a calibrated quantity) and from the
+runs themselves (calibrate.separability: the motion that tells an effect from what it imitates).
+"""
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable, Sequence
+
+import numpy as np
+
+from sim.cylinder import Cylinder
+from sim.effects import EFFECTS, Effect
+
+from ..calibrate import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, finish,
+                         first_stages, force_balance_in_model, misfit_note, model_start, run_stage, separability,
+                         stage_summaries, whole_model)
+from ..files import Run
+from ..identify import IdentificationError, IdentifyResult, validate, validation_segments
+from ..parallel import run_jobs, workers_here
+from .analysis import (NESTED_START, Candidate, DiagnoseOptions, Diagnosis, NominalFit, candidate_starts, closes_gap,
+                       decide, gain_over, has_nested_start, mis_set_quantities, neutral_start, pair_need, ranked,
+                       regions, regressor_correlations, score_candidate, subsystem_split, validate_candidate,
+                       whiteness)
+
+__all__ = ["ABSORBED", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
+           "choose", "confounded", "diagnose_calibrated"]
+
+# effects that are a calibrated quantity under another name: not fitted beside the calibration
+ABSORBED = {"mass": ("mass",), "valve_deadzone": ("overlap_extend", "overlap_retract")}
+SCREEN_ITER = 10  # Gauss-Newton iterations of a screen at most
+# a screen must remove this share of its stage's cost to be calibrated as a whole: a stage's
+# residual near the noise says little of a weak effect (a project-plant leak of 2.3e-5 of the
+# valve's conductance: the valve and chambers at 1.009 x, the leak's screen -3.1 % of the cost, its
+# conductance within 0.4 %; VALID at 1.71 x without it); the spurious gains of other effects there
+# were 0.8 % and less
+SCREEN_MIN_GAIN = 0.005
+# a screen that has not removed a tenth of its stage's excess above the noise, or half of
+# SCREEN_MIN_GAIN of its cost, within SCREEN_GIVE_UP_AFTER iterations is given up (a screen only
+# ranks: a fit that leads somewhere gains that much in its first iterations)
+SCREEN_GIVE_UP = 0.1
+SCREEN_GIVE_UP_AFTER = 4
+STALLED = 2  # a nested screen that ends within this many iterations without a gain did not move
+STRONG_CORRELATION = 0.95  # |r| above which an effect parameter and a calibrated quantity trade off
+
+
+def absorbed_note(name: str) -> str:
+    qs = ABSORBED[name]
+    return (f"{EFFECTS[name].description}: the calibration estimates this itself ({', '.join(qs)}); "
+            "a departure shows as a mis-set quantity, not as an effect")
+
+
+@dataclass
+class Screen:
+    """A candidate fitted in the stage that sees it: `gain` is the share of that stage's nominal
+    cost it removes, `share` the share of the nominal's excess above the sensor noise."""
+
+    effect: str
+    stage: str
+    gain: float = math.nan
+    share: float = math.nan
+    status: str = "failed"
+    iterations: int = 0
+    start: int = 0
+    wall_s: float = 0.0
+    params: dict[str, float] = field(default_factory=dict)
+    error: str | None = None
+    result: IdentifyResult | None = field(default=None, repr=False)
+
+    def to_json(self) -> dict:
+        out = {"effect": self.effect, "stage": self.stage, "gain": self.gain, "share": self.share,
+               "status": self.status, "iterations": self.iterations, "start": self.start,
+               "wall_s": round(self.wall_s, 3), "params": self.params}
+        if self.error:
+            out["error"] = self.error
+        return out
+
+
+def _options(workers: int) -> CalibrateOptions:
+    return CalibrateOptions(threads=workers_here(workers))
+
+
+def _quiet(_msg: str) -> None:
+    pass
+
+
+def _excess(base: IdentifyResult) -> float:
+    """A fit's cost above what the sensor noise alone leaves (its cost / residual sigma^2)."""
+    sigma = base.solver["residual_sigma"]
+    return base.solver["cost"] * (1.0 - 1.0 / sigma ** 2) if sigma > 1.0 else 0.0
+
+
+def _excess_share(base: IdentifyResult, cost: float) -> float:
+    """The share of `base`'s excess above the noise (its cost less what the noise alone leaves,
+    base cost / residual sigma^2) that a fit of cost `cost` removes (capped at 1)."""
+    b, excess = base.solver["cost"], _excess(base)
+    if excess <= 0:
+        return 0.0 if cost >= b else 1.0
+    return min(1.0, (b - cost) / excess)
+
+
+def _screen_fit(base: IdentifyResult, runs: Sequence[Run], drive: str, estimate: tuple[str, ...], effect: Effect,
+                start: int, workers: int) -> Screen:
+    stage = "valve and chambers" if drive == "chambers" else "force balance in the whole model"
+    sc = Screen(effect=effect.name, stage=stage, start=start)
+    t0 = time.perf_counter()
+    opts = replace(_options(workers), max_iter=SCREEN_ITER)
+    try:
+        with np.errstate(all="ignore"):
+            res = run_stage(f"screen {effect.name}", base.cylinder, runs, drive, estimate, opts, _quiet, base.nodes,
+                            (effect,), start_only=False, restart=False, give_up_after=SCREEN_GIVE_UP_AFTER,
+                            give_up_above=base.solver["cost"] - max(SCREEN_GIVE_UP * _excess(base),
+                                                                    0.5 * SCREEN_MIN_GAIN * base.solver["cost"]))
+    except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
+        sc.error = f"the fit could not be computed ({type(e).__name__}: {e})"
+        sc.wall_s = time.perf_counter() - t0
+        return sc
+    sc.result, sc.status, sc.iterations = res, res.solver["status"], res.solver["iterations"]
+    sc.params = {k: res.params[effect.key(k)].value for k in effect.PARAMS}
+    sc.gain = 1.0 - res.solver["cost"] / base.solver["cost"]
+    sc.share = _excess_share(base, res.solver["cost"])
+    sc.wall_s = time.perf_counter() - t0
+    return sc
+
+
+def screen_candidate(args) -> list[Screen]:
+    """One candidate in the stage that sees it, nested from that stage's nominal fit (`base`), and
+    from the effect's defaults where the nested fit did not move (some effects never leave
+    their neutral value, stiction without a break-away force) or has none (heat exchange).
+    args: (name, base fit, runs, workers)."""
+    name, base, runs, workers = args
+    mechanical = EFFECTS[name].subsystem == "mechanical"
+    drive = "command" if mechanical else "chambers"
+    estimate = MECHANICAL if mechanical else PNEUMATIC
+    starts = candidate_starts(name)
+    out = []
+    if has_nested_start(name):
+        out.append(_screen_fit(base, runs, drive, estimate, starts[0], 0, workers))
+    if not out or (out[0].result is None or (out[0].gain < 1e-3 and out[0].iterations <= STALLED)):
+        out.append(_screen_fit(base, runs, drive, estimate, starts[1], 1, workers))
+    ok = [s for s in out if s.result is not None]
+    if not ok:
+        return out[:1]
+    best = min(ok, key=lambda s: s.result.solver["cost"])
+    best.wall_s = sum(s.wall_s for s in out)
+    return [best]
+
+
+def mechanical_base(args) -> IdentifyResult:
+    """The force balance through the whole model (calibrate's stage between 2 and 3), fitted to
+    convergence: the base of the mechanical screens and the nominal calibration's start.
+    args: (file cylinder, runs, stage 1, stage 2, workers)."""
+    cyl, runs, mech, pneu, workers = args
+    with np.errstate(all="ignore"):
+        return force_balance_in_model(cyl, runs, replace(_options(workers), max_iter=SCREEN_ITER), _quiet, mech, pneu,
+                                      start_only=False)
+
+
+def nominal_whole(cyl: Cylinder, runs: Sequence[Run], start: Cylinder, nodes: np.ndarray | None, workers: int,
+                  give_up: float = math.inf) -> tuple[IdentifyResult, list[dict]]:
+    """The nominal calibration's whole model (the candidate `none`), given up where it stays
+    above `give_up` (IdentifyOptions.give_up_after iterations in a row)."""
+    with np.errstate(all="ignore"):
+        return whole_model(cyl, runs, _options(workers), _quiet, start, nodes, give_up_above=give_up)
+
+
+@dataclass
+class WholeFit:
+    """A model calibrated as a whole: the kept fit, which start it came from (`staged`, `nested`:
+    from the nominal calibration with the effect neutral), every start's stage summaries, and
+    what failed."""
+
+    result: IdentifyResult | None = None
+    start: str = ""
+    stages: list[dict] = field(default_factory=list)
+    error: str | None = None
+    wall_s: float = 0.0
+
+    def add(self, fit: Callable[[], tuple[IdentifyResult, list[dict]]], start: str) -> None:
+        """One more start: its fit kept where it ends lower on TRAIN; a failure said in words."""
+        t0 = time.perf_counter()
+        try:
+            with np.errstate(all="ignore"):
+                res, stages = fit()
+        except _FAILS as e:
+            self.error = "; ".join(filter(None, (self.error, f"from the {start} start: {type(e).__name__}: {e}")))
+        else:
+            self.stages += [{**st, "start": start} for st in stages]
+            if self.result is None or res.solver["cost"] < self.result.solver["cost"]:
+                self.result, self.start = res, start
+        self.wall_s += time.perf_counter() - t0
+
+
+_FAILS = (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError)
+
+
+def calibrate_staged(cyl: Cylinder, runs: Sequence[Run], staged: tuple, workers: int,
+                     give_up: float = math.inf) -> WholeFit:
+    """A candidate calibrated as a whole from its staged start (cylinder, nodes, effects)."""
+    w = WholeFit()
+    w.add(lambda: whole_model(cyl, runs, _options(workers), _quiet, *staged, give_up_above=give_up), "staged")
+    return w
+
+
+def nested(w: WholeFit, cyl: Cylinder, runs: Sequence[Run], nominal: IdentifyResult, neutral: Sequence[Effect],
+           workers: int, give_up: float = math.inf) -> WholeFit:
+    """Where the candidate's fit failed or ended above the nominal calibration's TRAIN cost, once
+    more from the nominal calibration (node states included) with the effects `neutral`: a
+    descent from there ends at or below it, so the candidate never fits TRAIN worse than `none`."""
+    if w.result is None or w.result.solver["cost"] > nominal.solver["cost"]:
+        w.add(lambda: whole_model(cyl, runs, _options(workers), _quiet, nominal.cylinder, nominal.nodes,
+                                  tuple(nominal.effects) + tuple(neutral), give_up_above=give_up), "nested")
+    return w
+
+
+def _call(job):
+    fn, args = job
+    return fn(args)
+
+
+def staged_start(screen: Screen, base: IdentifyResult) -> tuple[Cylinder, np.ndarray | None, tuple[Effect, ...]]:
+    """A candidate's start for the whole model: its screen's values, effect and node states for the
+    subsystem it belongs to; the other subsystem's from the force balance through the model
+    (which holds stage 2's valve and chambers)."""
+    res = screen.result
+    if res.drive == "chambers":
+        start = base.cylinder.with_values({n: res.cylinder.value(n) for n in PNEUMATIC})
+        return start, np.vstack([res.nodes[:2], base.nodes[2:4]]), tuple(res.effects)
+    return res.cylinder, res.nodes, tuple(res.effects)
+
+
+def confounded(res: IdentifyResult, effect: str) -> list[dict]:
+    """The effect's parameters that trade off against a calibrated quantity in a fit (|r| above
+    STRONG_CORRELATION): the run cannot separate them."""
+    if res.correlation is None:
+        return []
+    names = list(res.params)
+    out = []
+    for i, a in enumerate(names):
+        if not a.startswith(effect + "."):
+            continue
+        for j, b in enumerate(names):
+            if b in CALIBRATED and b not in ("Fc", "Fv", "kp"):
+                r = float(res.correlation[i, j])
+                if math.isfinite(r) and abs(r) > STRONG_CORRELATION:
+                    out.append({"effect": effect, "parameter": a.split(".", 1)[1], "quantity": b, "r": r})
+    return sorted(out, key=lambda d: -abs(d["r"]))
+
+
+def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[str], workers: int,
+                          say: Callable[[str], None]) -> dict:
+    """Steps 1 and 2 of the module docstring: the calibration's first stages and every candidate's
+    screen. Returns a dict with `stages` (stage 1 and 2), `base` (the force balance through the
+    model), `screens` (list of Screen), `absorbed` ({effect: note}), `t0` and `wall_s` per step."""
+    t0 = time.perf_counter()
+    # the critical ratio's other starts are left to the screens: where the valve and chambers stay
+    # above the noise, a pneumatic candidate is screened there from the same fit
+    opts = CalibrateOptions(threads=max(1, workers), other_starts=("overlap",))
+    say("calibrating the cylinder file's valve, volumes, mass and offsets on TRAIN: the first two stages ...")
+    mech, pneu = first_stages(cyl, runs, opts, say)
+    if mech is None or pneu is None:
+        raise IdentificationError("diagnose --calibrate needs both stages of the calibration")
+    absorbed = {n: absorbed_note(n) for n in names if n in ABSORBED}
+    fitted = [n for n in names if n not in ABSORBED]
+    pneumatic = [n for n in fitted if EFFECTS[n].subsystem != "mechanical"]
+    mechanical = [n for n in fitted if EFFECTS[n].subsystem == "mechanical"]
+    t1 = time.perf_counter()
+    say(f"the force balance through the whole model, and {len(pneumatic)} pneumatic candidates screened in the valve "
+        f"and chambers ({min(workers, 1 + len(pneumatic))} processes) ...")
+    done = run_jobs(_call, [(mechanical_base, (cyl, runs, mech, pneu, workers))]
+                    + [(screen_candidate, (n, pneu, runs, workers)) for n in pneumatic], workers)
+    base = done[0]
+    screens: list[Screen] = [s for ss in done[1:] for s in ss]
+    say(f"  the force balance through the whole model (the valve and chambers as calibrated): residual "
+        f"{base.solver['residual_sigma']:.3g} x noise")
+    t2 = time.perf_counter()
+    if mechanical:
+        say(f"screening {len(mechanical)} mechanical candidates through the whole model "
+            f"({min(workers, len(mechanical))} processes) ...")
+        done = run_jobs(_call, [(screen_candidate, (n, base, runs, workers)) for n in mechanical], workers)
+        screens += [s for ss in done for s in ss]
+    for s in screens:
+        say(f"  screen {s.effect:20s} ({s.stage}): " + (
+            f"{max(s.share, 0.0):.0%} of the excess above the noise, cost {-s.gain:+.2%}" if s.result is not None
+            else s.error or s.status))
+    return {"stages": (mech, pneu), "base": base, "screens": screens, "absorbed": absorbed, "t0": t0,
+            "wall_s": {"first_stages": round(t1 - t0, 3), "pneumatic_screens": round(t2 - t1, 3),
+                       "mechanical_screens": round(time.perf_counter() - t2, 3)}}
+
+
+def _neutral(name: str) -> Effect:
+    return neutral_start(name)
+
+
+def choose(screens: list[Screen], screen_min: float, screen_share: float, leaders: int) -> list[Screen]:
+    """The screened candidates calibrated as a whole: those that remove at least `screen_min` of
+    their stage's excess above the noise (and SCREEN_MIN_GAIN of its cost) and `screen_share` of
+    the best one's, the `leaders` that remove most of their stage's cost, that one first."""
+    ok = [s for s in screens if s.result is not None and s.gain >= SCREEN_MIN_GAIN and s.share >= screen_min]
+    top = max((s.share for s in ok), default=0.0)
+    # best first by the share of its stage's cost it removes: the share of the excess compares badly
+    # across stages (a weak friction asymmetry: 42 % of the force balance's excess, -14.3 % of its
+    # cost; supply droop 49 % of the valve and chambers' small excess, -1.2 % of its cost)
+    ok = sorted((s for s in ok if s.share >= screen_share * top), key=lambda s: (-s.gain, -s.share))
+    return ok[:leaders]
+
+
+# ------------------------------------------------------------------ the verdict among calibrated models
+
+
+def _candidate(name: str, fit: WholeFit, screen: Screen | None, nominal_cost: float) -> Candidate:
+    res = fit.result
+    effects = [e for e in res.effects if e.name in name.split("+")]
+    keyed = {e.key(k): (k if len(effects) == 1 else e.key(k)) for e in effects for k in e.PARAMS}
+    return Candidate(
+        effect=name, params={keyed[n]: res.params[n].value for n in keyed},
+        std={keyed[n]: res.params[n].std for n in keyed}, status=res.solver["status"],
+        friction={n: res.params[n].value for n in ("Fc", "Fv", "kp") if n in res.params},
+        train_cost=res.solver["cost"], iterations=res.solver["iterations"],
+        start=NESTED_START if fit.start == "nested" else 1, effects=res.effects, nodes=res.nodes,
+        cylinder=res.cylinder, wall_s=fit.wall_s,
+        calibration={"start": fit.start, "residual_sigma": res.solver["residual_sigma"],
+                     "train_gain": 1.0 - res.solver["cost"] / nominal_cost,
+                     "screen": screen.to_json() if screen is not None else None,
+                     "confounded": [c for e in effects for c in confounded(res, e.name)],
+                     "stages": fit.stages})
+
+
+def train_share(nominal: IdentifyResult, res: IdentifyResult) -> float:
+    """The share of what the nominal calibration leaves on TRAIN above the noise (residual sigma^2
+    - 1) that a calibrated candidate removes."""
+    b, c = nominal.solver["residual_sigma"] ** 2, res.solver["residual_sigma"] ** 2
+    return (b - c) / (b - 1.0) if b > 1.0 else 0.0
+
+
+def by_train(c: Candidate, nominal: IdentifyResult, opts: DiagnoseOptions, shrink: bool = False) -> bool:
+    """Whether a validated candidate counts by what it explains on TRAIN: the calibration without
+    an effect leaves TRAIN at `train_gap` x the noise or more, the candidate's calibration removes
+    `train_explains` of that excess, and it improves VALID beyond what the noise could (z), if by
+    less than min_shrink (with `shrink`: whatever share of VALID's gap it explains). VALID holds
+    what a calibrated model extrapolates to beside the effect: a weak friction memory (Dahl, 0.4 N)
+    calibrated TRAIN from 1.16 to 1.03 x the noise while VALID stayed at 1.45 x (z 5.5, 0.8 %)."""
+    cal = c.calibration or {}
+    if c.validation is None or not math.isfinite(c.z) or c.z < opts.min_z or "residual_sigma" not in cal:
+        return False
+    b, r = nominal.solver["residual_sigma"], cal["residual_sigma"]
+    explains = (b * b - r * r) / (b * b - 1.0) if b > 1.0 else 0.0
+    return b >= opts.train_gap and explains >= opts.train_explains and (shrink or c.shrink_all > 0)
+
+
+def _significant(c: Candidate, base_val, base_rmse: float, opts: DiagnoseOptions) -> bool:
+    c = copy.copy(c)
+    score_candidate(c, base_val, base_rmse, opts)
+    return c.significant
+
+
+def _unfitted(name: str, status: str, error: str, screen: Screen | None = None) -> Candidate:
+    return Candidate(effect=name, status=status, error=error,
+                     calibration={"screen": screen.to_json()} if screen is not None else None)
+
+
+def _screen_words(s: Screen, opts: DiagnoseOptions, top: float) -> str:
+    if s.result is None:
+        return f"its screen in the {s.stage} failed ({s.error or s.status}): not calibrated"
+    if s.gain < SCREEN_MIN_GAIN:
+        return (f"screened in the {s.stage}: it removes {max(s.gain, 0.0):.2%} of that stage's cost (under "
+                f"{SCREEN_MIN_GAIN:.1%}): not calibrated as a whole")
+    why = (f"under {opts.screen_min:.0%}" if s.share < opts.screen_min
+           else f"under {opts.screen_share:.0%} of the best screen's {top:.0%}" if s.share < opts.screen_share * top
+           else f"not among the {opts.leaders} best screens")
+    return (f"screened in the {s.stage}: it removes {max(s.share, 0.0):.0%} of what the calibration leaves there above "
+            f"the noise ({why}): not calibrated as a whole")
+
+
+def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: DiagnoseOptions,
+                        progress: Callable[[str], None] | None = None) -> Diagnosis:
+    """The diagnosis among calibrated models (module docstring); `runs` are TRAIN (a calibration
+    run and an ordinary one are calibrated together)."""
+    t_start = time.perf_counter()
+    say = progress or (lambda _m: None)
+    found = calibrated_candidates(cyl, runs, opts.candidates, opts.workers, say)
+    (mech, pneu), base_fit = found["stages"], found["base"]
+    screens = {s.effect: s for s in found["screens"]}
+    chosen = choose(found["screens"], opts.screen_min, opts.screen_share, opts.leaders)
+    segments = validation_segments(valid, opts.horizon_s)
+    fits: dict[str, WholeFit] = {}
+    t3 = time.perf_counter()
+
+    # step 3: the best screened candidate calibrated as a whole first; the calibration without an
+    # effect then needs to go on only while it might still come near it on TRAIN
+    first = chosen[0] if chosen else None
+    if first is not None:
+        say(f"calibrating the whole model with {first.effect} (the best screen) ...")
+        fits[first.effect] = calibrate_staged(cyl, runs, staged_start(first, base_fit), opts.workers)
+    reach = fits[first.effect].result.solver["cost"] if first is not None and fits[first.effect].result else math.nan
+    give_up = opts.nominal_give_up * reach if math.isfinite(reach) else math.inf
+    say("calibrating the whole model without an effect ...")
+    t4 = time.perf_counter()
+    joint, stages = nominal_whole(cyl, runs, *model_start(cyl, mech, pneu, base_fit)[:2], opts.workers, give_up)
+    first_fit = fits[first.effect].result if first is not None else None
+    if (joint.solver["status"] != "above_reference" and first_fit is not None
+            and first_fit.solver["cost"] < joint.solver["cost"]):
+        # the first candidate may have calibrated the file's quantities better than the nominal fit
+        # found them (from its own start): the nominal model from those quantities, the effect
+        # left out, so that what the candidate gains is its effect's (a supply droop of 1.6e-5,
+        # which moves the supply by 10 Pa, had fitted an effect-free rig's TRAIN 5 % better)
+        again, more = nominal_whole(cyl, runs, first_fit.cylinder, first_fit.nodes, opts.workers,
+                                    joint.solver["cost"])
+        stages += [{**st, "start": f"the quantities calibrated with {first.effect}"} for st in more]
+        if again.solver["cost"] < joint.solver["cost"]:
+            say(f"  the calibration without an effect, from the quantities calibrated with {first.effect}: cost "
+                f"{again.solver['cost'] / joint.solver['cost'] - 1:+.1%}")
+            joint = again
+    t5 = time.perf_counter()
+    nominal = finish(cyl, runs, CalibrateOptions(threads=opts.workers), joint, mech, pneu,
+                     stage_summaries(mech, pneu, base_fit) + stages, found["t0"])
+    base = nominal.result
+    given_up = base.solver["status"] == "above_reference"
+    say(f"  the calibration without an effect: {base.solver['status']} after {base.solver['iterations']} iterations, "
+        f"residual {base.solver['residual_sigma']:.3g} x noise" + (
+            f" (stayed above {opts.nominal_give_up:g} x the TRAIN cost of the calibration with {first.effect}: given "
+            "up)" if given_up else ""))
+    base_val = validate(nominal.cylinder, nominal.effects, valid, opts.horizon_s, segments=segments,
+                        workers=opts.workers)
+    base_rmse = base_val.rmse("x")
+    say(f"  the calibration without an effect on VALID: position RMSE {base_rmse * 1e6:.2f} um, all outputs "
+        f"{base_val.normalized_rms():.2f} x the sensor noise ({len(segments)} segments of about {opts.horizon_s:g} s)")
+    sigma = base.solver["residual_sigma"]
+    fitting = NominalFit(cyl, nominal.cylinder, base.nodes, base.solver["cost"], base_val,
+                         noise_cost=base.solver["cost"] / sigma ** 2 if sigma > 0 else math.nan)
+
+    # each candidate scored on VALID once calibrated, the best screen first; the first that closes
+    # the gap ends them
+    scored: dict[str, Candidate] = {}
+    closer, why = None, ""
+    for s in chosen:
+        if s.effect not in fits:
+            say(f"calibrating the whole model with {s.effect} ...")
+            fits[s.effect] = calibrate_staged(cyl, runs, staged_start(s, base_fit), opts.workers)
+        w = nested(fits[s.effect], cyl, runs, base, (_neutral(s.effect),), opts.workers)
+        if w.result is None:
+            scored[s.effect] = _unfitted(s.effect, "failed",
+                                         f"the calibration with it could not be computed ({w.error})", s)
+            continue
+        c = _candidate(s.effect, w, s, base.solver["cost"])
+        say(f"  {s.effect}: residual {w.result.solver['residual_sigma']:.3g} x noise on TRAIN "
+            f"({w.result.solver['status']}, from the {w.start} start, cost {-c.calibration['train_gain']:+.1%} against "
+            "the calibration without it)")
+        if c.calibration["train_gain"] < opts.min_train_gain:
+            c.status, c.error = "no_gain_on_train", (
+                f"calibrated with it, TRAIN is fitted no better than without it ({-c.calibration['train_gain']:+.2%} "
+                "of the cost): not validated")
+        else:
+            c = validate_candidate((c, fitting, valid, opts, segments))
+        scored[s.effect] = c
+        if c.validation is not None and closes_gap(c, base_val, base_rmse, opts):
+            closer, why = c, "closed the gap on VALID to near the noise first"
+            break
+        share = train_share(base, w.result)
+        if c.validation is not None and _significant(c, base_val, base_rmse, opts) and share >= opts.train_dominant:
+            closer, why = c, (f"explains {share:.0%} of what the calibration without an effect leaves on TRAIN "
+                              "above the noise, and significantly improves VALID")
+            break
+    t6 = time.perf_counter()
+    top = max((s.share for s in screens.values() if s.result is not None), default=0.0)
+    cands: list[Candidate] = []
+    for name in opts.candidates:
+        if name in found["absorbed"]:
+            c = _unfitted(name, "absorbed", found["absorbed"][name])
+        elif name in scored:
+            c = scored[name]
+        elif closer is not None and any(s.effect == name for s in chosen):
+            c = _unfitted(name, "not_validated", f"not calibrated as a whole: {closer.effect}, whose screen ranked "
+                          f"higher, {why}", screens[name])
+        else:
+            sc = screens.get(name)
+            c = _unfitted(name, "screened_out", _screen_words(sc, opts, top) if sc is not None else "not screened", sc)
+        score_candidate(c, base_val, base_rmse, opts)
+        if by_train(c, base, opts):
+            c.significant = True
+        cands.append(c)
+    ranking, best = ranked(cands, say)
+
+    pair = None
+    if opts.pair and best is not None:
+        pair = _calibrated_pair(cyl, runs, valid, ranking, fitting, base_val, base_rmse, segments, opts, say, fits)
+    verdict, verdict_note = decide(base_val, best, pair, opts)
+    if verdict == "unexplained" and best is not None and by_train(best, base, opts, shrink=True):
+        share = train_share(base, fits[best.effect].result)
+        verdict, verdict_note = best.effect, (
+            f"{best.effect} explains {share:.0%} of what the calibration without an effect leaves on TRAIN above the "
+            f"noise ({sigma:.2f} -> {fits[best.effect].result.solver['residual_sigma']:.2f} x) and improves VALID "
+            f"significantly (z {best.z:.1f}); VALID keeps {best.validation.normalized_rms():.2f} x where the "
+            "calibrated model leaves what TRAIN covers (see where the gap lies)")
+    if verdict == "unexplained" and best is None and sigma <= CalibrateOptions.misfit:
+        # the calibration fits TRAIN to the noise and no candidate improves VALID: no effect shows in
+        # TRAIN; what VALID keeps is where the calibrated model extrapolates
+        verdict, verdict_note = "none", (
+            f"the calibration without an effect fits TRAIN to {sigma:.2f} x the sensor noise and no candidate improves "
+            f"VALID significantly; VALID keeps {base_val.normalized_rms():.2f} x where it leaves what TRAIN covers "
+            "(see where the gap lies)")
+    if verdict_note:
+        say(f"  verdict {verdict}: {verdict_note}")
+    shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None
+    found["wall_s"].update({"first_candidate": round(t4 - t3, 3), "nominal_whole": round(t5 - t4, 3),
+                            "candidates_and_validation": round(t6 - t5, 3)})
+    calibration = _calibration_doc(cyl, nominal, found, fits, [n for n in fits if "+" not in n], verdict)
+    calibration["not_separated"] = separability(nominal.cylinder, runs,
+                                                [n for n in opts.candidates if n not in ABSORBED])
+    for m in calibration["mis_set"]:
+        say(f"  mis-set in the cylinder file: {m['quantity']} {m['file']:.4g} -> {m['calibrated']:.4g} {m['unit']}"
+            + (f" ({m['change']:+.1%})" if math.isfinite(m["change"]) else ""))
+    for c in calibration["confounded"]:
+        say(f"  on these runs {c['effect']}.{c['parameter']} trades off against {c['quantity']} (r = {c['r']:+.3f})")
+    x_idx = base_val.outputs.index("x")
+    t7 = time.perf_counter()
+    subsystems = subsystem_split(nominal.cylinder, nominal.cylinder, runs[0], valid, base_val, opts, segments)
+    found["wall_s"]["pair_and_subsystems"] = round(time.perf_counter() - t6, 3)
+    found["wall_s"]["subsystems"] = round(time.perf_counter() - t7, 3)
+    return Diagnosis(
+        cylinder=nominal.cylinder, train=runs[0], valid=valid, options=opts,
+        baseline={"rmse_x_validation": base_rmse, "rmse_p1_validation": base_val.rmse("p1"),
+                  "rmse_p2_validation": base_val.rmse("p2"), "normalized_rms": base_val.normalized_rms(),
+                  "friction": {n: base.params[n].value for n in ("Fc", "Fv", "kp")},
+                  "friction_std": {n: base.params[n].std for n in ("Fc", "Fv", "kp")},
+                  "rmse_x_train": base.fit["rmse_x"], "train_cost": base.solver["cost"],
+                  "residual_sigma_train": sigma, "horizon_s": opts.horizon_s,
+                  "noise": {"x": float(base_val.noise[0]), "p": float(cyl.sensors.pressure_noise)}},
+        verdict=verdict, verdict_note=verdict_note, calibration=calibration, ranking=ranking, pair=pair,
+        regions=regions(nominal.cylinder, valid, base_val, shown.validation if shown is not None else None),
+        subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
+        correlations=regressor_correlations(nominal.cylinder, valid), base_validation=base_val,
+        wall_s=time.perf_counter() - t_start)
+
+
+def _calibrated_pair(cyl, runs, valid, ranking, fitting: NominalFit, base_val, base_rmse, segments, opts, say,
+                     fits: dict) -> Candidate | None:
+    """The verdict's effect with the runner-up, calibrated as a whole nested from the best
+    candidate's calibration (the runner-up neutral), when the best alone leaves a gap that the
+    runner-up also addresses; given up, unvalidated, when it stays under pair_give_up of what
+    it needs on TRAIN to change the verdict (analysis._best_pair's rule)."""
+    best = ranking[0]
+    second = next((c for c in ranking[1:] if c.significant), None)
+    if second is None or best.validation is None or best.validation.normalized_rms() <= opts.closed_gap:
+        return None
+    say(f"calibrating the pair {best.effect} + {second.effect} ...")
+    need = pair_need(base_val, best.validation, opts)
+    excess = best.train_cost - fitting.noise_cost
+    give_up = best.train_cost - opts.pair_give_up * need * excess if excess > 0 else math.inf
+    w = nested(WholeFit(), cyl, runs, fits[best.effect].result, (_neutral(second.effect),), opts.workers, give_up)
+    name = f"{best.effect}+{second.effect}"
+    fits[name] = w
+    if w.result is None:
+        return _unfitted(name, "failed", f"the calibration with both could not be computed ({w.error})")
+    c = _candidate(name, w, None, fitting.train_cost)
+    if w.result.solver["status"] == "above_reference" and c.train_cost > give_up:
+        c.status = "falls_short"
+        c.error = (f"together they explain {(best.train_cost - c.train_cost) / excess:.0%} of what {best.effect} "
+                   f"leaves on TRAIN above the sensor noise; to change the verdict the pair needs {need:.0%} of it: "
+                   "given up, not validated")
+    else:
+        c = validate_candidate((c, fitting, valid, opts, segments))
+    score_candidate(c, base_val, base_rmse, opts)
+    c.significant = c.significant and gain_over(best.validation, c.validation, opts)
+    say(f"  {c.effect}: " + (f"shrink {c.shrink:.1%}, all outputs {c.shrink_all:.1%}"
+                             + ("" if c.significant else " (not significantly better than the verdict alone)")
+                             if math.isfinite(c.shrink) else f"not scored ({c.error or c.status})"))
+    return c
+
+
+def _calibration_doc(file_cyl: Cylinder, nominal, found: dict, fits: dict, chosen: list[str], verdict: str) -> dict:
+    """The diagnosis's `calibration`: the file's mis-set quantities as the model the verdict names
+    calibrated them (the nominal calibration for none and unexplained), its TRAIN residual and
+    what that says, the screens, the effects absorbed by calibrated quantities, and what the runs
+    cannot separate (an effect parameter that trades off against a calibrated quantity)."""
+    fit = fits.get(verdict)
+    named = fit.result if fit is not None and fit.result is not None else nominal.result
+    confounds: list[dict] = []
+    for w in fits.values():
+        for e in (w.result.effects if w.result is not None else ()):
+            confounds += [c for c in confounded(w.result, e.name) if c not in confounds]
+    return {
+        "mis_set": mis_set_quantities(file_cyl, named.params),
+        "model": verdict if named is not nominal.result else "none",
+        "status": named.solver["status"], "residual_sigma": named.solver["residual_sigma"],
+        "misfit": misfit_note(named) or None,
+        "nominal": {"status": nominal.result.solver["status"],
+                    "residual_sigma": nominal.result.solver["residual_sigma"],
+                    "iterations": nominal.result.solver["iterations"], "misfit": nominal.misfit or None,
+                    "given_up": nominal.result.solver["status"] == "above_reference"},
+        "screens": [s.to_json() for s in found["screens"]],
+        "calibrated_with": chosen,
+        "absorbed": [{"effect": n, "quantities": list(ABSORBED[n]), "note": t} for n, t in found["absorbed"].items()],
+        "confounded": confounds,
+        "wall_s": round(nominal.wall_s, 3), "steps_s": found["wall_s"],
+    }
