@@ -9,6 +9,7 @@ import signal
 import time
 from pathlib import Path
 
+from ..live import DESCRIPTIONS
 from .common import (EFFECT_HELP, UsageError, estimate_list, load_config, open_rig, parse_effects, positive_float,
                      rerun_mode)
 
@@ -40,7 +41,8 @@ def add_parsers(sub) -> None:
     lv.add_argument("--interface", default="socketcan",
                     help="python-can interface for --can (default socketcan; slcan, ...)")
     lv.add_argument("--program", default="mixed",
-                    help="mixed | steps | ramps | sines (closed-loop position) | pulses (open loop) | file:CMD.csv")
+                    help="; ".join(f"{name}: {what}" for name, what in DESCRIPTIONS.items())
+                    + "; file:CMD.csv: the commands of a t,u CSV file (default mixed)")
     lv.add_argument("--duration", type=float, required=True, help="seconds of rig time")
     lv.add_argument("--record", required=True, help="run CSV written as samples arrive")
     lv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
