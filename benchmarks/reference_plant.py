@@ -1571,9 +1571,15 @@ class Case:
                    end_stiffness=float(d.get("end_stiffness", K_END)), end_damping=float(d.get("end_damping", C_END)))
 
     def key(self) -> str:
-        """A content hash of the case (and of this module's physics revision) for on-disk caches;
-        not of where the cylinder file lies, so that two checkouts share the runs."""
+        """A content hash of the case (and of this module's physics revision, and of the closed-loop
+        program's revision where it changed) for on-disk caches; not of where the cylinder file
+        lies, so that two checkouts share the runs."""
         case = {k: v for k, v in self.to_json().items() if k != "cylinder_source"}
+        if self.commands is None:  # a closed-loop program whose commands changed: not the runs stored before
+            from combined_reality.live.programs import program_revision
+
+            if program_revision(self.program) != 1:
+                case["program_revision"] = program_revision(self.program)
         text = json.dumps({"case": case, "revision": REVISION}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:20]
 

@@ -1,6 +1,6 @@
 """The gauntlet benchmark's cases (benchmarks/gauntlet.py): drawn from the case's seed alone,
-the project plant's truth holds the departures on the tool's own grid, and what departs beyond
-the mis-set thresholds is told from the truth."""
+the project plant's truth holds the departures on the tool's own grid, what departs beyond the
+mis-set thresholds is told from the truth, and a stored run of a changed program is not reused."""
 from __future__ import annotations
 
 import sys
@@ -13,6 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import gauntlet  # noqa: E402
 import reference_plant as ref  # noqa: E402
+from combined_reality.live import programs  # noqa: E402
 from sim.cylinder import OPENING_GRID  # noqa: E402
 
 
@@ -73,3 +74,10 @@ def test_what_counts_as_found():
     assert gauntlet.effect_found("leakage", "none", ["mass"]) == "missed"
     assert gauntlet.effect_found("none", "none", ["mass"]) == "none"
     assert gauntlet.effect_found("none", "stiction", []) == "missed"
+
+
+def test_a_stored_run_of_a_changed_program_is_not_taken_for_a_new_one(cyl_a, monkeypatch):
+    cal, mixed = (ref.Case(cyl_a, 0.05, 4, program=p) for p in ("calibration", "mixed"))
+    before = cal.key(), mixed.key()
+    monkeypatch.setitem(programs.REVISIONS, "calibration", programs.REVISIONS["calibration"] + 1)
+    assert cal.key() != before[0] and mixed.key() == before[1]

@@ -17,7 +17,8 @@ def add_parser(sub) -> None:
                     "staged the way the physics separates them: the piston's force balance driven by the measured "
                     "pressures, the valve and chambers driven by the measured motion, then the whole model driven "
                     "by the command. Record the runs with `live --program calibration` (it creeps through the "
-                    "valve's overlap, holds against both end stops and pulses the valve). Writes the calibrated "
+                    "valve's overlap, moves slowly across the stroke both ways, holds at both end stops with the "
+                    "valve open and closed, and pulses the valve). Writes the calibrated "
                     "cylinder file with your comments kept, and says what the runs could not determine.")
     c.add_argument("--config", required=True, help="cylinder TOML file (its values are the starting guesses)")
     c.add_argument("runs", nargs="+", metavar="RUN.csv", help="recorded runs, calibrated jointly")

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from .. import options
+from ..live import DESCRIPTIONS
 from .common import (BUILT_IN, EFFECT_HELP, UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint,
                      estimate_list, load_config, open_rig, parse_effects, positive_float, preflight_runs, rerun_mode,
                      typed)
@@ -48,10 +49,8 @@ def add_parsers(sub) -> None:
     lv.add_argument("--interface", default="socketcan",
                     help="python-can interface for --can (default socketcan; slcan, ...)")
     lv.add_argument("--program", default="mixed",
-                    help="mixed (default) | steps | ramps | sines: closed-loop position control; pulses: open-loop "
-                         "pulses; calibration: what `calibrate` needs (creeps through the valve's overlap, holds "
-                         "against both end stops, pulses, position control); file:CMD.csv: your own command "
-                         "(columns t,u)")
+                    help="; ".join(f"{name}: {what}" for name, what in DESCRIPTIONS.items())
+                    + "; file:CMD.csv: the commands of a t,u CSV file (default mixed)")
     lv.add_argument("--duration", type=typed(options.live_duration), required=True,
                     help=f"seconds of rig time (at most {options.MAX_LIVE_DURATION:g})")
     lv.add_argument("--record", required=True, help="run CSV written as samples arrive")

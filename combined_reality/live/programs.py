@@ -182,50 +182,103 @@ def command_file_program(path, cyl: Cylinder, options: ProgramOptions = ProgramO
 
 
 class CalibrationProgram:
-    """What calibration needs, safely: creeping openings through the valve's overlap in both
-    directions (open loop, stopped well before the soft limits), moves into both end stops at a
-    bounded speed and command with a hold there (the exhausting chamber settles at atmosphere,
-    the filling one at supply: the sensors' offsets; at the ends the dead volumes show), and
-    open-loop pulses of growing command (the flow characteristic up to full opening, the mass)
-    and closed-loop steps, ramps and sines at several positions and speeds (the flow
-    characteristic at small openings, the critical ratio). Call `command(t, x_measured)`."""
+    """What calibration needs, and what keeps effects apart from the calibrated quantities, in
+    cycles of segments (each cycle starts in the other direction than the one before):
+
+    - creeps: open-loop commands growing slowly through the valve's overlap, out of mid-stroke
+      in both directions and stopped well inside the soft limits (the overlap per direction);
+    - slow moves across the whole stroke, both ways, at a constant gentle speed under position
+      control: from the far soft limit to about mid-stroke, where the valve closes for a hold
+      (the piston stops at once; both chambers at mid pressures), then on into the end stop; and
+      back the same way (friction by direction and along the stroke);
+    - at each end stop a hold with the valve open (the filling chamber settles at supply, the
+      exhausting one at atmosphere: the sensors' offsets; the dead volumes show there), then a
+      hold with the valve closed (supply on one side of the piston, atmosphere on the other:
+      leakage across the piston and out of the pressurised chamber, the pressures relax);
+    - pulses of growing command, out of mid-stroke and back (the flow characteristic up to
+      full opening, the valve's delay, the mass), each followed by a short hold with the valve
+      closed (the pressures relax after a fast move: heat exchange);
+    - closed-loop steps, ramps and sines (small openings, the critical ratio) with the time
+      that remains.
+
+    A run shorter than one cycle keeps every segment: holds, settles and creeps are shortened
+    alike (to no less than MIN_SCALE of their length) and the position control comes last.
+    Commands are bounded (u_max; END_COMMAND while driving into and holding at an end), and the
+    soft stroke limits apply everywhere but on the way into an end stop and at the stop, where
+    the stop is the limit and the speed is the gentle end speed. With the valve closed nothing
+    can drive the piston. Call `command(t, x_measured)`.
+    """
 
     END_SPEED = 0.05  # m/s: the reference's speed into an end stop (a gentle landing) ...
     END_TRAVEL = 2.0  # s: ... or, on a long stroke, fast enough to cross it in this time, at most
     END_SPEED_MAX = 0.15  # m/s
-    END_COMMAND = 0.35  # command bound while driving into and holding at an end
-    END_HOLD = 1.5  # s at the end stop
+    # command bound while driving into and holding at an end: the reference's speed keeps the
+    # landing gentle, this bound keeps a piston that lags far behind it from rushing in. At the
+    # stop the chambers settle through this constant opening; on the way in, a valve that opens
+    # little at small commands moves the piston at this opening (a bound of 0.5 there left the
+    # retracting flow characteristic at 28-34 % of the opening 2 % off, and the calibrated model
+    # missed VALID by 7.7 x the noise; a valve that opens 3 % of its conductance at 0.35 does
+    # not reach the stop in time)
+    END_COMMAND = 0.35
+    END_HOLD = 1.5  # s at the end stop with the valve open
+    CLOSED_HOLD = 0.8  # s with the valve closed (at an end, at mid-stroke)
+    CREEP = 2.0  # s of a creep
     CREEP_RATE = 0.15  # 1/s: how fast the open-loop command grows while creeping
     CREEP_MAX = 0.3  # the creep's largest command
+    SETTLE = 0.6  # s back to mid-stroke (or to a soft limit) under position control
+    PULSE_LEVELS = (0.25, 0.45, 0.65)  # and u_max
+    PULSE_TRAVEL = 0.25  # share of the stroke a pulse would move at the file's valve
+    PULSE_HOLD = 0.3  # s with the valve closed after a pulse
+    PULSE_SETTLE = 0.5  # s
+    POSITION = 5.0  # s of closed-loop steps, ramps and sines at the end of a cycle
+    START = 0.5  # s of position control before the first cycle
+    MIN_SCALE = 0.5  # a short run shortens holds, settles and creeps down to this share, no further
 
     def __init__(self, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
         self.L, self.opts = cyl.geometry.stroke, options
         self.closed = PositionProgram(cyl, duration, seed, options)
-        L = self.L
-        # (start, end, kind, sign, level): cycles of creeping out and in, both end stops, pulses
-        # of growing command, then position control; its reference runs underneath throughout
+        self.end_speed = min(max(self.END_SPEED, self.L / self.END_TRAVEL), self.END_SPEED_MAX)
+        # (start, end, kind, sign, level): the cycles; the position program's reference runs
+        # underneath throughout
         self.phases: list[tuple[float, float, str, float, float]] = []
-        self.end_speed = min(max(self.END_SPEED, L / self.END_TRAVEL), self.END_SPEED_MAX)
-        travel = 1.1 * L / self.end_speed + self.END_HOLD
-        # a pulse's length: a sixth of the stroke at the speed its command gives
-        v_per_u = 1.0 / self.closed.kff
-        t, cycle = 1.0, 0
+        first = self._cycle(1.0, 1.0)
+        fixed = sum(length for kind, length, *_ in first if kind in ("slow", "end", "pulse"))
+        elastic = sum(length for kind, length, *_ in first if kind not in ("slow", "end", "pulse", "position"))
+        scale = min(max((duration - self.START - fixed) / elastic, self.MIN_SCALE), 1.0)
+        t, cycle = self.START, 0
         while t < duration:
-            s = 1.0 if cycle % 2 == 0 else -1.0
-            plan = [("creep", 2.0, s, 0.0), ("settle", 0.8, s, 0.0), ("end", travel, s, 0.0), ("settle", 1.0, s, 0.0),
-                    ("creep", 2.0, -s, 0.0), ("settle", 0.8, s, 0.0), ("end", travel, -s, 0.0),
-                    ("settle", 1.0, s, 0.0)]
-            for level in (0.25, 0.45, 0.65, options.u_max):
-                for sign in (s, -s):
-                    plan += [("pulse", min(0.3, L / 6 / (v_per_u * level)), sign, level), ("settle", 0.6, s, 0.0)]
-            plan.append(("position", 5.0, s, 0.0))
-            for kind, length, sign, level in plan:
+            for kind, length, sign, level in self._cycle(1.0 if cycle % 2 == 0 else -1.0, scale):
                 self.phases.append((t, t + length, kind, sign, level))
                 t += length
             cycle += 1
         self._i = -1
         self._x0 = 0.5 * self.L  # where the current phase started
+        self._ramp = (0.0, 0.5 * self.L)  # where and when the last move into an end stop started
         self._creep_done = False
+
+    def _cycle(self, s: float, scale: float) -> list[tuple[str, float, float, float]]:
+        """One cycle's (kind, length, sign, level), starting with direction s. The moves into an
+        end stop last as long as their distance at the end speed; the pulses as long as moves
+        PULSE_TRAVEL of the stroke at the speed their command gives; `scale` shortens everything else."""
+        L, v = self.L, self.end_speed
+        hold, settle = self.CLOSED_HOLD * scale, self.SETTLE * scale
+        to_mid = (0.5 - self.opts.margin) * L / v  # from a soft limit, at the end speed
+        plan = [("creep", self.CREEP * scale, s, 0.0), ("settle", settle, 0.0, 0.0),
+                ("creep", self.CREEP * scale, -s, 0.0)]
+        for d in (s, -s):
+            # across the stroke from the far soft limit, with a closed hold at mid-stroke, into
+            # the stop; then back to mid-stroke under position control (a fast move, the valve
+            # opened wide the other way)
+            plan += [("settle", settle, -d, 0.0), ("slow", to_mid, d, 0.0), ("closed", hold, 0.0, 0.0),
+                     ("end", 0.7 * L / v, d, 0.0), ("end_hold", self.END_HOLD * scale, d, 0.0),
+                     ("end_closed", hold, d, 0.0), ("settle", settle, 0.0, 0.0)]
+        v_per_u = 1.0 / self.closed.kff
+        for level in (*self.PULSE_LEVELS, self.opts.u_max):
+            for sign in (s, -s):  # out of mid-stroke and back
+                plan += [("pulse", min(0.3, self.PULSE_TRAVEL * L / (v_per_u * level)), sign, level),
+                         ("closed", self.PULSE_HOLD * scale, 0.0, 0.0)]
+            plan.append(("settle", self.PULSE_SETTLE * scale, 0.0, 0.0))
+        return plan + [("position", self.POSITION, 0.0, 0.0)]
 
     def command(self, t: float, x_meas: float) -> float:
         i = self._i
@@ -233,33 +286,59 @@ class CalibrationProgram:
             i += 1
         if i != self._i:
             self._i, self._x0, self._creep_done = i, x_meas, False
+            if i >= 0 and self.phases[i][2] == "end":
+                self._ramp = (self.phases[i][0], x_meas)
         if i < 0:
             return self.closed.command(t, x_meas)
         t0, _t1, kind, sign, level = self.phases[i]
         L = self.L
-        if kind == "end":  # no soft limit: the end stop is the limit, approached at end_speed
-            # the reference goes on beyond the end, so that the held command opens the valve
-            # decisively (up to END_COMMAND) and the chambers settle at supply and atmosphere
+        if kind in ("end", "end_hold"):  # no soft limit: the end stop is the limit, approached at end_speed
+            # the reference goes on beyond the end (through the hold: a piston that lags behind
+            # it lands no faster), so that the held command opens the valve decisively (up to
+            # END_COMMAND) and the chambers settle at supply and atmosphere
             target = 1.5 * L if sign > 0 else -0.5 * L
-            r = self._x0 + sign * self.end_speed * (t - t0)
+            r = self._ramp[1] + sign * self.end_speed * (t - self._ramp[0])
             r = min(r, target) if sign > 0 else max(r, target)
             u = self.closed.kp * (r - x_meas) + (self.closed.kff * sign * self.end_speed if r != target else 0.0)
             return max(-self.END_COMMAND, min(self.END_COMMAND, u))
+        if kind == "slow":  # at the end speed to about mid-stroke, where the valve closes (a crisp stop)
+            r = self._x0 + sign * self.end_speed * (t - t0)
+            return guarded(self.closed.kp * (r - x_meas) + self.closed.kff * sign * self.end_speed, x_meas, L, self.opts)
+        if kind == "end_closed":  # at the stop with the valve closed: nothing can drive the piston
+            return 0.0
+        if kind == "closed":  # the valve closed; the soft limits still push back
+            return guarded(0.0, x_meas, L, self.opts)
         if kind == "creep":  # open loop from mid-stroke; stops well inside the soft limits
             if (x_meas - 0.5 * L) * sign > 0.25 * L:
                 self._creep_done = True
             u = 0.0 if self._creep_done else sign * min(self.CREEP_RATE * (t - t0), self.CREEP_MAX)
             return guarded(u, x_meas, L, self.opts)
-        if kind == "pulse":  # open loop, from mid-stroke
+        if kind == "pulse":  # open loop, out of mid-stroke or back
             return guarded(sign * level, x_meas, L, self.opts)
-        if kind == "settle":  # back to mid-stroke under position control
-            u = self.closed.kp * (0.5 * L - x_meas)
-            return guarded(u, x_meas, L, self.opts)
+        if kind == "settle":  # under position control to mid-stroke (sign 0) or to a soft limit
+            target = 0.5 * L if sign == 0 else (0.5 + sign * (0.5 - self.opts.margin)) * L
+            return guarded(self.closed.kp * (target - x_meas), x_meas, L, self.opts)
         return self.closed.command(t, x_meas)
 
 
 PROGRAMS = {"mixed": ("step", "ramp", "sine"), "steps": ("step",), "ramps": ("ramp",), "sines": ("sine",),
             "pulses": None, "calibration": None}
+# what each program does, in a few words (the command line's help lists them all)
+DESCRIPTIONS = {
+    "mixed": "closed-loop position control along steps, ramps and sines (the default)",
+    "steps": "closed-loop position steps", "ramps": "closed-loop constant-speed ramps",
+    "sines": "closed-loop sines", "pulses": "open-loop pulses of random height and length",
+    "calibration": "what calibrate and diagnose need: creeps through the valve's overlap, slow moves across the "
+                   "stroke both ways into the end stops, holds there with the valve open and closed, a closed hold "
+                   "at mid-stroke, pulses of growing command, position control",
+}
+# bumped when a built-in program's commands change: stored runs are keyed by it (benchmarks)
+REVISIONS = {"calibration": 2}
+
+
+def program_revision(name: str) -> int:
+    """The revision of a built-in program's commands (1 for those never changed)."""
+    return REVISIONS.get(name, 1)
 
 
 def make_program(name: str, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
