@@ -21,9 +21,10 @@ def rig(cyl_a):
     return cyl_a.with_values({"Fc": 22.0, "Fv": 55.0})
 
 
-def replayed(cyl, run, **options):
-    """The estimates of a replay as fast as possible (a window at a time, as replay --speed max)."""
-    est = InlineEstimator(cyl, run.sample_period, OnlineOptions(**options), catch_up=True)
+def replayed(cyl, run, catch_up=True, **options):
+    """The estimates of a replay as fast as possible (a window at a time, as replay --speed max),
+    or without `catch_up` on a live session's schedule (an update per update_s of data)."""
+    est = InlineEstimator(cyl, run.sample_period, OnlineOptions(**options), catch_up=catch_up)
     rows = np.vstack([run.t, run.u, run.x, run.p1, run.p2, np.zeros(run.n)])
     out = []
     for k in range(0, run.n, 20):
@@ -200,3 +201,32 @@ def test_replay_of_a_cylinder_whose_file_is_off_says_the_estimate_is_untrusted(r
     assert mon["explained"] is False and doc["solver"]["explains_run"] is False
     assert mon["mismatch"][0]["t_said"] - doc["history"][0]["t"] <= 3.0
     assert mon["sigma_recent"] > 10 and mon["changes"] == []
+
+
+def test_data_that_do_not_determine_the_friction_are_not_taken_for_a_step():
+    """Blocks after a boundary that say nothing of the first parameter (a hold at an end stop:
+    the piston does not move) cannot show a step in it, however far the estimate before lies."""
+    rng = np.random.default_rng(3)
+    t0 = np.arange(0.0, 20.0, 0.2)
+    blocks = _blocks(lambda t: np.array([1.0, 2.0, 3.0]), t0, rng)
+    held = t0 >= 18.0
+    blocks.A[held, 0, :] = blocks.A[held, :, 0] = 0.0
+    blocks.s[held, 0] = 0.0
+    # the boundaries looked at: those of the hold (min_after_s 0: each judged at once)
+    an = analyse(blocks, np.zeros(3), 20.0, recent_s=2.0)
+    assert an.z_step < 6
+
+
+def test_the_calibration_program_on_a_steady_rig_gives_no_change_and_no_drift(cyl_a):
+    """Its holds at the end stops and with the valve closed determine no friction: neither a
+    live schedule nor a replay may announce a change there (they once announced z = 1e70)."""
+    from combined_reality.live import make_program, run_program
+    from hw.virtual_rig import VirtualRig
+
+    prog = make_program("calibration", cyl_a, 20.0, seed=4)
+    run = run_program(VirtualRig(cyl_a, (), rate=1000, seed=4), prog, 20_000)
+    for catch_up in (True, False):
+        out = replayed(cyl_a, run, catch_up)
+        assert not [e.change for e in out if e.change is not None], catch_up
+        assert not [e.drift for e in out if e.drift is not None], catch_up
+        assert out[-1].values["Fc"] == pytest.approx(cyl_a.value("Fc"), rel=0.01)

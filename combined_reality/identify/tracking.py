@@ -281,7 +281,7 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
     regime_cov = regime.at
 
     Gc, Ac = G.cumsum(axis=0), A.cumsum(axis=0)
-    g_all, step_all, _, P_all = gain(Gc[-1], Ac[-1])
+    g_all, step_all, rank_all, P_all = gain(Gc[-1], Ac[-1])
     constant = Fit(theta_r + step_all, noise * P_all + regime_cov(total))
 
     # a step at boundary b: the blocks before it and those from it on fitted apart
@@ -295,7 +295,15 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
     if len(cand):
         Gb, Ab = Gc[cand - 1], Ac[cand - 1]
         n = len(cand)  # before and after each boundary, in one stack
-        g2, step2, _, P2 = gain(np.concatenate([Gb, Gc[-1] - Gb]), np.concatenate([Ab, Ac[-1] - Ab]))
+        g2, step2, rank2, P2 = gain(np.concatenate([Gb, Gc[-1] - Gb]), np.concatenate([Ab, Ac[-1] - Ab]))
+        # a step is judged only where the data on each side determine what all of them do (a
+        # hold at an end stop does not determine the friction: its pseudo-inverse would claim
+        # the undetermined directions known exactly)
+        judged = (rank2[:n] >= rank_all) & (rank2[n:] >= rank_all)
+        cand, n = cand[judged], int(judged.sum())
+        keep = np.concatenate([judged, judged])
+        g2, step2, P2 = g2[keep], step2[keep], P2[keep]
+    if len(cand):
         cov_b = noise * P2[:n] + regime_cov(span_before[cand])
         cov_a = noise * P2[n:] + regime_cov(span_after[cand])
         # where: the likelihood ratio of the noise alone (a regime's part depends on the
