@@ -13,7 +13,7 @@ Conventions shared by all effects:
   (see there).
 - Defaults are the identification start of a candidate: weak to medium values from which
   the fit converges both to a medium truth and to the neutral value.
-- STRENGTH maps every parameter to a realistic (weak, strong) range. Weak is "barely
+- STRENGTH maps every drawn parameter to a realistic (weak, strong) range. Weak is "barely
   visible": on a 20 s closed-loop virtual-rig run (1 kHz, 5 um / 300 Pa noise), the
   nominal model re-identified (Fc, Fv, kp) leaves a residual sigma of about 1.1-1.5 x the
   sensor noise. Strong is a physically strong but realistic level. Parameters in SHAPE
@@ -22,7 +22,9 @@ Conventions shared by all effects:
   a bound depends on the cylinder, SCALED names a reference (`reference`) that multiplies
   it: (weak reference, strong reference). `strength(cyl)` gives every range in the
   parameter's own unit for one cylinder; `random(rng, cyl)` and `typical(cyl, level)`
-  draw from it.
+  draw from it. A parameter in UNDRAWN (leakage's laminar term) is fitted by a candidate but
+  held at its neutral value by drawn truths; its strengths are those of the parameter named
+  there.
 - Effect states are dimensionless (the integrator's tolerance for them is absolute).
 """
 from __future__ import annotations
@@ -346,8 +348,10 @@ class Leakage(Effect):
     NEUTRAL: ClassVar[dict[str, float]] = {"conductance": 0.0, "laminar": 0.0}
     # relative to the valve: weak 7e-6 Cmax, strong 2 % of Cmax (a worn seal, litres per minute)
     STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"conductance": (7e-6, 0.02)}
+    UNDRAWN: ClassVar[dict[str, str]] = {"laminar": "conductance"}
     SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {
-        "conductance": ("valve_conductance", "valve_conductance")}
+        "conductance": ("valve_conductance", "valve_conductance"),
+        "laminar": ("valve_conductance", "valve_conductance")}
     conductance: float = 2e-10
     laminar: float = 0.0  # truths (random, typical) leak through an orifice; a candidate fits both
 

@@ -70,6 +70,9 @@ class Effect:
     FRICTION: ClassVar[str | None] = None
     NEUTRAL: ClassVar[dict[str, float]]
     STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {}
+    # parameter a candidate fits but a drawn truth (random, typical) holds at its neutral value
+    # -> the parameter whose strengths it shares
+    UNDRAWN: ClassVar[dict[str, str]] = {}
     SHAPE: ClassVar[frozenset[str]] = frozenset()
     SIGNED: ClassVar[frozenset[str]] = frozenset()
     # parameter -> (reference of the weak bound, of the strong bound), None: absolute
@@ -130,7 +133,7 @@ class Effect:
         """(weak, strong) of every parameter in its own unit, for this cylinder (weak at
         most half of strong, both inside the bounds)."""
         out = {}
-        for n, (lo, hi) in cls.STRENGTH.items():
+        for n, (lo, hi) in [*cls.STRENGTH.items(), *((n, cls.STRENGTH[twin]) for n, twin in cls.UNDRAWN.items())]:
             ref_lo, ref_hi = cls.SCALED.get(n, (None, None))
             lo, hi = lo * cls.reference(ref_lo, cyl), hi * cls.reference(ref_hi, cyl)
             if n not in cls.SHAPE:
@@ -145,7 +148,9 @@ class Effect:
         between; shapes at the middle of their range; signed parameters with `sign`."""
         vals = {}
         for n, (lo, hi) in cls.strength(cyl).items():
-            if n in cls.SHAPE:
+            if n in cls.UNDRAWN:
+                v = cls.NEUTRAL[n]
+            elif n in cls.SHAPE:
                 v = math.sqrt(lo * hi) if _logscale(lo, hi) else 0.5 * (lo + hi)
             else:
                 v = lo * (hi / lo) ** level
@@ -163,6 +168,9 @@ class Effect:
         over their span (log-uniform when it covers more than a factor 4)."""
         vals = {}
         for n, (lo, hi) in cls.strength(cyl).items():
+            if n in cls.UNDRAWN:
+                vals[n] = cls.NEUTRAL[n]
+                continue
             if n in cls.SHAPE and not _logscale(lo, hi):
                 v = float(rng.uniform(lo, hi))
             else:

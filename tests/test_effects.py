@@ -84,8 +84,9 @@ def test_every_vocabulary_word_is_an_effect():
         for pname, info in cls.PARAMS.items():
             assert info.lower < info.upper and info.unit and info.description
             assert info.lower <= getattr(e, pname) <= info.upper, (name, pname)
-        # strengths: every parameter, ordered, inside the bounds
-        assert set(cls.STRENGTH) == set(cls.PARAMS), name
+        # strengths: every parameter (drawn, or undrawn with a drawn twin), ordered, inside the bounds
+        assert set(cls.STRENGTH) | set(cls.UNDRAWN) == set(cls.PARAMS) and set(cls.UNDRAWN).isdisjoint(cls.STRENGTH)
+        assert set(cls.UNDRAWN.values()) <= set(cls.STRENGTH), name
         assert cls.SHAPE <= set(cls.PARAMS) and cls.SIGNED <= set(cls.PARAMS) and set(cls.SCALED) <= set(cls.PARAMS)
         assert cls.NEUTRAL and set(cls.NEUTRAL) <= set(cls.PARAMS), name
         for pname, v in cls.NEUTRAL.items():
@@ -114,6 +115,9 @@ def test_strength_ranges_and_random_effects_are_realistic(which, request):
             e = cls.random(rng, cyl)
             assert isinstance(e, cls)
             for pname, v in e.as_dict().items():
+                if pname in cls.UNDRAWN:  # a truth holds it at its neutral value
+                    assert v == cls.NEUTRAL[pname], (name, pname)
+                    continue
                 lo, hi = ranges[pname]  # realistic: between weak and strong (shapes are positive)
                 assert lo * (1 - 1e-12) <= abs(v) <= hi * (1 + 1e-12), (name, pname, v)
                 if pname in cls.SIGNED:
