@@ -200,3 +200,33 @@ def test_every_subcommand_says_what_it_does_and_what_each_option_means(name):
     silent = [a.option_strings[0] if a.option_strings else a.dest for a in parser._actions
               if not isinstance(a, argparse._HelpAction) and not a.help]
     assert not silent, f"{name} --help does not explain: {', '.join(silent)}"
+
+
+# what `--help` may load of the project: the command line, its option rules and the plain-data
+# catalogues it states (the programs, the friction fits and segment defaults)
+HELP_MAY_LOAD = ("combined_reality", "combined_reality.cli", "combined_reality.options", "combined_reality.errors",
+                 "combined_reality.live", "combined_reality.live.catalogue", "combined_reality.friction",
+                 "combined_reality.friction.specs", "sim", "sim.cylinder", "sim.inputs")
+HEAVY = ("casadi", "numpy", "scipy", "rerun", "can", "serial", "matplotlib", "pyarrow", "pint")
+
+
+def test_help_loads_neither_the_numerics_nor_the_application():
+    """`combined-reality --help` and every subcommand's `--help` stay fast: subcommands import the
+    application when they run. One process asks for every help in turn and lists what it loaded."""
+    import json
+    import subprocess
+    import sys
+
+    code = ("import json, sys\nfrom combined_reality.cli import build_parser, main\n"
+            "import argparse\n"
+            "sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))\n"
+            "codes = [main(['--help'])] + [main([name, '--help']) for name in sub.choices]\n"
+            "print(json.dumps({'codes': codes, 'modules': sorted(sys.modules), 'n': len(sub.choices)}))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    doc = json.loads(out.stdout.strip().splitlines()[-1])
+    assert doc["n"] >= 12 and set(doc["codes"]) == {0}
+    heavy = [m for m in doc["modules"] if m.split(".")[0] in HEAVY]
+    assert not heavy, f"--help imported {heavy[:5]}"
+    project = [m for m in doc["modules"] if m.split(".")[0] in PACKAGES and not m.startswith("combined_reality.cli.")
+               and m not in HELP_MAY_LOAD]
+    assert not project, f"--help imported the application: {project}"

@@ -55,14 +55,14 @@ def _version() -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from ..errors import CombinedRealityError, shorten
-    from ..files import RunFormatError, os_error
-
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as e:  # a bad option (said in one line) or --help
         return e.code if isinstance(e.code, int) else 2
+    from ..errors import CombinedRealityError, shorten  # (after the parse: --help loads no application)
+    from ..files import RunFormatError, os_error
+
     try:
         return args.func(args)
     except (ConfigError, RunFormatError, UsageError) as e:

@@ -13,8 +13,6 @@ import math
 import os
 import time
 
-from sim.friction_models import parameter_unit
-
 from .. import options
 from .common import UsageError, add_max_rows, check_paths, eprint, load_config, preflight_runs, typed
 
@@ -23,7 +21,7 @@ _PENALTY_PER_PARAM = 0.01
 
 
 def _known_compare_models() -> list[str]:
-    from ..friction import DYNAMIC_SPECS
+    from ..friction.specs import DYNAMIC_SPECS
 
     return ["nominal", *DYNAMIC_SPECS]
 
@@ -133,6 +131,8 @@ def _pm(x: float, s: float) -> str:
 
 def format_comparison(ranking, horizon_s: float) -> str:
     """The ranking table, the failures' reasons, and the best model's parameters per direction."""
+    from sim.friction_models import parameter_unit
+
     from sim.friction_models import DIRECTIONS, FRICTION_MODELS
 
     from ..friction.dynamic import fit_spec

@@ -12,9 +12,7 @@ import argparse
 import math
 import os
 
-from sim.friction_models import parameter_unit
-
-from ..friction.map import FIT_SPECS, PARSIMONY, PLOT_FORMATS, FrictionMap, FrictionMapError, SegmentOptions
+from ..friction.specs import FIT_SPECS, PARSIMONY, PLOT_FORMATS, FrictionMapError, SegmentOptions
 from .common import (UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint, preflight_runs,
                      progress_printer)
 
@@ -167,6 +165,8 @@ def _value(x: float | None, s: float | None) -> str:
 
 def _parameters(f) -> str:
     """value±std per parameter; 'not determined' instead of a number the points do not pin down."""
+    from sim.friction_models import parameter_unit
+
     out = []
     for k, v in f.params.items():
         if v is None and k not in f.not_determined:
@@ -190,7 +190,7 @@ def _verdict(name: str, f, best: str | None) -> str:
     return ""
 
 
-def format_table(fmap: FrictionMap, width: int = 100) -> str:
+def format_table(fmap, width: int = 100) -> str:
     """Per direction: the points, the stick band, what changed together, and every fit (number
     of parameters, metrics, verdict and flags on one line, its parameters wrapped below), all
     within `width` columns; the best fit is starred (FrictionMap's parsimony rule)."""

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from .. import options
-from ..live import DESCRIPTIONS
+from ..live.catalogue import DESCRIPTIONS
 from .common import (BUILT_IN, EFFECT_HELP, UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint,
                      estimate_list, load_config, open_rig, parse_effects, positive_float, preflight_runs, rerun_mode,
                      typed)

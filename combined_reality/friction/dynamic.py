@@ -30,11 +30,9 @@ from sim.friction_models import DIRECTIONS, FRICTION_MODELS, FrictionModel, make
 from ..files import Run
 from ..identify import (IdentificationError, IdentifyOptions, IdentifyResult, friction_from_newton, identify,
                         not_determined, validate)
-from .map import FIT_SPECS, FitSpec, FrictionMapError, MapPoint, fit_model
+from .map import MapPoint, fit_model
+from .specs import DYNAMIC_SPECS, FIT_SPECS, FitSpec, FrictionMapError
 
-# models whose dynamic identification is offered (the map's "cvs_delta" is cvs with a free exponent)
-DYNAMIC_SPECS: tuple[str, ...] = ("cv", "karnopp", "threlfall", "cvs", "cvs_delta", "lugre", "cv_load",
-                                  "cvs_load", "belforte", "cv_dp")
 _BINS_PER_DIRECTION = 24
 # a condition of a static curve that the plant, which has no such signal, holds as a constant
 # parameter: an input of the dynamic fit, not an estimate

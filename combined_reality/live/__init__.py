@@ -1,16 +1,17 @@
 """The model beside the rig: experiment programs, running them on any rig, the live
 session (recording, lock-step simulation, online estimation, sinks), its console and its
-Rerun view."""
-from .console import Console
-from .experiment import run_program, simulate_run
-from .monitor import WHAT_TO_DO, MonitorOptions, SessionMonitor, change_message, drift_message, session_verdict
-from .programs import (DESCRIPTIONS, PROGRAMS, PositionProgram, ProgramOptions, guarded, make_program,
-                       program_revision)
-from .session import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, InlineEstimator, LockstepSimulator,
-                      PacedRig, PipelinedEstimator, ProcessEstimator, ReplayRig, SessionResult, run_session, set_estimator_priority)
+Rerun view. Names are imported from their modules on first use (lazy_loader), so that the
+command line's help can read the program catalogue without loading the numerics."""
+import lazy_loader
 
-__all__ = ["Console", "run_program", "simulate_run", "PROGRAMS", "DESCRIPTIONS", "PositionProgram", "ProgramOptions",
-           "guarded", "make_program", "program_revision", "ConsoleSink", "InlineEstimator", "LockstepSimulator",
-           "PacedRig", "PipelinedEstimator", "ProcessEstimator", "ReplayRig", "SessionResult", "run_session",
-           "ESTIMATOR_NICE_AHEAD", "ESTIMATOR_NICE_BEHIND", "set_estimator_priority", "WHAT_TO_DO", "MonitorOptions",
-           "SessionMonitor", "change_message", "drift_message", "session_verdict"]
+__getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
+    "catalogue": ["DESCRIPTIONS", "PROGRAMS", "program_revision"],
+    "console": ["Console"],
+    "experiment": ["run_program", "simulate_run"],
+    "monitor": ["WHAT_TO_DO", "MonitorOptions", "SessionMonitor", "change_message", "drift_message",
+                "session_verdict"],
+    "programs": ["PositionProgram", "ProgramOptions", "guarded", "make_program"],
+    "session": ["ESTIMATOR_NICE_AHEAD", "ESTIMATOR_NICE_BEHIND", "ConsoleSink", "InlineEstimator", "LockstepSimulator",
+                "PacedRig", "PipelinedEstimator", "ProcessEstimator", "ReplayRig", "SessionResult", "run_session",
+                "set_estimator_priority"],
+})

@@ -17,6 +17,7 @@ from sim.flow import R_AIR, RHO0, T0
 from sim.inputs import read_checked, shorten
 
 from ..files.plausibility import COMMAND_LIMIT
+from .catalogue import PROGRAMS
 
 COMMAND_FILE_MAX_BYTES = 64 << 20  # a command file: hours of commands at 1 kHz
 
@@ -319,26 +320,6 @@ class CalibrationProgram:
             target = 0.5 * L if sign == 0 else (0.5 + sign * (0.5 - self.opts.margin)) * L
             return guarded(self.closed.kp * (target - x_meas), x_meas, L, self.opts)
         return self.closed.command(t, x_meas)
-
-
-PROGRAMS = {"mixed": ("step", "ramp", "sine"), "steps": ("step",), "ramps": ("ramp",), "sines": ("sine",),
-            "pulses": None, "calibration": None}
-# what each program does, in a few words (the command line's help lists them all)
-DESCRIPTIONS = {
-    "mixed": "closed-loop position control along steps, ramps and sines (the default)",
-    "steps": "closed-loop position steps", "ramps": "closed-loop constant-speed ramps",
-    "sines": "closed-loop sines", "pulses": "open-loop pulses of random height and length",
-    "calibration": "what calibrate and diagnose need: creeps through the valve's overlap, slow moves across the "
-                   "stroke both ways into the end stops, holds there with the valve open and closed, a closed hold "
-                   "at mid-stroke, pulses of growing command, position control",
-}
-# bumped when a built-in program's commands change: stored runs are keyed by it (benchmarks)
-REVISIONS = {"calibration": 2}
-
-
-def program_revision(name: str) -> int:
-    """The revision of a built-in program's commands (1 for those never changed)."""
-    return REVISIONS.get(name, 1)
 
 
 def make_program(name: str, cyl: Cylinder, duration: float, seed: int = 0, options: ProgramOptions = ProgramOptions()):
