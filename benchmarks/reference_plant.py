@@ -1576,7 +1576,7 @@ class Case:
         lies, so that two checkouts share the runs."""
         case = {k: v for k, v in self.to_json().items() if k != "cylinder_source"}
         if self.commands is None:  # a closed-loop program whose commands changed: not the runs stored before
-            from combined_reality.live.programs import program_revision
+            from combined_reality.live.catalogue import program_revision
 
             if program_revision(self.program) != 1:
                 case["program_revision"] = program_revision(self.program)

@@ -13,7 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import gauntlet  # noqa: E402
 import reference_plant as ref  # noqa: E402
-from combined_reality.live import programs  # noqa: E402
+from combined_reality.live import catalogue  # noqa: E402
 from sim.cylinder import OPENING_GRID  # noqa: E402
 
 
@@ -79,5 +79,5 @@ def test_what_counts_as_found():
 def test_a_stored_run_of_a_changed_program_is_not_taken_for_a_new_one(cyl_a, monkeypatch):
     cal, mixed = (ref.Case(cyl_a, 0.05, 4, program=p) for p in ("calibration", "mixed"))
     before = cal.key(), mixed.key()
-    monkeypatch.setitem(programs.REVISIONS, "calibration", programs.REVISIONS["calibration"] + 1)
+    monkeypatch.setitem(catalogue.REVISIONS, "calibration", catalogue.REVISIONS["calibration"] + 1)
     assert cal.key() != before[0] and mixed.key() == before[1]
