@@ -24,6 +24,8 @@ from typing import Callable, Union
 
 from cobs import cobs
 
+from sim.errors import ToolFailure
+
 from .realtime import make_realtime
 from .rig import LinkLost, LinkStats, Sample, Status, bounded
 
@@ -149,8 +151,9 @@ MAX_PAYLOAD = max(s.size for s in _LAYOUT.values()) + _CRC.size
 MAX_ENCODED = cobs.max_encoded_length(MAX_PAYLOAD)
 
 
-class FrameError(ValueError):
-    """A payload that is not a valid frame (bad CRC, length, type or field)."""
+class FrameError(ToolFailure, ValueError):
+    """A payload that is not a valid frame (bad CRC, length, type or field): the link's fault, not
+    the request's (exit status 1)."""
 
 
 def crc16(data: bytes) -> int:
@@ -461,7 +464,7 @@ class HostSession:
                           "in the last second (host too slow)")
 
 
-class LinkDown(Exception):
+class LinkDown(ToolFailure):
     """Raised by a transport hook when the port or bus failed; the message says why."""
 
 

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from enum import IntFlag
 from typing import Protocol, runtime_checkable
 
+from sim.errors import ToolFailure
+
 
 class Status(IntFlag):
     """Rig status bits (docs/protocol.md). `Sample.status` carries them without RUNNING
@@ -56,8 +58,9 @@ class LinkStats:
     host_overflow: int = 0  # samples dropped because read() was not called for too long
 
 
-class RigError(RuntimeError):
-    """The rig cannot be used (port missing, bad answer); the message is one sentence."""
+class RigError(ToolFailure, RuntimeError):
+    """The rig cannot be used (port missing, bad answer); the message is one sentence (exit
+    status 1)."""
 
 
 class LinkLost(RigError):

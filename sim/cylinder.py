@@ -17,11 +17,13 @@ from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
+from .errors import InputError
 from .inputs import TOML_MAX_BYTES, parse_toml, read_checked, shorten
 
 
-class ConfigError(ValueError):
-    """A cylinder file that cannot be used; the message is one sentence naming file and key."""
+class ConfigError(InputError):
+    """A cylinder file that cannot be used; the message is one sentence naming file and key (exit
+    status 2)."""
 
 
 @dataclass(frozen=True)

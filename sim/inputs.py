@@ -13,6 +13,8 @@ import os
 import stat
 import tomllib
 
+from .errors import InputError
+
 __all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "regular_file_size",
            "checked_size", "read_checked", "read_bounded", "parse_toml"]
 
@@ -21,8 +23,9 @@ TOML_MAX_LINE = 1 << 16  # characters per line of a TOML file
 QUOTE_LIMIT = 80  # characters of a file's content that a message quotes at most
 
 
-class InputFileError(ValueError):
-    """An input that is not a regular file, or larger than its limit: one sentence with the path."""
+class InputFileError(InputError):
+    """An input that is not a regular file, or larger than its limit: one sentence with the path
+    (exit status 2)."""
 
 
 def _kind(mode: int) -> str | None:

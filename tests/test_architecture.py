@@ -206,7 +206,7 @@ def test_every_subcommand_says_what_it_does_and_what_each_option_means(name):
 # catalogues it states (the programs, the friction fits and segment defaults)
 HELP_MAY_LOAD = ("combined_reality", "combined_reality.cli", "combined_reality.options", "combined_reality.errors",
                  "combined_reality.live", "combined_reality.live.catalogue", "combined_reality.friction",
-                 "combined_reality.friction.specs", "sim", "sim.cylinder", "sim.inputs")
+                 "combined_reality.friction.specs", "sim", "sim.cylinder", "sim.errors", "sim.inputs")
 HEAVY = ("casadi", "numpy", "scipy", "rerun", "can", "serial", "matplotlib", "pyarrow", "pint")
 
 

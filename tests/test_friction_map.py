@@ -15,7 +15,7 @@ import pytest
 from scipy.optimize import curve_fit
 
 from combined_reality.cli import friction_map as cli_friction
-from combined_reality.cli.common import UsageError
+from combined_reality.errors import InputError
 from combined_reality.friction.map import (FIT_SPECS, PARSIMONY, MapPoint, PointsFormatError, SegmentOptions,
                                            TooFewPointsError, build_map, fit_model, linear_fit, points_from_run,
                                            read_points)
@@ -346,7 +346,7 @@ def test_command_refuses_bad_input_in_one_sentence(tmp_path, argv, fragments):
     (tmp_path / "bad.csv").write_text("v,F\n0.1,3\n0.2,x\n")
     paths["bad"] = tmp_path / "bad.csv"
     out = tmp_path / "o.json"
-    with pytest.raises(UsageError) as e:
+    with pytest.raises(InputError) as e:  # bad input: main() says it in one line, exit 2
         _cli([a.format(**paths) for a in argv] + ["--json", out])
     msg = str(e.value)
     assert "\n" not in msg and msg.endswith(".")

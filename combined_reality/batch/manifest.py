@@ -16,6 +16,7 @@ from pathlib import Path
 from sim.inputs import InputFileError, parse_toml, read_bounded, regular_file_size, shorten
 
 from .. import options
+from ..errors import InputError
 from ..friction import DYNAMIC_SPECS, check_model
 
 __all__ = ["MODELS_HELP", "MAX_SIMULATED_SAMPLES", "ManifestError", "SimulateSpec", "CylinderJob", "load_manifest",
@@ -29,8 +30,8 @@ MAX_SIMULATED_SAMPLES = 1_000_000
 MANIFEST_MAX_BYTES = 16 << 20  # a manifest of tens of thousands of cylinders
 
 
-class ManifestError(ValueError):
-    """The manifest cannot be read as a whole (its rows cannot even be listed)."""
+class ManifestError(InputError):
+    """The manifest cannot be read as a whole (its rows cannot even be listed): exit status 2."""
 
 
 @dataclass(frozen=True)

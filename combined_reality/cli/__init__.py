@@ -10,12 +10,10 @@ import argparse
 import sys
 from typing import Sequence
 
-from sim.cylinder import ConfigError
-
 from . import (batch, calibrate, demo, diagnose, friction_compare, friction_map, identify, import_run, live, procedure,
                simulate,
                virtual_rig)
-from .common import OneLineParser, UsageError, eprint
+from .common import OneLineParser, eprint
 
 __all__ = ["build_parser", "main"]
 
@@ -61,16 +59,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # a bad option (said in one line) or --help
         return e.code if isinstance(e.code, int) else 2
     from ..errors import CombinedRealityError, shorten  # (after the parse: --help loads no application)
-    from ..files import RunFormatError, os_error
+    from ..files import os_error
 
     try:
         return args.func(args)
-    except (ConfigError, RunFormatError, UsageError) as e:
-        if args.debug:
-            raise
-        eprint(f"combined-reality {args.command}: {e}")
-        return 2
-    except CombinedRealityError as e:  # the request's fault (2) or the machine's (1), said in one sentence
+    except CombinedRealityError as e:  # every error of the tool: the request's fault (2) or the machine's (1)
         if args.debug:
             raise
         eprint(f"combined-reality {args.command}: {e}")

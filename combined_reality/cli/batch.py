@@ -156,16 +156,12 @@ def _connect(address: str):
 
 
 def run(args) -> int:
-    from ..batch import ManifestError, load_manifest, run_batch, share_compiled_code
+    from ..batch import load_manifest, run_batch, share_compiled_code
     from ..files import write_json_atomic
 
     out = Path(args.out)
     check_paths({"--json": args.json}, inputs=[args.manifest], folders={"--out": out})
-    try:
-        jobs = load_manifest(args.manifest, diagnose=args.diagnose, allow_outside=args.allow_outside,
-                             max_rows=args.max_rows)
-    except ManifestError as e:
-        raise UsageError(str(e)) from None
+    jobs = load_manifest(args.manifest, diagnose=args.diagnose, allow_outside=args.allow_outside, max_rows=args.max_rows)
     renamed = [j for j in jobs if j.file_stem != j.name]
     if renamed and not args.quiet:  # which files belong to which cylinder
         eprint("file names of cylinders whose names a file name cannot hold as they are: "

@@ -69,7 +69,7 @@ def run(args) -> int:
     from ..calibrate import CALIBRATED, CalibrateOptions, calibrate, validation_figures
     from ..files import check_moves, check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import IdentificationError, check_determinable, validate
+    from ..identify import check_determinable, validate
 
     check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
                 inputs=[args.config, *args.runs, args.validate])
@@ -101,12 +101,8 @@ def run(args) -> int:
         say(f"calibrating {len(estimate)} parameters from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
             "in three stages")
     t0 = time.perf_counter()
-    try:
-        cal = calibrate(start, runs, CalibrateOptions(estimate=estimate, interval_s=args.interval,
-                                                      max_iter=args.max_iter), progress=say)
-    except IdentificationError as e:
-        eprint(f"combined-reality calibrate: {e}")
-        return 1
+    cal = calibrate(start, runs, CalibrateOptions(estimate=estimate, interval_s=args.interval, max_iter=args.max_iter),
+                    progress=say)
     out = cal.to_json(start)
     out["config"] = str(start.source)
     out["inputs"] = [str(p) for p in args.runs]

@@ -21,6 +21,8 @@ from typing import Callable, Sequence
 
 from sim.cylinder import Cylinder, load_cylinder
 
+from ..errors import InputError
+
 __all__ = ["UsageError", "OneLineParser", "typed", "check_paths", "add_max_rows", "read_runs", "eprint",
            "progress_printer", "ProgressView", "default_config_path", "load_config", "BUILT_IN", "cylinder_for_runs",
            "preflight_runs", "parse_effects", "estimate_list", "positive_float", "rerun_mode", "open_rig",
@@ -32,7 +34,7 @@ EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 
                "friction_change:t_step=30,step_Fc=0.3,step_Fv=0.3 or friction_change:ramp_Fc=0.00667")
 
 
-class UsageError(ValueError):
+class UsageError(InputError):
     """Bad input from the command line (exit status 2)."""
 
 
@@ -50,8 +52,6 @@ class OneLineParser(argparse.ArgumentParser):
 def typed(rule: Callable, name: str | None = None, **kw) -> Callable[[str], object]:
     """An option rule of combined_reality.options as an argparse type: the value is checked as
     it is parsed, with the rule's sentence."""
-    from ..errors import InputError
-
     def convert(text: str):
         try:
             return rule(text, name, **kw) if name else rule(text, **kw)

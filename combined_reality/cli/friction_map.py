@@ -83,16 +83,12 @@ def run(args) -> int:
     stuck_time = None
     stuck_speeds = []
     for path in args.inputs:
-        try:
-            table = is_points_table(path)
-            if table:
-                pts = read_points(path)
-                points.extend(pts)
-                nb = sum(p.breakaway for p in pts)
-                say(f"{path}: points table, {len(pts) - nb} sliding points" + (f", {nb} breakaway rows" if nb else ""))
-                continue
-        except FrictionMapError as e:
-            raise UsageError(str(e)) from None
+        if is_points_table(path):
+            pts = read_points(path)
+            points.extend(pts)
+            nb = sum(p.breakaway for p in pts)
+            say(f"{path}: points table, {len(pts) - nb} sliding points" + (f", {nb} breakaway rows" if nb else ""))
+            continue
         run_ = read_run(path, args.max_rows)
         if cyl is None:
             cyl, which = cylinder_for_runs(args.config, [run_])

@@ -89,7 +89,7 @@ def not_determined(result) -> list[str]:
 def run(args) -> int:
     from ..files import clean_json, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import IdentificationError, IdentifyOptions, identify
+    from ..identify import IdentifyOptions, identify
 
     check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
                 inputs=[args.config, *args.runs])
@@ -116,11 +116,7 @@ def run(args) -> int:
     if prog:
         prog(f"identifying {', '.join(estimate)} from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
              f"{drive} drive")
-    try:
-        result = identify(cyl, runs, opts, effects=effects, progress=prog)
-    except IdentificationError as e:
-        eprint(f"combined-reality identify: {e}")
-        return 1
+    result = identify(cyl, runs, opts, effects=effects, progress=prog)
     out = result.to_json()
     unknown = not_determined(result)
     for n, entry in out["params"].items():

@@ -29,6 +29,7 @@ import numpy as np
 
 from sim.inputs import checked_size, shorten
 
+from ..errors import InputError
 from ..options import MAX_ROWS
 from .atomic import atomic_writer
 from .outputs import os_error, refuse_special
@@ -46,8 +47,9 @@ MEASURED_CHANNELS: tuple[str, ...] = ("x", "p1", "p2", "ps")
 _Fail = Callable[..., "RunFormatError"]
 
 
-class RunFormatError(ValueError):
-    """A run file that cannot be used; the message is one sentence naming file, line and column."""
+class RunFormatError(InputError):
+    """A run file that cannot be used; the message is one sentence naming file, line and column
+    (exit status 2)."""
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: element-wise array equality has no single truth value

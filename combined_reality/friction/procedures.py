@@ -37,6 +37,7 @@ from sim.cylinder import Cylinder
 from sim.flow import G, KAPPA, R_AIR, RHO0, T0
 from sim.plant import build_plant
 
+from ..errors import ToolFailure
 from ..files import Run, RunRecorder, atomic_write
 from ..identify import friction_from_newton
 from ..live import ProgramOptions, guarded
@@ -55,8 +56,9 @@ TABLE_COLUMNS = ("v", "F", "F_std", "v_std", "count", "dp", "pc", "breakaway")
 _HALF = 15  # half-window of friction_from_newton's Savitzky-Golay derivatives (its default)
 
 
-class ProcedureError(RuntimeError):
-    """The procedure cannot go on (the rig does not move, does not answer, leaves the stroke); one sentence."""
+class ProcedureError(ToolFailure, RuntimeError):
+    """The procedure cannot go on (the rig does not move, does not answer, leaves the stroke); one
+    sentence (exit status 1)."""
 
 
 def _keep_partial(e: BaseException, result: "SweepResult | BreakawayResult") -> None:

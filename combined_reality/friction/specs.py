@@ -7,12 +7,14 @@ import math
 from dataclasses import dataclass
 from typing import Mapping
 
+from ..errors import InputError
+
 __all__ = ["FrictionMapError", "PointsFormatError", "TooFewPointsError", "SegmentOptions", "FitSpec", "FIT_SPECS",
            "NOMINAL_LAW", "PARSIMONY", "PLOT_FORMATS", "DYNAMIC_SPECS"]
 
 
-class FrictionMapError(ValueError):
-    """A map that cannot be made from the given input; the message is one sentence."""
+class FrictionMapError(InputError):
+    """A map that cannot be made from the given input; the message is one sentence (exit status 2)."""
 
 
 class PointsFormatError(FrictionMapError):

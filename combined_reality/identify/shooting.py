@@ -17,14 +17,15 @@ from sim.cylinder import ESTIMABLE, PARAMETERS, Cylinder
 from sim.extension import Effect
 from sim.plant import Plant
 
+from ..errors import ToolFailure
 from ..files import Run
 from .smoothing import fill_missing, velocity_estimate
 
 UNITS = {name: spec.unit for name, spec in PARAMETERS.items()}
 
 
-class IdentificationError(RuntimeError):
-    """The identification could not be carried out (the message says why)."""
+class IdentificationError(ToolFailure, RuntimeError):
+    """The identification could not be carried out (the message says why; exit status 1)."""
 
 
 @dataclass(frozen=True)

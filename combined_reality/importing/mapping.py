@@ -34,15 +34,16 @@ from typing import Any
 
 from sim.inputs import TOML_MAX_BYTES, parse_toml, read_checked, shorten
 
+from ..errors import InputError
 from .units import UnitProblem, check_unit, quantity_in
 
 __all__ = ["MappingError", "SOURCE_FORMATS", "SourceOptions", "ChannelMap", "ImportMapping", "load_mapping",
            "parse_mapping", "format_of"]
 
 
-class MappingError(ValueError):
+class MappingError(InputError):
     """A mapping file (or a recording read through it) that cannot be used; one sentence
-    naming the file and the key, line or channel."""
+    naming the file and the key, line or channel (exit status 2)."""
 
 
 # file suffix -> format

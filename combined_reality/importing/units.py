@@ -9,14 +9,16 @@ import numpy as np
 
 from sim.inputs import shorten
 
+from ..errors import InputError
+
 __all__ = ["UnitProblem", "registry", "check_unit", "quantity_in", "convert_channel", "decimal_clean"]
 
 # the run channels' SI units (extras: pint's base units)
 SI_UNITS = {"t": "s", "x": "m", "p1": "Pa", "p2": "Pa", "ps": "Pa"}
 
 
-class UnitProblem(ValueError):
-    """A unit or quantity text pint cannot read, or of the wrong dimension (one sentence)."""
+class UnitProblem(InputError):
+    """A unit or quantity text pint cannot read, or of the wrong dimension (one sentence; exit status 2)."""
 
 
 @functools.lru_cache(maxsize=1)
