@@ -230,7 +230,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
             raise UsageError(str(e)) from None
 
         def link_counters() -> dict:
-            stats = getattr(rig, "stats", None)
+            stats = rig.stats
             if stats is None:
                 return {}
             return {"lost": stats.samples_lost, "corrupt": stats.frames_corrupt, "late": stats.commands_late}

@@ -46,7 +46,7 @@ class EndOfRun(Exception):
 
 # ------------------------------------------------------------------ sources
 
-class ReplayRig:
+class ReplayRig(Rig):
     """A recorded run as a rig: samples at their recorded times (scaled by `speed`), or as
     fast as possible (speed = inf). Commands sent to it are ignored: it reports the
     recorded command as the one applied."""
@@ -87,7 +87,7 @@ class ReplayRig:
         pass
 
 
-class PacedRig:
+class PacedRig(Rig):
     """The in-process virtual rig held to its own clock, so a live session runs in real time."""
 
     def __init__(self, rig: VirtualRig):
@@ -755,10 +755,10 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         try:
             rig.stop()
             # what arrived but was not read yet is recorded too: nothing received is lost
-            for s in getattr(rig, "drain", lambda: [])():
+            for s in rig.drain():
                 take_sample(s)
             # the link's counters as the recording closes: they and the recording tell the same
-            stats = getattr(rig, "stats", None)
+            stats = rig.stats
         finally:
             gc.unfreeze()
             rec.close()
