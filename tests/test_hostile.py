@@ -483,6 +483,8 @@ def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cy
             return samples.pop(0)
 
     class NoEstimator:
+        error = None
+
         def add(self, rows): pass
         def poll(self): return []
         def finish(self, timeout=30.0, cancelled=None): return []

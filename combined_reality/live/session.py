@@ -114,6 +114,27 @@ class PacedRig(Rig):
 
 # ------------------------------------------------------------------ estimators
 
+class Estimator(Protocol):
+    """The online estimator as the session sees it, wherever it runs: InlineEstimator in the
+    calling thread, PipelinedEstimator in a worker thread, ProcessEstimator in its own process."""
+
+    error: str | None  # why it stopped estimating (the session keeps acquiring); None while it works
+
+    def add(self, rows: np.ndarray) -> None:
+        """Take a block of rows: t, u, x, p1, p2, lost_before (6, n)."""
+        ...
+
+    def poll(self) -> list[OnlineEstimate]:
+        """The estimates due since the last poll, in order."""
+        ...
+
+    def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = ...) -> list[OnlineEstimate]:
+        """Take in every row added (for at most `timeout` s, or until `cancelled()`): the last estimates."""
+        ...
+
+    def close(self) -> None: ...
+
+
 class InlineEstimator:
     """The moving-horizon estimator in the calling thread (replay as fast as possible).
 
@@ -122,6 +143,8 @@ class InlineEstimator:
     window it mostly knows, and a change of the rig is tested every half window. The window
     grows to one and a half before the oldest whole window leaves it (OnlineOptions.hold_s):
     the arrival cost takes in whole windows, as when whole windows were slid."""
+
+    error: str | None = None  # never set: a failure here is the caller's exception
 
     def __init__(self, cyl: Cylinder, sample_period: float, options: OnlineOptions, effects: Sequence[Effect] = (),
                  catch_up: bool = True):
@@ -589,7 +612,7 @@ class _Recording:
 
 
 
-def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: float | None = None,
+def run_session(cyl: Cylinder, rig: Rig, *, estimator: Estimator, program=None, duration: float | None = None,
                 record_to: str | os.PathLike | None = None, record_comments: Sequence[str] = (),
                 sinks: Sequence[Sink] = (), simulator: LockstepSimulator | None = None,
                 on_event: Callable[[str], None] | None = None, block: int = 20,
@@ -771,7 +794,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     for e in estimator.finish(0.1 if stopped else finish_timeout_s,
                               cancelled=lambda: stop is not None and stop() is not None):
         take(e)
-    if getattr(estimator, "error", None):
+    if estimator.error:
         event(f"online estimator failed: {estimator.error}")
     for s in sinks:
         s.close()
