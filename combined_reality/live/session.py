@@ -507,8 +507,11 @@ class LockstepSimulator:
 # ------------------------------------------------------------------ sinks
 
 class Sink(Protocol):
-    def rows(self, rows: np.ndarray, sim: np.ndarray) -> None: ...
+    def rows(self, rows: np.ndarray, sim: np.ndarray | None) -> None: ...
     def estimate(self, e: OnlineEstimate) -> None: ...
+    def note(self, t: float, text: str) -> None:
+        """What the session judged of the rig at data time `t` (a sink may ignore it)."""
+        ...
     def close(self) -> None: ...
 
 
@@ -555,6 +558,9 @@ class ConsoleSink:
 
     def estimate(self, e: OnlineEstimate) -> None:
         self._e = e
+
+    def note(self, t: float, text: str) -> None:
+        pass  # the session says its judgements on the console itself
 
     def close(self) -> None:
         self.console.close()
@@ -629,7 +635,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator: Estimator, program=None, 
     With `realtime`, acquisition (this thread and the rig's reader) runs under SCHED_FIFO
     at that priority where the OS grants it: other processes then cannot delay the answer
     to a sample. `monitor` judges every estimate (validity, changes of the rig); what it says
-    joins the events and goes to `on_judgement` (else on_event) and to every sink with a
+    joins the events and goes to `on_judgement` (else on_event) and to every sink's
     `note(t, text)`."""
     events: list[str] = []
     monitor = monitor if monitor is not None else SessionMonitor()
@@ -688,8 +694,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator: Estimator, program=None, 
             events.append(msg)
             (on_judgement or on_event or (lambda m: None))(msg)
             for s in sinks:
-                if hasattr(s, "note"):
-                    s.note(e.t, msg)
+                s.note(e.t, msg)
 
     def take_sample(s: Sample) -> bool:
         """Record one sample and queue it for the model; False if it cannot be a row."""
