@@ -37,6 +37,7 @@ from ..files import Run, RunRecorder, measured_value
 from ..files.plausibility import COMMAND_LIMIT
 from ..identify import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
 from .console import Console
+from .messages import pending
 from .monitor import SessionMonitor
 
 
@@ -350,15 +351,12 @@ class ProcessEstimator:
 
     def poll(self) -> list[OnlineEstimate]:
         out = []
-        while True:
-            try:
-                kind, value = self.outbox.get_nowait()
-            except queue.Empty:
-                return out
+        for kind, value in pending(self.outbox):
             if kind == "estimate":
                 out.append(value)
             elif kind == "error":
                 self.error = value
+        return out
 
     def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = lambda: False) -> list[OnlineEstimate]:
         """Let the estimator take in everything sent so far (for at most `timeout`, or until
