@@ -27,7 +27,7 @@ from cobs import cobs
 from sim.errors import ToolFailure
 
 from .realtime import make_realtime
-from .rig import LinkLost, LinkStats, Sample, Status, bounded
+from .rig import LinkLost, LinkStats, Rig, Sample, Status, bounded
 
 __all__ = [
     "FrameType", "ErrorCode", "Status", "Start", "Stop", "Command", "Heartbeat", "SampleFrame", "ErrorFrame",
@@ -468,7 +468,7 @@ class LinkDown(ToolFailure):
     """Raised by a transport hook when the port or bus failed; the message says why."""
 
 
-class LinkRig:
+class LinkRig(Rig):
     """Base of SerialRig and CanRig: a reader thread drains the link into a queue, read() pops.
 
     The thread keeps the OS buffer empty while the host computes, and reopens a lost link

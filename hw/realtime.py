@@ -11,6 +11,8 @@ from __future__ import annotations
 import os
 import threading
 
+from .rig import Rig
+
 __all__ = ["make_realtime", "make_normal", "realtime_available", "take_host_priority", "HOST_PRIORITY"]
 
 # SCHED_FIFO priority of a host loop that answers a rig's samples (a live session's
@@ -49,13 +51,13 @@ def make_normal(thread: threading.Thread | None = None) -> None:
         pass
 
 
-def take_host_priority(rig, priority: int) -> tuple[bool, str | None]:
+def take_host_priority(rig: Rig, priority: int) -> tuple[bool, str | None]:
     """SCHED_FIFO at `priority` for a host loop (the calling thread) and for the rig's own
-    threads (its link reader, through the rig's optional `realtime(priority)`): (whether the
+    threads (its link reader, through `Rig.realtime(priority)`): (whether the
     calling thread got it, so make_normal() gives it back; why not, one phrase, or None)."""
     why = make_realtime(priority)
     taken = why is None
-    why = why or getattr(rig, "realtime", lambda _p: None)(priority)
+    why = why or rig.realtime(priority)
     return taken, why
 
 

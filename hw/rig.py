@@ -1,7 +1,7 @@
 """The one rig interface: anything that accepts a valve command and yields timestamped samples.
 
-Serial, CAN, the virtual rig and file replay all satisfy it, so the pipeline never
-knows which one it has (as python-can's Bus does for CAN interfaces).
+Serial, CAN, the virtual rig and file replay all derive from `Rig`, so the pipeline never
+knows which one it has (as python-can's BusABC does for CAN interfaces).
 
 Timing contract (docs/model.md): at each tick t_k the rig samples its sensors and latches the
 latest command it has received; the valve holds that command over [t_k, t_k+1) and the
@@ -11,9 +11,9 @@ latched at tick k+1 at the earliest.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from enum import IntFlag
-from typing import Protocol, runtime_checkable
 
 from sim.errors import ToolFailure
 
@@ -67,17 +67,41 @@ class LinkLost(RigError):
     """The link to the rig is gone and did not come back."""
 
 
-@runtime_checkable
-class Rig(Protocol):
-    def start(self) -> None: ...
+class Rig(ABC):
+    """The base every rig derives from (as python-can's BusABC is for CAN interfaces): a
+    backend implements the four abstract methods; the optional parts have defaults that
+    fit a rig without a link (nothing queued, no link counters, no threads of its own)."""
 
-    def read(self, timeout: float | None = None) -> Sample | None: ...
+    @abstractmethod
+    def start(self) -> None:
+        """Start sampling: read() then yields samples."""
 
-    def send(self, u: float) -> None: ...
+    @abstractmethod
+    def read(self, timeout: float | None = None) -> Sample | None:
+        """The next sample, or None when none came within `timeout` seconds."""
 
+    @abstractmethod
+    def send(self, u: float) -> None:
+        """Command the valve; the rig latches it at its next tick."""
+
+    @abstractmethod
     def stop(self) -> None:
         """Centre the valve and release the rig."""
-        ...
+
+    def drain(self) -> list[Sample]:
+        """The samples received but not read yet, in order, leaving none behind (after stop():
+        all the rig took in before it closed). A rig that queues nothing has none."""
+        return []
+
+    @property
+    def stats(self) -> LinkStats | None:
+        """The link's health since it was opened; None for a rig without a link."""
+        return None
+
+    def realtime(self, priority: int) -> str | None:
+        """Run the rig's own threads (a link's reader) under SCHED_FIFO at `priority` (hw.realtime):
+        None when granted or the rig has no threads, else why not (one phrase)."""
+        return None
 
 
 def bounded(u: float) -> float:

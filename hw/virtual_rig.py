@@ -17,10 +17,10 @@ from sim.effects import Effect
 from sim.integrator import TRUTH_OPTIONS, IntegratorOptions
 from sim.plant import plant_for
 
-from .rig import Sample, bounded
+from .rig import Rig, Sample, bounded
 
 
-class VirtualRig:
+class VirtualRig(Rig):
     """An in-process rig: `read()` advances the plant by one sample period with the held command."""
 
     def __init__(self, cyl: Cylinder, effects: Sequence[Effect] = (), *, rate: float = 1000.0, seed: int = 0,

@@ -466,13 +466,13 @@ def test_diagnose_warns_when_valid_is_train(world):
 def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cyl_a):
     """A 3e38 Pa reading from the rig: recorded and counted as not measured (like NaN), so
     the summary's samples, the run's and the file's agree, and the recording stays readable."""
-    from hw.rig import Sample
+    from hw.rig import Rig, Sample
     from combined_reality.live import run_session
     from combined_reality.live.session import EndOfRun
 
     samples = [Sample(t=k * 1e-3, x=0.05, p1=3e38 if k == 7 else 3e5, p2=3e5, u_applied=0.0) for k in range(50)]
 
-    class Rig:
+    class FromList(Rig):
         def start(self): pass
         def send(self, u): pass
         def stop(self): pass
@@ -483,11 +483,13 @@ def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cy
             return samples.pop(0)
 
     class NoEstimator:
+        error = None
+
         def add(self, rows): pass
         def poll(self): return []
         def finish(self, timeout=30.0, cancelled=None): return []
 
-    res = run_session(cyl_a, Rig(), estimator=NoEstimator(), record_to=tmp_path / "r.csv")
+    res = run_session(cyl_a, FromList(), estimator=NoEstimator(), record_to=tmp_path / "r.csv")
     back = read_run(tmp_path / "r.csv")
     assert res.counters["samples"] == res.run.n == back.n == 50
     assert res.counters["incomplete"] == 1 and np.isnan(res.run.p1[7]) and np.isnan(back.p1[7])

@@ -16,7 +16,7 @@ from combined_reality.friction.procedures import (TABLE_COLUMNS, BreakawayOption
                                          target_speeds, write_points)
 from combined_reality.files import read_run
 from conftest import assert_refused
-from hw.rig import Sample
+from hw.rig import Rig, Sample
 from hw.virtual_rig import VirtualRig
 from sim.cylinder import cylinder_to_toml
 from sim.effects import make_effect
@@ -182,7 +182,7 @@ def test_target_speeds_are_log_spaced_and_bounded(cyl):
 
 # ------------------------------------------------------------------ (c) errors and safety
 
-class StuckRig:
+class StuckRig(Rig):
     """A rig whose piston never moves (blocked, or seized): pressures follow the valve, x stays."""
 
     def __init__(self, cyl, fail_after=None, silent_after=None):
@@ -273,12 +273,29 @@ def test_the_loop_answers_a_rig_at_real_time_priority_and_gives_it_back(cyl):
     assert set(policies) == {before}
 
 
-class FallsSilent:
-    """A rig that stops answering once `silent` is set (the link is gone)."""
+class Wrapped(Rig):
+    """A rig passing everything on to `rig`; subclasses change one part."""
 
     def __init__(self, rig):
-        self.rig, self.silent = rig, False
-        self.start, self.send, self.stop = rig.start, rig.send, rig.stop
+        self.rig = rig
+
+    def start(self):
+        self.rig.start()
+
+    def read(self, timeout=None):
+        return self.rig.read(timeout)
+
+    def send(self, u):
+        self.rig.send(u)
+
+    def stop(self):
+        self.rig.stop()
+
+
+class FallsSilent(Wrapped):
+    """A rig that stops answering once `silent` is set (the link is gone)."""
+
+    silent = False
 
     def read(self, timeout=None):
         return None if self.silent else self.rig.read(timeout)
@@ -324,12 +341,8 @@ def test_a_rig_lost_mid_sweep_keeps_the_points_measured_before(cyl, stiction, tm
     assert "no sample from the rig" in res["error"] and "ended early" in out.read_text()
 
 
-class InvertedValve:
+class InvertedValve(Wrapped):
     """The virtual rig with its valve wired the other way round."""
-
-    def __init__(self, rig):
-        self.rig = rig
-        self.start, self.read, self.stop = rig.start, rig.read, rig.stop
 
     def send(self, u):
         self.rig.send(-u)

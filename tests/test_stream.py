@@ -16,7 +16,7 @@ from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
 from combined_reality.files import read_run, write_run
 from conftest import assert_refused
 from combined_reality.live import InlineEstimator, LockstepSimulator, PipelinedEstimator, ReplayRig, run_session
-from hw.rig import Sample
+from hw.rig import Rig, Sample
 
 
 @pytest.fixture(scope="module")
@@ -331,7 +331,7 @@ def test_a_sample_with_a_channel_not_measured_is_recorded_as_missing(cyl_a, run_
     assert res.final.sigma < 1.05 and len(res.estimates) >= 2
 
 
-class _QueuedRig:
+class _QueuedRig(Rig):
     """A link rig whose last samples are still queued when the session stops it."""
 
     def __init__(self, run, stop_after: int):

@@ -230,7 +230,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
             raise UsageError(str(e)) from None
 
         def link_counters() -> dict:
-            stats = getattr(rig, "stats", None)
+            stats = rig.stats
             if stats is None:
                 return {}
             return {"lost": stats.samples_lost, "corrupt": stats.frames_corrupt, "late": stats.commands_late}
@@ -309,7 +309,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
     if args.json:
         write_json_atomic(args.json, clean_json(_session_json(result, options, wall, link_events or [], no_estimate)))
         console.say(f"wrote {args.json}")
-    if getattr(estimator, "error", None):
+    if estimator.error:
         return 1
     if result.stop_reason.startswith("no samples"):
         return 1

@@ -428,7 +428,7 @@ class _Driver:
     def counters(self) -> dict:
         out = {"samples": self.n, "longest_host_pause_s": round(self.longest_pause, 4),
                "watchdog_samples": self.watchdog_samples, "rig_soft_limit_samples": self.rig_limit_samples}
-        stats = getattr(self.rig, "stats", None)
+        stats = self.rig.stats
         if stats is not None:
             out.update({k: v for k, v in vars(stats).items() if isinstance(v, (int, float))})
         return out

@@ -9,9 +9,9 @@ mapping file").
 - sampling: the sampling report and resampling onto a regular grid
 - convert: the whole conversion, with the checks a run must pass
 """
-from .convert import READERS, ImportResult, import_recording
+from .convert import READERS, ImportResult, import_recording, reader
 from .mapping import ChannelMap, ImportMapping, MappingError, SourceOptions, load_mapping, parse_mapping
 from .sampling import SamplingReport, resample, sampling_report
 
-__all__ = ["READERS", "ImportResult", "import_recording", "ChannelMap", "ImportMapping", "MappingError",
+__all__ = ["READERS", "ImportResult", "import_recording", "reader", "ChannelMap", "ImportMapping", "MappingError",
            "SourceOptions", "load_mapping", "parse_mapping", "SamplingReport", "resample", "sampling_report"]

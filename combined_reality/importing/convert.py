@@ -4,6 +4,7 @@ sample), report the sampling and, on request, resample."""
 from __future__ import annotations
 
 import hashlib
+import importlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,48 +22,20 @@ from .raw import RawTable
 from .sampling import SamplingReport, resample, sampling_report
 from .units import SI_UNITS, convert_channel
 
-__all__ = ["ImportResult", "import_recording", "READERS"]
+__all__ = ["ImportResult", "import_recording", "READERS", "reader"]
 
 
-def _delimited(path, mapping):
-    from .delimited import read_delimited
-
-    return read_delimited(path, mapping)
-
-
-def _parquet(path, mapping):
-    from .parquet import read_parquet
-
-    return read_parquet(path, mapping)
+# format -> (module of this package, its reader). A module, and with it its format's library
+# (the heavy ones are optional extras), is imported when a recording of that format is read
+READERS: dict[str, tuple[str, str]] = {
+    "csv": ("delimited", "read_delimited"), "parquet": ("parquet", "read_parquet"), "mat": ("matlab", "read_mat"),
+    "tdms": ("tdms", "read_tdms"), "mdf": ("mdf", "read_mdf"), "can": ("canlog", "read_can_log")}
 
 
-def _mat(path, mapping):
-    from .matlab import read_mat
-
-    return read_mat(path, mapping)
-
-
-def _tdms(path, mapping):
-    from .tdms import read_tdms
-
-    return read_tdms(path, mapping)
-
-
-def _mdf(path, mapping):
-    from .mdf import read_mdf
-
-    return read_mdf(path, mapping)
-
-
-def _can(path, mapping):
-    from .canlog import read_can_log
-
-    return read_can_log(path, mapping)
-
-
-# format -> reader (each imports its library when used: the heavy ones are optional extras)
-READERS: dict[str, Callable[[Path, ImportMapping], RawTable]] = {
-    "csv": _delimited, "parquet": _parquet, "mat": _mat, "tdms": _tdms, "mdf": _mdf, "can": _can}
+def reader(fmt: str) -> Callable[[Path, ImportMapping], RawTable]:
+    """The reader of format `fmt` (a key of READERS), its module imported now."""
+    module, function = READERS[fmt]
+    return getattr(importlib.import_module(f".{module}", __package__), function)
 
 
 @dataclass(frozen=True)
@@ -87,7 +60,7 @@ def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate
     path = Path(raw_path)
     fmt = format_of(path, mapping.source)
     _check_recording(path, mapping, fmt, max_rows)
-    raw = READERS[fmt](path, mapping)
+    raw = reader(fmt)(path, mapping)
     n = max((len(v) for v in raw.columns.values()), default=0)
     if n > max_rows:
         raise MappingError(f"{path}: {n} samples, more than the {max_rows} a run may have (--max-rows raises the "

@@ -11,7 +11,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
     "monitor": ["WHAT_TO_DO", "MonitorOptions", "SessionMonitor", "change_message", "drift_message",
                 "session_verdict"],
     "programs": ["PositionProgram", "ProgramOptions", "guarded", "make_program"],
-    "session": ["ESTIMATOR_NICE_AHEAD", "ESTIMATOR_NICE_BEHIND", "ConsoleSink", "InlineEstimator", "LockstepSimulator",
-                "PacedRig", "PipelinedEstimator", "ProcessEstimator", "ReplayRig", "SessionResult", "run_session",
-                "set_estimator_priority"],
+    "session": ["ESTIMATOR_NICE_AHEAD", "ESTIMATOR_NICE_BEHIND", "ConsoleSink", "Estimator", "InlineEstimator",
+                "LockstepSimulator", "PacedRig", "PipelinedEstimator", "ProcessEstimator", "ReplayRig",
+                "SessionResult", "Sink", "run_session", "set_estimator_priority"],
 })

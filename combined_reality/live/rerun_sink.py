@@ -37,6 +37,7 @@ from sim.plant import build_plant, plant_for
 from ..files import Run
 from ..identify import MISMATCH, OnlineEstimate, friction_from_newton
 from ..report.rerun import close_recording, display_available, open_recording
+from .messages import pending
 from .monitor import change_message
 
 
@@ -187,11 +188,7 @@ class RerunProcessSink:
 
     def _poll(self) -> bool | None:
         """Pass on what the sink process said; its "closed" answer, if any."""
-        while True:
-            try:
-                kind, value = self.outbox.get_nowait()
-            except queue.Empty:
-                return None
+        for kind, value in pending(self.outbox):
             if kind == "say":
                 self.say(value)
             elif kind == "error":
@@ -201,6 +198,7 @@ class RerunProcessSink:
                 if not value:
                     self.say("the Rerun viewer did not take the last data (it went away)")
                 return value
+        return None
 
     def close(self) -> None:
         """Let the view finish (for at most close_timeout_s), then end the process whatever it does."""

@@ -37,6 +37,7 @@ from ..files import Run, RunRecorder, measured_value
 from ..files.plausibility import COMMAND_LIMIT
 from ..identify import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
 from .console import Console
+from .messages import pending
 from .monitor import SessionMonitor
 
 
@@ -46,7 +47,7 @@ class EndOfRun(Exception):
 
 # ------------------------------------------------------------------ sources
 
-class ReplayRig:
+class ReplayRig(Rig):
     """A recorded run as a rig: samples at their recorded times (scaled by `speed`), or as
     fast as possible (speed = inf). Commands sent to it are ignored: it reports the
     recorded command as the one applied."""
@@ -87,7 +88,7 @@ class ReplayRig:
         pass
 
 
-class PacedRig:
+class PacedRig(Rig):
     """The in-process virtual rig held to its own clock, so a live session runs in real time."""
 
     def __init__(self, rig: VirtualRig):
@@ -114,6 +115,27 @@ class PacedRig:
 
 # ------------------------------------------------------------------ estimators
 
+class Estimator(Protocol):
+    """The online estimator as the session sees it, wherever it runs: InlineEstimator in the
+    calling thread, PipelinedEstimator in a worker thread, ProcessEstimator in its own process."""
+
+    error: str | None  # why it stopped estimating (the session keeps acquiring); None while it works
+
+    def add(self, rows: np.ndarray) -> None:
+        """Take a block of rows: t, u, x, p1, p2, lost_before (6, n)."""
+        ...
+
+    def poll(self) -> list[OnlineEstimate]:
+        """The estimates due since the last poll, in order."""
+        ...
+
+    def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = ...) -> list[OnlineEstimate]:
+        """Take in every row added (for at most `timeout` s, or until `cancelled()`): the last estimates."""
+        ...
+
+    def close(self) -> None: ...
+
+
 class InlineEstimator:
     """The moving-horizon estimator in the calling thread (replay as fast as possible).
 
@@ -122,6 +144,8 @@ class InlineEstimator:
     window it mostly knows, and a change of the rig is tested every half window. The window
     grows to one and a half before the oldest whole window leaves it (OnlineOptions.hold_s):
     the arrival cost takes in whole windows, as when whole windows were slid."""
+
+    error: str | None = None  # never set: a failure here is the caller's exception
 
     def __init__(self, cyl: Cylinder, sample_period: float, options: OnlineOptions, effects: Sequence[Effect] = (),
                  catch_up: bool = True):
@@ -327,15 +351,12 @@ class ProcessEstimator:
 
     def poll(self) -> list[OnlineEstimate]:
         out = []
-        while True:
-            try:
-                kind, value = self.outbox.get_nowait()
-            except queue.Empty:
-                return out
+        for kind, value in pending(self.outbox):
             if kind == "estimate":
                 out.append(value)
             elif kind == "error":
                 self.error = value
+        return out
 
     def finish(self, timeout: float = 30.0, cancelled: Callable[[], bool] = lambda: False) -> list[OnlineEstimate]:
         """Let the estimator take in everything sent so far (for at most `timeout`, or until
@@ -484,8 +505,11 @@ class LockstepSimulator:
 # ------------------------------------------------------------------ sinks
 
 class Sink(Protocol):
-    def rows(self, rows: np.ndarray, sim: np.ndarray) -> None: ...
+    def rows(self, rows: np.ndarray, sim: np.ndarray | None) -> None: ...
     def estimate(self, e: OnlineEstimate) -> None: ...
+    def note(self, t: float, text: str) -> None:
+        """What the session judged of the rig at data time `t` (a sink may ignore it)."""
+        ...
     def close(self) -> None: ...
 
 
@@ -532,6 +556,9 @@ class ConsoleSink:
 
     def estimate(self, e: OnlineEstimate) -> None:
         self._e = e
+
+    def note(self, t: float, text: str) -> None:
+        pass  # the session says its judgements on the console itself
 
     def close(self) -> None:
         self.console.close()
@@ -589,7 +616,7 @@ class _Recording:
 
 
 
-def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: float | None = None,
+def run_session(cyl: Cylinder, rig: Rig, *, estimator: Estimator, program=None, duration: float | None = None,
                 record_to: str | os.PathLike | None = None, record_comments: Sequence[str] = (),
                 sinks: Sequence[Sink] = (), simulator: LockstepSimulator | None = None,
                 on_event: Callable[[str], None] | None = None, block: int = 20,
@@ -606,7 +633,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     With `realtime`, acquisition (this thread and the rig's reader) runs under SCHED_FIFO
     at that priority where the OS grants it: other processes then cannot delay the answer
     to a sample. `monitor` judges every estimate (validity, changes of the rig); what it says
-    joins the events and goes to `on_judgement` (else on_event) and to every sink with a
+    joins the events and goes to `on_judgement` (else on_event) and to every sink's
     `note(t, text)`."""
     events: list[str] = []
     monitor = monitor if monitor is not None else SessionMonitor()
@@ -665,8 +692,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
             events.append(msg)
             (on_judgement or on_event or (lambda m: None))(msg)
             for s in sinks:
-                if hasattr(s, "note"):
-                    s.note(e.t, msg)
+                s.note(e.t, msg)
 
     def take_sample(s: Sample) -> bool:
         """Record one sample and queue it for the model; False if it cannot be a row."""
@@ -755,10 +781,10 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
         try:
             rig.stop()
             # what arrived but was not read yet is recorded too: nothing received is lost
-            for s in getattr(rig, "drain", lambda: [])():
+            for s in rig.drain():
                 take_sample(s)
             # the link's counters as the recording closes: they and the recording tell the same
-            stats = getattr(rig, "stats", None)
+            stats = rig.stats
         finally:
             gc.unfreeze()
             rec.close()
@@ -771,7 +797,7 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator, program=None, duration: f
     for e in estimator.finish(0.1 if stopped else finish_timeout_s,
                               cancelled=lambda: stop is not None and stop() is not None):
         take(e)
-    if getattr(estimator, "error", None):
+    if estimator.error:
         event(f"online estimator failed: {estimator.error}")
     for s in sinks:
         s.close()
