@@ -6,10 +6,11 @@
 - newton: friction from Newton's law with the measured pressures (the identifier's start), and
   the column-scaled least squares of such equation-error fits (`scaled_lstsq`)
 - preflight: whether runs can belong to the cylinder file and determine the chosen parameters at all
-- determined: whether a fit's estimate is one (its standard deviation below its value)
+- determined: whether a fit's estimate is one (`too_uncertain`: its standard deviation below a
+  share of its value or of its effect's yardstick)
 - shooting, smoothing: the shared machinery (intervals, Gauss-Newton, covariance; derivatives)
 """
-from .determined import not_determined
+from .determined import not_determined, too_uncertain
 from .newton import equation_error_friction, friction_from_newton, scaled_lstsq
 from .offline import MISMATCH, Estimate, IdentifyOptions, IdentifyResult, identify
 from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
@@ -23,4 +24,4 @@ __all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estim
            "preflight", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError",
            "PriorRow",
            "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",
-           "validate", "validation_gain", "validation_segments", "scaled_lstsq"]
+           "validate", "validation_gain", "validation_segments", "scaled_lstsq", "too_uncertain"]
