@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from .errors import InputError
-from .inputs import TOML_MAX_BYTES, parse_toml, read_checked, shorten
+from .inputs import TOML_MAX_BYTES, decode_text, parse_toml, read_checked, shorten
 
 
 class ConfigError(InputError):
@@ -248,13 +248,9 @@ _HINTS = {("geometry.bore", 1): "lengths are in metres, not mm",
 
 def load_cylinder(path: str | Path) -> Cylinder:
     path = Path(path)
-    data = read_checked(path, "a cylinder file", ConfigError, TOML_MAX_BYTES)
-    try:
-        text = data.decode("utf-8-sig")  # TOML is UTF-8; editors on Windows like to add a BOM
-    except UnicodeDecodeError as e:
-        line = data.count(b"\n", 0, e.start) + 1
-        raise ConfigError(f"{path}, line {line}: not UTF-8 text (a cylinder file is TOML, which is UTF-8; save it "
-                          "as UTF-8).") from None
+    text = decode_text(read_checked(path, "a cylinder file", ConfigError, TOML_MAX_BYTES),
+                       lambda line, _: ConfigError(f"{path}, line {line}: not UTF-8 text (a cylinder file is TOML, "
+                                                   "which is UTF-8; save it as UTF-8)."))
     try:
         data = parse_toml(text)
     except tomllib.TOMLDecodeError as e:

@@ -6,17 +6,20 @@ read, and TOML is parsed with its lines and nesting bounded.
 Every reader of the tool goes through here (cylinder files here in sim; runs, mappings,
 recordings, manifests, points tables and command files in the application). The caller keeps
 its own words for a missing file or bad text; what is refused here raises InputFileError
-with the path and the reason, which the caller turns into its own error class."""
+with the path and the reason, which the caller turns into its own error class. Text is decoded
+here too (decode_text: a UTF-8 byte order mark dropped, the line of a byte that is not text)."""
 from __future__ import annotations
 
+import codecs
 import os
 import stat
 import tomllib
+from typing import Callable
 
 from .errors import InputError
 
 __all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "regular_file_size",
-           "checked_size", "read_checked", "read_bounded", "parse_toml"]
+           "checked_size", "read_checked", "read_bounded", "decode_text", "parse_toml"]
 
 TOML_MAX_BYTES = 1 << 20  # a cylinder file or a mapping is a few kB; 1 MiB is far beyond any
 TOML_MAX_LINE = 1 << 16  # characters per line of a TOML file
@@ -97,6 +100,25 @@ def read_bounded(path: str | os.PathLike[str], what: str, limit: int | None, lim
         raise InputFileError(f"{path}: more than {limit / 2**20:.4g} MiB, more than {what} may hold"
                              f"{limit_hint}.")
     return data
+
+
+def decode_text(data: bytes, not_text: Callable[[int, int], Exception] | None = None, encoding: str = "utf-8",
+                line0: int = 1, cr_ends_lines: bool = False) -> str:
+    """`data`, the bytes of a file from its line `line0` on, as text in `encoding`; a UTF-8
+    byte order mark that opens the file (line0 1) is dropped (spreadsheet programs and Windows
+    editors like to write one). Bytes that are not such text raise not_text(line, byte): the
+    line of the first bad one (lines end at \n; with `cr_ends_lines` at \r and \r\n too, as in
+    a CSV) and its offset after the mark; without `not_text`, the UnicodeDecodeError."""
+    if line0 == 1 and encoding.lower().replace("_", "-") in ("utf-8", "utf8") and data.startswith(codecs.BOM_UTF8):
+        data = data[len(codecs.BOM_UTF8):]
+    try:
+        return data.decode(encoding)
+    except UnicodeDecodeError as e:
+        if not_text is None:
+            raise
+        head = data[:e.start]
+        breaks = head.count(b"\n") + (head.count(b"\r") - head.count(b"\r\n") if cr_ends_lines else 0)
+        raise not_text(line0 + breaks, e.start) from None
 
 
 def parse_toml(text: str, max_line: int = TOML_MAX_LINE) -> dict:

@@ -612,3 +612,28 @@ def test_a_long_run_is_read_in_bounded_memory_and_located_exactly(tmp_path, monk
         read_run(tmp_path / "r.csv", max_rows=1000)  # refused by its size, unread
     with pytest.raises(RunFormatError, match=r"40002 lines, more than the 40000 .*--max-rows"):
         read_run(tmp_path / "r.csv", max_rows=40_000)  # refused by a count of its lines, unparsed
+
+
+@pytest.mark.parametrize("bom", [b"", b"\xef\xbb\xbf"])
+def test_a_byte_order_mark_does_not_move_the_byte_that_is_not_text(tmp_path, bom):
+    """A byte that is not UTF-8 at the start of line 3, after a byte order mark or none: each
+    reader names line 3 (the mapping its offset after the mark), as sim.inputs.decode_text
+    counts for all of them."""
+    from combined_reality.batch import ManifestError, load_manifest
+    from combined_reality.importing import MappingError, load_mapping
+    from combined_reality.importing.delimited import read_delimited
+    from sim.cylinder import ConfigError, load_cylinder
+
+    head = bom + b"# one\n# two\n\xfc # three\n"
+    cases = {"c.toml": (head + (CONFIGS / "cyl_a_32x100.toml").read_bytes(), load_cylinder, ConfigError),
+             "fleet.toml": (head, load_manifest, ManifestError),
+             "r.csv": (head + b"t,u,x,p1,p2\n", read_run, RunFormatError),
+             "lab.csv": (head, lambda p: read_delimited(p, load_mapping(tmp_path / "m.toml")), MappingError)}
+    (tmp_path / "m.toml").write_text(FUZZ_MAPPING.replace("[source]\n", '[source]\nencoding = "utf-8"\n', 1))
+    for name, (data, read, error) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(error, match=rf"{name}, line 3: not (UTF-8|utf-8) text"):
+            read(tmp_path / name)
+    (tmp_path / "bad.toml").write_bytes(head)
+    with pytest.raises(MappingError, match=r"bad.toml: not UTF-8 text at byte 12 "):
+        load_mapping(tmp_path / "bad.toml")

@@ -13,7 +13,7 @@ import tomllib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
-from sim.inputs import InputFileError, parse_toml, read_bounded, regular_file_size, shorten
+from sim.inputs import InputFileError, decode_text, parse_toml, read_bounded, regular_file_size, shorten
 
 from .. import options
 from ..errors import InputError
@@ -128,15 +128,13 @@ def load_manifest(path: str | os.PathLike[str], diagnose: bool = False, allow_ou
     or bad fail their own row later, not the batch."""
     path = Path(path)
     try:
-        data = read_bounded(path, "a manifest", MANIFEST_MAX_BYTES)
-        doc = parse_toml(data.decode("utf-8-sig"))
+        doc = parse_toml(decode_text(read_bounded(path, "a manifest", MANIFEST_MAX_BYTES),
+                                     lambda line, _: ManifestError(f"{path}, line {line}: not UTF-8 text (a manifest "
+                                                                   "is TOML, which is UTF-8).")))
     except InputFileError as e:
         raise ManifestError(str(e)) from None
     except OSError as e:
         raise ManifestError(f"cannot read the manifest {path}: {e.strerror or e}") from None
-    except UnicodeDecodeError as e:
-        line = data.count(b"\n", 0, e.start) + 1
-        raise ManifestError(f"{path}, line {line}: not UTF-8 text (a manifest is TOML, which is UTF-8).") from None
     except tomllib.TOMLDecodeError as e:
         raise ManifestError(f"{path} is not valid TOML: {e}") from None
     unknown = set(doc) - {"cylinder", "model", "simulate"}

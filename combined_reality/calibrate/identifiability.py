@@ -16,13 +16,14 @@ import numpy as np
 from sim.cylinder import OPENING_GRID, PARAMETERS, Cylinder
 
 from ..files import Run
-from ..identify import IdentifyResult, velocity_estimate
+from ..identify import IdentifyResult, too_uncertain, velocity_estimate
 
 __all__ = ["Identifiability", "assess", "separability", "MIN_COVERAGE", "STRONG_CORRELATION"]
 
 MIN_COVERAGE = 0.003  # share of the samples a flow segment needs to count as measured
 STRONG_CORRELATION = 0.95  # |r| above which two estimates are not told apart
-_UNDETERMINED = 0.5  # std above this share of the value (or of the range, near zero): not determined
+# std from this share of the value (or of 1e-3 x the range, near zero) on: not determined.
+_UNDETERMINED = 0.5  # half, not identify's 1 (no estimate at all): it says what to record before that
 
 # what motion determines each kind of parameter
 _ADVICE = {
@@ -238,7 +239,7 @@ def assess(result: IdentifyResult, runs: Sequence[Run]) -> Identifiability:
             continue
         if not math.isfinite(e.std):
             why = "the data do not constrain it at all"
-        elif e.std > _UNDETERMINED * max(abs(e.value), 1e-3 * span):
+        elif too_uncertain(e.std, max(abs(e.value), 1e-3 * span), share=_UNDETERMINED):
             why = f"its standard deviation ({e.std:.3g} {e.unit}) is as large as the value itself ({e.value:.3g})"
         elif e.at_bound and n.startswith("overlap_") and e.value <= spec.lower:
             why = None  # the data want no overlap, which is the least there is: the valve opens at once

@@ -19,7 +19,7 @@ from sim.flow import G, KAPPA, R_AIR, mass_flow
 from sim.plant import MODEL_REVISION
 
 from ..files import Run
-from ..identify import savgol_kernels
+from ..identify import savgol_kernels, scaled_lstsq
 
 __all__ = ["force_balance_prefit", "settled_offsets", "chamber_prefit", "unit_flows", "opening_basis"]
 
@@ -57,10 +57,8 @@ def force_balance_prefit(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> 
         rhs.append(force)
     if not rows or sum(len(b) for b in rhs) < 100:
         return {}
-    A, b = np.vstack(rows), np.concatenate(rhs)
-    scale = np.maximum(np.abs(A).max(axis=0), 1e-300)
-    sol = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
-    if not np.all(np.isfinite(sol)):
+    sol = scaled_lstsq(np.vstack(rows), np.concatenate(rhs))
+    if sol is None:
         return {}
     M, Fc, kp, Fv, F_ext = (float(s) for s in sol)
     out = {"Fc": max(Fc, 0.0), "kp": max(kp, 0.0), "Fv": max(Fv, 0.0), "external_force": F_ext}

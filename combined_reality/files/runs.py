@@ -27,7 +27,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from sim.inputs import checked_size, shorten
+from sim.inputs import checked_size, decode_text, shorten
 
 from ..errors import InputError
 from ..options import MAX_ROWS
@@ -158,7 +158,6 @@ def _as_column(value: object, name: str) -> np.ndarray:
 MAX_LINE = 1 << 16  # bytes of one line
 _MAX_ROW_BYTES = 256  # a file larger than max_rows lines of this length is refused unread
 _BLOCK = 8 << 20  # bytes read at a time: a block after the first is parsed by pyarrow's CSV reader
-_BOM = b"\xef\xbb\xbf"  # spreadsheet programs like to add a UTF-8 BOM
 
 
 def read_run(path: str | os.PathLike[str], max_rows: int = MAX_ROWS) -> Run:
@@ -221,14 +220,9 @@ def _blocks(f, fail: _Fail):
     time; a line longer than MAX_LINE is refused. A block ends after a line break, or at the
     end of the file."""
     offset, line, rest = 0, 1, b""
-    first = True
     while True:
         chunk = f.read(_BLOCK)
         data = rest + chunk
-        if first:
-            first = False
-            if data.startswith(_BOM):
-                data, offset = data[len(_BOM):], len(_BOM)
         if not chunk:
             if data:
                 yield offset, line, data, _line_breaks(data)
@@ -255,10 +249,9 @@ def _split_lines(text: str) -> list[str]:
 
 
 def _decoded(block: bytes, line0: int, fail: _Fail) -> str:
-    try:
-        return block.decode("utf-8")
-    except UnicodeDecodeError as e:
-        raise fail("not UTF-8 text (is this a CSV file?).", line0 + _line_breaks(block[:e.start])) from None
+    """The block's text (the first drops a UTF-8 byte order mark)."""
+    return decode_text(block, lambda line, _: fail("not UTF-8 text (is this a CSV file?).", line), line0=line0,
+                       cr_ends_lines=True)
 
 
 def _is_comment(line: str) -> bool:

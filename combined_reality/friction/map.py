@@ -43,7 +43,7 @@ from sim.inputs import InputFileError, regular_file_size, shorten
 
 from ..files import Run, atomic_write, split_at_gaps
 from ..files.plausibility import MAX_ABS_PRESSURE
-from ..identify import derivative_kernels, friction_from_newton
+from ..identify import derivative_kernels, friction_from_newton, too_uncertain
 from ..progress import counter
 from .specs import (FIT_SPECS, NOMINAL_LAW, PARSIMONY, PLOT_FORMATS, FitSpec, FrictionMapError, PointsFormatError,
                     SegmentOptions, TooFewPointsError)
@@ -544,14 +544,14 @@ def _flags(cls, free, values, std, ci, lower, upper, corr, v, J_full, suffix) ->
 
 
 # the part of the points' force spread within which a parameter's effect must be pinned
-_DETERMINED_SHARE = 0.5
+_DETERMINED_SHARE = 0.5  # by effect, not value: a parameter near 0 with a small effect is pinned (small)
 
 
 def _not_determined(cls, free, values, std, lower, upper, corr, J_full, suffix, F) -> set[str]:
     """Free parameters the points do not pin down: no finite standard deviation, stuck at a
     bound other than zero (the fit wanted beyond), inseparable from another (|r| > 0.999), a
     static force that hardly reaches the points, or an uncertainty whose effect on the curve
-    (std x largest sensitivity) exceeds half the spread of the points' forces. A parameter
+    (std x largest sensitivity) is as large as half the spread of the points' forces. A parameter
     near 0 with a small effect is determined: the points say it is small."""
     spread = float(np.ptp(np.abs(F))) or float(np.mean(np.abs(F))) or 1.0
     out = set()
@@ -561,7 +561,7 @@ def _not_determined(cls, free, values, std, lower, upper, corr, J_full, suffix, 
         lo, hi = lower[free.index(n)], upper[free.index(n)]
         at_bound = (abs(x - hi) <= 1e-6 * max(1.0, abs(hi))) or (lo != 0 and abs(x - lo) <= 1e-6 * max(1.0, abs(lo)))
         reach = float(np.max(np.abs(J_full[:, i])))
-        if not math.isfinite(s) or at_bound or reach * s > _DETERMINED_SHARE * spread or \
+        if too_uncertain(s, spread, share=_DETERMINED_SHARE, sensitivity=reach) or at_bound or \
                 (n in ("Fs", "mu_s") and reach < _REACH):
             out.add(n)
     if corr is not None:

@@ -3,13 +3,15 @@
 - offline: multiple-shooting least squares over whole runs (`identify`)
 - online: the same problem over a moving horizon of a live stream (`MovingHorizonEstimator`)
 - validation: scoring a model on a run it was not fitted to (`validate`)
-- newton: friction from Newton's law with the measured pressures (the identifier's start)
+- newton: friction from Newton's law with the measured pressures (the identifier's start), and
+  the column-scaled least squares of such equation-error fits (`scaled_lstsq`)
 - preflight: whether runs can belong to the cylinder file and determine the chosen parameters at all
-- determined: whether a fit's estimate is one (its standard deviation below its value)
+- determined: whether a fit's estimate is one (`too_uncertain`: its standard deviation below a
+  share of its value or of its effect's yardstick)
 - shooting, smoothing: the shared machinery (intervals, Gauss-Newton, covariance; derivatives)
 """
-from .determined import not_determined
-from .newton import equation_error_friction, friction_from_newton
+from .determined import not_determined, too_uncertain
+from .newton import equation_error_friction, friction_from_newton, scaled_lstsq
 from .offline import MISMATCH, Estimate, IdentifyOptions, IdentifyResult, identify
 from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
 from .preflight import Preflight, check_determinable, motion_summary, preflight
@@ -22,4 +24,4 @@ __all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estim
            "preflight", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError",
            "PriorRow",
            "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",
-           "validate", "validation_gain", "validation_segments"]
+           "validate", "validation_gain", "validation_segments", "scaled_lstsq", "too_uncertain"]

@@ -1,5 +1,7 @@
 """Whether the data determine an estimate: the one rule behind every "not determined" and
-"no estimate" the tool prints (identify, friction-compare)."""
+"no estimate" the tool prints (identify, friction-compare, calibrate's identifiability, friction
+maps): a standard deviation that is not finite, or whose effect is as large as a share of the
+size it is judged by (`too_uncertain`)."""
 from __future__ import annotations
 
 import math
@@ -7,7 +9,13 @@ from typing import Collection, Mapping
 
 from sim.cylinder import PARAMETERS
 
-__all__ = ["not_determined"]
+__all__ = ["not_determined", "too_uncertain"]
+
+
+def too_uncertain(std: float, size: float, share: float = 1.0, sensitivity: float = 1.0) -> bool:
+    """Not determined: `std` is not finite, or its effect (std x `sensitivity`) is as large as
+    `share` of `size` (the value itself, for identify's estimates)."""
+    return not math.isfinite(std) or std * sensitivity >= share * size
 
 
 def not_determined(values: Mapping[str, float], std: Mapping[str, float],
@@ -22,6 +30,7 @@ def not_determined(values: Mapping[str, float], std: Mapping[str, float],
     out = []
     for n, v in values.items():
         s = std.get(n, math.nan)
-        if not math.isfinite(s) or not math.isfinite(v) or (not signed(n) and n not in at_bound and s >= abs(v)):
+        by_value = not signed(n) and n not in at_bound
+        if not math.isfinite(v) or (too_uncertain(s, abs(v)) if by_value else not math.isfinite(s)):
             out.append(n)
     return out

@@ -15,7 +15,15 @@ from sim.plant import Plant, build_plant
 from ..files import Run
 from .smoothing import derivative_kernels
 
-__all__ = ["friction_from_newton", "equation_error_friction"]
+__all__ = ["friction_from_newton", "equation_error_friction", "scaled_lstsq"]
+
+
+def scaled_lstsq(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """The least-squares solution of A x = b with A's columns scaled to a largest entry of 1
+    (regressors of different units: N, N/Pa, N s/m, kg, ...); None if it is not finite."""
+    scale = np.maximum(np.abs(A).max(axis=0), 1e-300)
+    sol = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
+    return sol if np.all(np.isfinite(sol)) else None
 
 
 def friction_from_newton(cyl: Cylinder, run: Run, half: int = 15,
@@ -65,9 +73,7 @@ def equation_error_friction(cyl: Cylinder, runs: Sequence[Run], half: int = 15) 
         rhs.append(F[sliding])
     if not rows or sum(len(x) for x in rhs) < 50:
         return {}
-    A, b = np.vstack(rows), np.concatenate(rhs)
-    scale = np.maximum(np.abs(A).max(axis=0), 1e-300)
-    sol = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
-    if not np.all(np.isfinite(sol)):
+    sol = scaled_lstsq(np.vstack(rows), np.concatenate(rhs))
+    if sol is None:
         return {}
     return {"Fc": max(float(sol[0]), 0.0), "kp": max(float(sol[1]), 0.0), "Fv": max(float(sol[2]), 0.0)}

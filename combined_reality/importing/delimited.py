@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.inputs import read_checked, shorten
+from sim.inputs import decode_text, read_checked, shorten
 
 from .mapping import ImportMapping, MappingError
 from .raw import RawTable, require_column_time
@@ -63,16 +63,11 @@ def _lines(path: Path, encoding: str | None) -> tuple[list[str], str]:
     data = read_checked(path, "a recording", MappingError, None)  # its size bounded by import_recording
     if encoding is None:  # UTF-8, else what Windows DAQ programs write (the header must still match exactly)
         try:
-            return _text_lines(path, data.decode("utf-8-sig")), "utf-8"
+            return _text_lines(path, decode_text(data)), "utf-8"
         except UnicodeDecodeError:
             encoding = "cp1252"
-    codec = "utf-8-sig" if encoding.lower().replace("_", "-") in ("utf-8", "utf8") else encoding
-    try:
-        text = data.decode(codec)
-    except UnicodeDecodeError as e:
-        line = data.count(b"\n", 0, e.start) + 1
-        raise MappingError(f"{path}, line {line}: not {encoding} text; set [source] encoding to the file's (e.g. "
-                           f"\"latin-1\").") from None
+    text = decode_text(data, lambda line, _: MappingError(f"{path}, line {line}: not {encoding} text; set [source] "
+                                                          f"encoding to the file's (e.g. \"latin-1\")."), encoding)
     return _text_lines(path, text), encoding
 
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sim.inputs import TOML_MAX_BYTES, parse_toml, read_checked, shorten
+from sim.inputs import TOML_MAX_BYTES, decode_text, parse_toml, read_checked, shorten
 
 from ..errors import InputError
 from .units import UnitProblem, check_unit, quantity_in
@@ -125,10 +125,8 @@ def format_of(path: Path, options: SourceOptions) -> str:
 
 def load_mapping(path: str | os.PathLike[str]) -> ImportMapping:
     path = Path(path)
-    try:
-        text = read_checked(path, "a mapping file", MappingError, TOML_MAX_BYTES).decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise MappingError(f"{path}: not UTF-8 text at byte {e.start} (a mapping file is TOML).") from None
+    text = decode_text(read_checked(path, "a mapping file", MappingError, TOML_MAX_BYTES),
+                       lambda _, byte: MappingError(f"{path}: not UTF-8 text at byte {byte} (a mapping file is TOML)."))
     try:
         data = parse_toml(text)
     except tomllib.TOMLDecodeError as e:
