@@ -52,3 +52,22 @@ def test_a_curve_open_from_its_overlap_and_the_linear_law_stay_as_they_are(cyl) 
     grid = np.array(OPENING_GRID)
     tiny_start = replace(cyl, valve=replace(cyl.valve, overlap_retract=0.05, flow_retract=tuple(0.8 * grid ** 1.5)))
     assert dead_band_in_overlap(tiny_start) == {}  # its first level is small, not closed
+
+
+def test_the_valve_stage_starts_again_with_both_overlaps_at_zero_then_each_alone(cyl) -> None:
+    """A valve that overlaps one way only: a fit that took an overlap both ways is started again
+    with each at zero alone (a held-out case had stayed at 1.32 x the noise with a retract
+    overlap of 0.06 against a truth of 0, and both at zero ended at 2.67 x)."""
+    from combined_reality.calibrate.stages import CALIBRATED, other_chamber_starts
+
+    grid = np.array(OPENING_GRID)
+    both = replace(cyl, valve=replace(cyl.valve, overlap_extend=0.06, overlap_retract=0.05,
+                                      flow_extend=tuple(grid), flow_retract=tuple(grid)))
+    starts = other_chamber_starts(both, set(CALIBRATED), ("overlap",))
+    assert [label.split(" (")[0] for label, _ in starts] == ["the overlaps at zero", "the extend overlap at zero",
+                                                            "the retract overlap at zero"]
+    (_, zero), (_, ext), (_, ret) = starts
+    assert zero == {**ext, **ret} and ext["overlap_extend"] == 0.0 and "overlap_retract" not in ext
+    one = replace(both, valve=replace(both.valve, overlap_retract=0.0))
+    assert [label.split(" (")[0] for label, _ in other_chamber_starts(one, set(CALIBRATED), ("overlap",))] == [
+        "the overlaps at zero"]

@@ -416,11 +416,15 @@ def valve_and_chambers(cyl: Cylinder, runs: Sequence[Run], want: set[str], optio
 def other_chamber_starts(cyl: Cylinder, want: set[str], which: Sequence[str] = ("overlap", "critical_ratio")
                          ) -> list[tuple[str, dict[str, float]]]:
     """The valve and chambers' other starts, in the order tried: both overlaps at zero (the same
-    curves as dead bands), then the critical ratio low and high (the offsets as they are)."""
+    curves as dead bands), where both have one each alone (a valve may overlap one way only),
+    then the critical ratio low and high (the offsets as they are)."""
     out = []
-    zero = {k: v for d, values in overlap_as_dead_band(cyl).items() if set(values) <= want for k, v in values.items()}
-    if zero and "overlap" in which:
-        out.append(("the overlaps at zero (the same curves closed up to them)", zero))
+    each = {d: values for d, values in overlap_as_dead_band(cyl).items() if set(values) <= want}
+    if each and "overlap" in which:
+        out.append(("the overlaps at zero (the same curves closed up to them)",
+                    {k: v for values in each.values() for k, v in values.items()}))
+        if len(each) > 1:
+            out += [(f"the {d} overlap at zero (the same curve closed up to it)", values) for d, values in each.items()]
     if "critical_ratio" in want and "critical_ratio" in which:
         b = cyl.valve.critical_ratio
         out += [(f"the critical ratio from {x:g}", {"critical_ratio": x}) for x in OTHER_CRITICAL_RATIOS
