@@ -96,6 +96,11 @@ def test_result_json_follows_formats(cyl_a, run_a):
     assert {"rmse_x", "r2_x", "rmse_p1", "rmse_p2"} <= set(js["fit"])
     assert {"status", "iterations", "wall_s"} <= set(js["solver"])
     assert js["params"]["kp"]["unit"] == "N/Pa"
+    # identify --json's document: the fit's, with what is determined, the cylinder file and the runs
+    doc = res.document(inputs=["run.csv"])
+    assert {n: p["determined"] for n, p in doc["params"].items()} == {"Fc": True, "Fv": True, "kp": True}
+    assert doc["solver"]["status"] == js["solver"]["status"] == "converged"
+    assert doc["config"] == str(cyl_a.source) and doc["inputs"] == ["run.csv"]
 
 
 @pytest.mark.slow

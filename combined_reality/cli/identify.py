@@ -50,7 +50,7 @@ def format_table(result, truth: Cylinder | None = None) -> str:
     """The estimates of an IdentifyResult (value, std, unit, start; with `truth`, the true value and the error),
     the fit and the solver's status, as printed by identify and demo."""
     rows = [("parameter", "value", "std", "unit", "initial") + (("true", "error") if truth else ())]
-    unknown = set(not_determined(result))
+    unknown = set(result.not_determined)
     for n, e in result.params.items():
         std = f"{e.std:.3g}" + (" (at bound)" if e.at_bound else "") + (" not determined" if n in unknown else "")
         row = (n, f"{e.value:.6g}", std, e.unit, f"{e.initial:.4g}")
@@ -75,15 +75,6 @@ def format_table(result, truth: Cylinder | None = None) -> str:
     lines.append(f"solver: {status} after {s['iterations']} iterations, {s['wall_s']:.2f} s "
                  f"({result.drive} drive, {s['n_samples']} samples, residual sigma {s['residual_sigma']:.3g} x noise)")
     return "\n".join(lines)
-
-
-def not_determined(result) -> list[str]:
-    """Estimated parameters of an IdentifyResult the data do not determine (identify.not_determined)."""
-    from ..identify import not_determined as rule
-
-    p = result.params
-    return rule({n: e.value for n, e in p.items()}, {n: e.std for n, e in p.items()},
-                {n for n, e in p.items() if e.at_bound})
 
 
 def run(args) -> int:
@@ -117,16 +108,9 @@ def run(args) -> int:
         prog(f"identifying {', '.join(estimate)} from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
              f"{drive} drive")
     result = identify(cyl, runs, opts, effects=effects, progress=prog)
-    out = result.to_json()
-    unknown = not_determined(result)
-    for n, entry in out["params"].items():
-        entry["determined"] = n not in unknown
-    if unknown and out["solver"]["status"] == "converged":
-        out["solver"]["status"] = "not_determined"
-    out["config"] = str(cyl.source)
-    out["inputs"] = [str(p) for p in args.runs]
+    unknown = result.not_determined
     if args.json:
-        write_json_atomic(args.json, clean_json(out))
+        write_json_atomic(args.json, clean_json(result.document(config=cyl.source, inputs=args.runs)))
         if prog:
             prog(f"wrote {args.json}")
     if args.write_config:
