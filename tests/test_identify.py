@@ -103,6 +103,30 @@ def test_result_json_follows_formats(cyl_a, run_a):
     assert doc["config"] == str(cyl_a.source) and doc["inputs"] == ["run.csv"]
 
 
+@pytest.mark.parametrize("drive, estimate, bad, given", [("pressure", ("Fc", "conductance", "flow_extend_2"),
+                                                           "conductance, flow_extend_2", "the measured pressures"),
+                                                          ("chambers", ("mass", "critical_ratio", "Fv"),
+                                                           "mass, Fv", "the measured motion")])
+def test_a_drive_cannot_estimate_what_makes_the_signals_it_is_driven_by(cyl_a, run_a, tmp_path, capsys, drive,
+                                                                         estimate, bad, given):
+    from combined_reality.cli import main
+    from combined_reality.files import write_run
+    from combined_reality.identify import DriveError, check_drive
+
+    said = f"--drive {drive} uses {given}, so it cannot estimate {bad}."
+    with pytest.raises(DriveError) as e:
+        check_drive(drive, estimate)
+    assert str(e.value) == said and e.value.exit_status == 2
+    with pytest.raises(DriveError):  # the library refuses it too, before any work
+        identify(cyl_a, [run_a], IdentifyOptions(drive=drive, estimate=estimate))
+    check_drive("command", estimate)
+    check_drive(drive, ("Fc", "Fv", "kp") if drive == "pressure" else ("conductance", "dead_volume_cap"))
+    write_run(tmp_path / "run.csv", run_a)
+    code = main(["identify", "--config", str(cyl_a.source), str(tmp_path / "run.csv"), "--drive", drive,
+                 "--estimate", ",".join(estimate)])
+    assert code == 2 and capsys.readouterr().err == f"combined-reality identify: {said}\n"
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("which", ["cyl_a", "cyl_50"])
 def test_reported_std_is_honest_over_20_seeds(which, request):

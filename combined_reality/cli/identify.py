@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sim.cylinder import ESTIMABLE, FLOW_CHARACTERISTIC, Cylinder
+from sim.cylinder import ESTIMABLE, Cylinder
 
 from .. import options
 from .common import (UsageError, add_max_rows, check_paths, eprint, estimate_list, load_config, parse_effects,
@@ -80,7 +80,7 @@ def format_table(result, truth: Cylinder | None = None) -> str:
 def run(args) -> int:
     from ..files import clean_json, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import IdentifyOptions, identify
+    from ..identify import IdentifyOptions, check_drive, identify
 
     check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
                 inputs=[args.config, *args.runs])
@@ -90,14 +90,7 @@ def run(args) -> int:
     estimate = estimate_list(args.estimate, cyl, known=(*ESTIMABLE, *effect_params))
     runs = read_runs(args.runs, args)
     drive = args.drive or cyl.identify.drive
-    pneumatic = {"conductance", "critical_ratio", "dead_volume_cap", "dead_volume_rod", *FLOW_CHARACTERISTIC}
-    mechanical = {"Fc", "Fv", "kp", "mass", "angle", "external_force"}
-    cannot = {"pressure": ("the measured pressures", pneumatic), "chambers": ("the measured motion", mechanical)}
-    if drive in cannot:
-        given, excluded = cannot[drive]
-        bad = [n for n in estimate if n in excluded]
-        if bad:
-            raise UsageError(f"--drive {drive} uses {given}, so it cannot estimate {', '.join(bad)}.")
+    check_drive(drive, estimate)
     if args.report and not args.report.lower().endswith((".html", ".htm")):
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,

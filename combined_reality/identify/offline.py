@@ -34,6 +34,7 @@ from sim.plant import plant_for
 from ..files import Run, split_at_gaps
 from ..progress import Step
 from .determined import not_determined as undetermined_among
+from .drives import check_drive
 from .newton import equation_error_friction
 from .preflight import check_determinable
 from .shooting import (IdentificationError, NormalEquations, PriorRow, RunLayout, ShootingProblem, at_bounds,
@@ -234,7 +235,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     """Identify `options.estimate` from the runs (jointly) by multiple-shooting Gauss-Newton;
     `initial` overrides start values, `nodes` warm-starts the node states (another model's
     solution on the same runs), `prior` adds prior knowledge of the parameters. A fit that ends
-    above the noise is restarted once (options.restart_misfit), and the better one returned."""
+    above the noise is restarted once (options.restart_misfit), and the better one returned;
+    a parameter the drive cannot estimate is refused (DriveError)."""
+    check_drive(options.drive, options.estimate)
     t_start = time.perf_counter()
     first = _identify_once(cyl, runs, options, effects, initial, nodes, progress, prior)
     sol = first.solver
