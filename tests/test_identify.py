@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from combined_reality.live import simulate_run
+from combined_reality.simulation import simulate_run
 from combined_reality.identify import IdentifyOptions, equation_error_friction, identify
 
 POOR_START = {"Fc": 0.4, "Fv": 3.0, "kp": 0.2}  # factors on the truth
@@ -261,7 +261,7 @@ def test_a_fit_stuck_far_above_the_noise_is_started_again_from_where_it_ended(cy
         assert abs(res.params[n].value - cyl_a.value(n)) < 3 * res.params[n].std, n
         assert res.params[n].initial == once.params[n].initial
     # a model that cannot explain the run (a leak it lacks) is restarted too, and never ends worse
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
     from sim.effects import EFFECTS
 
     leaky = simulate_run(cyl_a, 10.0, seed=5, effects=[EFFECTS["leakage"].typical(cyl_a, 0.3)])
@@ -338,7 +338,7 @@ def test_a_piece_that_starts_braking_after_lost_samples_starts_at_its_own_speed(
     a whole piece; at 1.00 x noise with the speed from the piece's own first samples)."""
     from combined_reality.files import Run, split_at_gaps
     from combined_reality.identify import velocity_estimate
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     # run_a without its sensor noise: the position loop then commands a little differently,
     # but the motion stays within 45 um of run_a's
