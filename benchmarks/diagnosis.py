@@ -51,7 +51,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from combined_reality.live import simulate_run  # noqa: E402
+from combined_reality.simulation import simulate_run  # noqa: E402
 from combined_reality.diagnose import DiagnoseOptions, diagnose  # noqa: E402
 from combined_reality.identify import IdentifyOptions, identify  # noqa: E402
 from sim.compiled import cached_model_code  # noqa: E402

@@ -138,7 +138,7 @@ def baseline_cost(model: BaselineModel, cyl, run, theta: dict) -> float:
 
 # ============================================================== helpers
 def make_run(cyl, duration: float):
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     return simulate_run(cyl, duration, SEED, RATE)
 

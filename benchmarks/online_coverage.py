@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
-from combined_reality.live import simulate_run
+from combined_reality.simulation import simulate_run
 from sim.cylinder import load_cylinder
 
 CFG = Path(__file__).resolve().parents[1] / "configs" / "cyl_a_32x100.toml"

@@ -34,7 +34,8 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from combined_reality.live import ESTIMATOR_NICE_AHEAD, set_estimator_priority, simulate_run
+from combined_reality.live import ESTIMATOR_NICE_AHEAD, set_estimator_priority
+from combined_reality.simulation import simulate_run
 from combined_reality.identify import IdentifyOptions, identify
 from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
 from combined_reality.files import RunFormatError, write_run

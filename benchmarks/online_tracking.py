@@ -53,7 +53,8 @@ if __name__ == "__main__":  # run as a script: make the project's packages impor
 from combined_reality.files import write_run  # noqa: E402
 from combined_reality.identify import (IdentificationError, IdentifyOptions, MovingHorizonEstimator,  # noqa: E402
                                        OnlineOptions, identify)
-from combined_reality.live import InlineEstimator, simulate_run  # noqa: E402
+from combined_reality.live import InlineEstimator  # noqa: E402
+from combined_reality.simulation import simulate_run  # noqa: E402
 from sim.cylinder import cylinder_to_toml, load_cylinder  # noqa: E402
 from sim.effects import EFFECTS, make_friction_change  # noqa: E402
 

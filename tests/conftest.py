@@ -84,14 +84,14 @@ def cyl_50():
 
 @pytest.fixture(scope="session")
 def run_a(cyl_a):
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     return simulate_run(cyl_a, 20.0, seed=1)
 
 
 @pytest.fixture(scope="session")
 def run_50(cyl_50):
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     return simulate_run(cyl_50, 20.0, seed=2)
 

@@ -104,7 +104,7 @@ def _no_temporary_files(out: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory, cyl_a) -> Path:
     """A 4 s run of cylinder A recorded by the virtual rig, tagged with its cylinder."""
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
     from combined_reality.files import cylinder_tag, write_run
 
     p = tmp_path_factory.mktemp("recorded") / "a.csv"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from combined_reality.cli import main
-from combined_reality.live import simulate_run
+from combined_reality.simulation import simulate_run
 from combined_reality.identify import IdentificationError, Validation, validate, validation_gain, validation_segments
 from combined_reality.files import cylinder_tag, read_run, write_run
 from sim.effects import parse_effect_spec

@@ -298,7 +298,7 @@ def test_a_heat_candidate_near_its_neutral_value_validates_like_the_nominal_mode
     """Its temperature states barely couple to the outputs at h ~ 0: the segment fits must not
     drive them anywhere (they did, to 1e80 x the noise, and the candidate counted as diverged)."""
     from combined_reality.identify import validate, validation_segments
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
     from sim.effects import make_effect
 
     valid = simulate_run(cyl_a, 6.0, seed=12, effects=[make_effect("valve_delay", {"tau": 0.004})])
@@ -311,7 +311,7 @@ def test_a_heat_candidate_near_its_neutral_value_validates_like_the_nominal_mode
 
 def test_a_fit_that_stays_above_its_reference_gives_up_after_so_many_iterations(cyl_a):
     from combined_reality.identify import IdentifyOptions, identify
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     run = simulate_run(cyl_a, 3.0, seed=4)
     far = cyl_a.with_values({"Fc": 1.5 * cyl_a.friction.Fc, "Fv": 0.6 * cyl_a.friction.Fv})

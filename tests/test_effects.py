@@ -52,7 +52,7 @@ def replay(cyl, effects, w, state0=None, drive="command", x0=None, p1=4.0e5, p2=
 @pytest.fixture(scope="module")
 def command_a(cyl_a):
     """A recorded closed-loop command of the virtual rig: moves, reversals, rests (1.5 s)."""
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     run = simulate_run(cyl_a, 1.5, seed=3, noise=False)
     assert np.ptp(run.x) > 0.02  # it moves
@@ -570,7 +570,7 @@ def test_identifier_recovers_a_medium_effect(name, cyl_a):
     as candidate (Fc, Fv, kp and all its parameters), started from the effect's defaults:
     every effect parameter within 4 reported standard deviations or 1 % of the truth, and
     the fit down to the sensor noise."""
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
     from combined_reality.identify import IdentifyOptions, identify
 
     cls = EFFECTS[name]

@@ -12,7 +12,7 @@ import pytest
 from conftest import CONFIGS, assert_refused
 
 from combined_reality.cli import main
-from combined_reality.live import simulate_run
+from combined_reality.simulation import simulate_run
 from combined_reality.friction.dynamic import (compare_friction_models, estimated_parameters, fit_spec,
                                                 identify_friction_model, model_parameters)
 from combined_reality.identify import IdentifyOptions

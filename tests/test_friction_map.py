@@ -447,7 +447,7 @@ def test_constructed_run_makes_the_map_with_its_band(cyl_a):
 def cvs_rig_run(tmp_path_factory):
     """20 s of the default closed-loop excitation on the virtual rig, whose friction is seed
     004's Table 3 curve of actuator 2 (cylinder file ind2, nominal friction off)."""
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
     from sim.cylinder import load_cylinder
     from conftest import CONFIGS
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from combined_reality.live import simulate_run
+from combined_reality.simulation import simulate_run
 from combined_reality.identify import IdentifyOptions, equation_error_friction, identify
 
 POOR_START = {"Fc": 0.4, "Fv": 3.0, "kp": 0.2}  # factors on the truth
@@ -96,6 +96,35 @@ def test_result_json_follows_formats(cyl_a, run_a):
     assert {"rmse_x", "r2_x", "rmse_p1", "rmse_p2"} <= set(js["fit"])
     assert {"status", "iterations", "wall_s"} <= set(js["solver"])
     assert js["params"]["kp"]["unit"] == "N/Pa"
+    # identify --json's document: the fit's, with what is determined, the cylinder file and the runs
+    doc = res.document(inputs=["run.csv"])
+    assert {n: p["determined"] for n, p in doc["params"].items()} == {"Fc": True, "Fv": True, "kp": True}
+    assert doc["solver"]["status"] == js["solver"]["status"] == "converged"
+    assert doc["config"] == str(cyl_a.source) and doc["inputs"] == ["run.csv"]
+
+
+@pytest.mark.parametrize("drive, estimate, bad, given", [("pressure", ("Fc", "conductance", "flow_extend_2"),
+                                                           "conductance, flow_extend_2", "the measured pressures"),
+                                                          ("chambers", ("mass", "critical_ratio", "Fv"),
+                                                           "mass, Fv", "the measured motion")])
+def test_a_drive_cannot_estimate_what_makes_the_signals_it_is_driven_by(cyl_a, run_a, tmp_path, capsys, drive,
+                                                                         estimate, bad, given):
+    from combined_reality.cli import main
+    from combined_reality.files import write_run
+    from combined_reality.identify import DriveError, check_drive
+
+    said = f"--drive {drive} uses {given}, so it cannot estimate {bad}."
+    with pytest.raises(DriveError) as e:
+        check_drive(drive, estimate)
+    assert str(e.value) == said and e.value.exit_status == 2
+    with pytest.raises(DriveError):  # the library refuses it too, before any work
+        identify(cyl_a, [run_a], IdentifyOptions(drive=drive, estimate=estimate))
+    check_drive("command", estimate)
+    check_drive(drive, ("Fc", "Fv", "kp") if drive == "pressure" else ("conductance", "dead_volume_cap"))
+    write_run(tmp_path / "run.csv", run_a)
+    code = main(["identify", "--config", str(cyl_a.source), str(tmp_path / "run.csv"), "--drive", drive,
+                 "--estimate", ",".join(estimate)])
+    assert code == 2 and capsys.readouterr().err == f"combined-reality identify: {said}\n"
 
 
 @pytest.mark.slow
@@ -232,7 +261,7 @@ def test_a_fit_stuck_far_above_the_noise_is_started_again_from_where_it_ended(cy
         assert abs(res.params[n].value - cyl_a.value(n)) < 3 * res.params[n].std, n
         assert res.params[n].initial == once.params[n].initial
     # a model that cannot explain the run (a leak it lacks) is restarted too, and never ends worse
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
     from sim.effects import EFFECTS
 
     leaky = simulate_run(cyl_a, 10.0, seed=5, effects=[EFFECTS["leakage"].typical(cyl_a, 0.3)])
@@ -309,7 +338,7 @@ def test_a_piece_that_starts_braking_after_lost_samples_starts_at_its_own_speed(
     a whole piece; at 1.00 x noise with the speed from the piece's own first samples)."""
     from combined_reality.files import Run, split_at_gaps
     from combined_reality.identify import velocity_estimate
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     # run_a without its sensor noise: the position loop then commands a little differently,
     # but the motion stays within 45 um of run_a's

@@ -58,7 +58,7 @@ def do_import(tmp_path, capsys, raw: Path, mapping: str, *extra) -> tuple[int, s
 
 @pytest.fixture(scope="module")
 def short_run(cyl_a):
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     return simulate_run(cyl_a, 0.6, seed=5)
 

@@ -76,7 +76,7 @@ def test_sensitivities_agree_with_central_differences_of_the_interval(cyl_a, dri
     interval 0.6 % (most likely one where the refinement switches between the two perturbed
     runs: the differences then see a jump the derivative does not)."""
     from combined_reality.identify.shooting import free_parameters, run_layout
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     run = simulate_run(cyl_a, 2.0, seed=3)
     plant = build_plant(drive)

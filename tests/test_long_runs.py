@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from combined_reality.identify import IdentifyOptions, identify
-from combined_reality.live import simulate_run
+from combined_reality.simulation import simulate_run
 
 
 def _problem(cyl, runs, chunk_intervals=None):

@@ -5,7 +5,7 @@ import pytest
 from combined_reality.files import Run
 from combined_reality.identify import IdentifyOptions, identify
 from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
-from combined_reality.live import simulate_run
+from combined_reality.simulation import simulate_run
 
 
 def _stream(mhe, run, chunk=100):

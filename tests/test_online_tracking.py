@@ -11,7 +11,8 @@ from combined_reality.cli import main
 from combined_reality.files import write_run
 from combined_reality.identify import OnlineEstimate, OnlineOptions
 from combined_reality.identify.tracking import Blocks, Change, Regime, analyse
-from combined_reality.live import InlineEstimator, SessionMonitor, session_verdict, simulate_run
+from combined_reality.live import InlineEstimator, SessionMonitor, session_verdict
+from combined_reality.simulation import simulate_run
 from sim.effects import EFFECTS, make_friction_change
 
 

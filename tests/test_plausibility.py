@@ -9,9 +9,9 @@ import pytest
 from conftest import CONFIGS, assert_refused
 
 from combined_reality.cli import main
-from combined_reality.cli.identify import format_table, not_determined
+from combined_reality.cli.identify import format_table
 from combined_reality.files import Run, RunFormatError, check_run_against_cylinder, write_run
-from combined_reality.identify import check_determinable
+from combined_reality.identify import Estimate, IdentifyResult, check_determinable
 from sim.cylinder import ConfigError
 
 CFG = CONFIGS / "cyl_a_32x100.toml"
@@ -130,13 +130,19 @@ def test_too_short_to_move_in_both_directions(cyl_a, run_a):
     check_determinable(cyl_a, [run_a], ("Fc", "Fv", "kp"))  # the whole virtual-rig run: fine
 
 
-def test_a_parameter_whose_std_is_as_large_as_its_value_is_not_determined_and_not_converged():
-    est = lambda v, s: SimpleNamespace(value=v, std=s, unit="N/Pa", initial=v, at_bound=False)  # noqa: E731
-    result = SimpleNamespace(params={"Fc": est(24.8, 0.1), "kp": est(2e-7, 3e-7), "Fv": est(13.0, float("nan"))},
-                             fit={"rmse_x": 5e-6, "r2_x": 0.99}, drive="command",
-                             solver={"status": "converged", "iterations": 8, "wall_s": 1.0, "n_samples": 100,
-                                     "residual_sigma": 1.0})
-    assert not_determined(result) == ["kp", "Fv"]
+def test_a_parameter_whose_std_is_as_large_as_its_value_is_not_determined_and_not_converged(cyl_a):
+    est = lambda n, v, s: Estimate(n, v, s, "N/Pa", v)  # noqa: E731
+    result = IdentifyResult(params={"Fc": est("Fc", 24.8, 0.1), "kp": est("kp", 2e-7, 3e-7),
+                                    "Fv": est("Fv", 13.0, float("nan"))},
+                            fit={"rmse_x": 5e-6, "r2_x": 0.99}, fit_per_run=[], cylinder=cyl_a, effects=(),
+                            drive="command", solver={"status": "converged", "iterations": 8, "wall_s": 1.0,
+                                                     "n_samples": 100, "residual_sigma": 1.0})
+    assert result.not_determined == ["kp", "Fv"]
+    # the document identify --json writes, made by the result itself (also for batch and library callers)
+    doc = result.document(inputs=["run.csv"])
+    assert {n: e["determined"] for n, e in doc["params"].items()} == {"Fc": True, "kp": False, "Fv": False}
+    assert doc["solver"]["status"] == "not_determined" and result.to_json()["solver"]["status"] == "converged"
+    assert doc["config"] == str(cyl_a.source) and doc["inputs"] == ["run.csv"]
     table = format_table(result)
     assert "not determined" in table and "solver: converged" not in table
     assert "do not determine Fv, kp" in table

@@ -196,7 +196,7 @@ def test_without_config_the_cylinder_file_the_header_names_is_used(files, tmp_pa
     cfg = tmp_path / "mine.toml"
     shutil.copy(CFG_40, cfg)
     cyl = load_cylinder(cfg)
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     run = tmp_path / "r40.csv"
     write_run(run, simulate_run(cyl, 3.0, seed=1), comments=[cylinder_tag(cyl)])
@@ -224,7 +224,7 @@ def test_without_config_the_cylinder_file_the_header_names_is_used(files, tmp_pa
 def test_no_false_alarm_on_any_cylinder(cfg):
     """Every cylinder of configs/: position control at two seeds, the calibration program, an
     effect the nominal model lacks, the pulses program: no refusal and no note."""
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
     from sim.effects import parse_effect_spec
 
     cyl = load_cylinder(cfg)

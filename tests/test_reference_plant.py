@@ -117,7 +117,7 @@ def test_the_reference_plant_shares_no_physics_code_with_the_project():
 def test_nominal_plant_agrees_with_the_projects_virtual_rig(cyl, nominal):
     """Same cylinder, seed and controller, noise off: the two plants close the same loop and
     give the same run to far below the sensor noise (5 um, 300 Pa)."""
-    from combined_reality.live import simulate_run
+    from combined_reality.simulation import simulate_run
 
     theirs = simulate_run(cyl, DURATION, SEED, noise=False)
     ours = nominal.run

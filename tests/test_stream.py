@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from combined_reality.cli import main
-from combined_reality.live import simulate_run
+from combined_reality.simulation import simulate_run
 from combined_reality.identify import MovingHorizonEstimator, OnlineOptions
 from combined_reality.files import read_run, write_run
 from conftest import assert_refused

@@ -36,7 +36,7 @@ from ..diagnose import DiagnoseOptions, diagnose
 from ..files import RunFormatError, atomic_write, check_distinct_runs, cylinder_tag, read_run, write_run
 from ..friction import identify_model, model_parameters
 from ..identify import IdentificationError, IdentifyOptions, preflight, velocity_estimate
-from ..live import simulate_run
+from ..simulation import simulate_run
 from .manifest import CylinderJob
 from .report import write_batch_report
 

@@ -29,7 +29,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from ..files import clean_json, cylinder_tag, read_run, write_json_atomic, write_run
     from ..identify import IdentifyOptions, identify
-    from ..live import simulate_run
+    from ..simulation import simulate_run
 
     options.simulated_samples(args.duration, 1000.0)
     out = Path(args.out)

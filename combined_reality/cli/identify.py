@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sim.cylinder import ESTIMABLE, FLOW_CHARACTERISTIC, Cylinder
+from sim.cylinder import ESTIMABLE, Cylinder
 
 from .. import options
 from .common import (UsageError, add_max_rows, check_paths, eprint, estimate_list, load_config, parse_effects,
@@ -50,7 +50,7 @@ def format_table(result, truth: Cylinder | None = None) -> str:
     """The estimates of an IdentifyResult (value, std, unit, start; with `truth`, the true value and the error),
     the fit and the solver's status, as printed by identify and demo."""
     rows = [("parameter", "value", "std", "unit", "initial") + (("true", "error") if truth else ())]
-    unknown = set(not_determined(result))
+    unknown = set(result.not_determined)
     for n, e in result.params.items():
         std = f"{e.std:.3g}" + (" (at bound)" if e.at_bound else "") + (" not determined" if n in unknown else "")
         row = (n, f"{e.value:.6g}", std, e.unit, f"{e.initial:.4g}")
@@ -77,19 +77,10 @@ def format_table(result, truth: Cylinder | None = None) -> str:
     return "\n".join(lines)
 
 
-def not_determined(result) -> list[str]:
-    """Estimated parameters of an IdentifyResult the data do not determine (identify.not_determined)."""
-    from ..identify import not_determined as rule
-
-    p = result.params
-    return rule({n: e.value for n, e in p.items()}, {n: e.std for n, e in p.items()},
-                {n for n, e in p.items() if e.at_bound})
-
-
 def run(args) -> int:
     from ..files import clean_json, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import IdentifyOptions, identify
+    from ..identify import IdentifyOptions, check_drive, identify
 
     check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
                 inputs=[args.config, *args.runs])
@@ -99,14 +90,7 @@ def run(args) -> int:
     estimate = estimate_list(args.estimate, cyl, known=(*ESTIMABLE, *effect_params))
     runs = read_runs(args.runs, args)
     drive = args.drive or cyl.identify.drive
-    pneumatic = {"conductance", "critical_ratio", "dead_volume_cap", "dead_volume_rod", *FLOW_CHARACTERISTIC}
-    mechanical = {"Fc", "Fv", "kp", "mass", "angle", "external_force"}
-    cannot = {"pressure": ("the measured pressures", pneumatic), "chambers": ("the measured motion", mechanical)}
-    if drive in cannot:
-        given, excluded = cannot[drive]
-        bad = [n for n in estimate if n in excluded]
-        if bad:
-            raise UsageError(f"--drive {drive} uses {given}, so it cannot estimate {', '.join(bad)}.")
+    check_drive(drive, estimate)
     if args.report and not args.report.lower().endswith((".html", ".htm")):
         raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
@@ -117,16 +101,9 @@ def run(args) -> int:
         prog(f"identifying {', '.join(estimate)} from {len(runs)} run(s), {sum(r.n for r in runs)} samples, "
              f"{drive} drive")
     result = identify(cyl, runs, opts, effects=effects, progress=prog)
-    out = result.to_json()
-    unknown = not_determined(result)
-    for n, entry in out["params"].items():
-        entry["determined"] = n not in unknown
-    if unknown and out["solver"]["status"] == "converged":
-        out["solver"]["status"] = "not_determined"
-    out["config"] = str(cyl.source)
-    out["inputs"] = [str(p) for p in args.runs]
+    unknown = result.not_determined
     if args.json:
-        write_json_atomic(args.json, clean_json(out))
+        write_json_atomic(args.json, clean_json(result.document(config=cyl.source, inputs=args.runs)))
         if prog:
             prog(f"wrote {args.json}")
     if args.write_config:

@@ -2,9 +2,7 @@
 online estimation) and `combined-reality replay` (a recorded run through the same session)."""
 from __future__ import annotations
 
-import dataclasses
 import math
-import os
 import signal
 import time
 from pathlib import Path
@@ -153,30 +151,6 @@ def _rerun_sink(args, cyl, window_s: float, near: str, say):
                             say=say)
 
 
-def _session_json(result, options, wall_s: float, link_events: list[str], no_estimate: str | None = None) -> dict:
-    import numpy as np
-
-    final = None if no_estimate else result.final
-    walls = np.array([e.wall_s for e in result.estimates]) * 1e3
-    out = {"params": {}, "fit": {}, "solver": {
-        "status": "online" if final else "no_estimate", "method": "moving-horizon multiple shooting",
-        **({"reason": no_estimate} if no_estimate else {}), "explains_run": result.monitor.trusted,
-        "updates": len(result.estimates), "window_s": options.window_s, "wall_s": round(wall_s, 3),
-        "update_ms_p50": float(np.percentile(walls, 50)) if len(walls) else None,
-        "update_ms_p95": float(np.percentile(walls, 95)) if len(walls) else None,
-        "n_samples": int(result.run.n), "stop_reason": result.stop_reason, "rig_time_at_start": result.t0},
-        "link": result.counters, "events": result.events + list(link_events),
-        # t: s since the session's first sample; t_rig: the rig's clock (the recording's t)
-        "history": [{"t": e.t - result.t0, "t_rig": e.t, "values": e.values, "std": e.std, "sigma": e.sigma,
-                     **({"drift": e.drift.rate} if e.drift else {})} for e in result.estimates],
-        "monitor": result.monitor.to_json()}
-    if final:
-        out["params"] = {n: {"value": final.values[n], "std": final.std[n], "unit": final.units[n]}
-                         for n in final.values}
-        out["fit"] = {**final.rmse, "sigma": final.sigma, "window": list(final.window)}
-    return out
-
-
 class _Signals:
     """SIGINT and SIGTERM while a session runs: the first asks the session to stop (it ends
     within a second: valve centred, files complete); before the session loop, and for a
@@ -207,12 +181,9 @@ class _Signals:
 
 def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, pipelined: bool,
                  console, link_events: list[str] | None = None) -> int:
-    from hw.realtime import HOST_PRIORITY, realtime_available
-
     from ..files import clean_json, cylinder_tag, write_json_atomic
-    from ..live import (ESTIMATOR_NICE_AHEAD, ESTIMATOR_NICE_BEHIND, ConsoleSink, LockstepSimulator,
-                        WHAT_TO_DO, PipelinedEstimator, ProcessEstimator, SessionMonitor, change_message,
-                        drift_message, run_session, session_verdict)
+    from ..live import (WHAT_TO_DO, ConsoleSink, SessionMonitor, assemble_session, change_message, drift_message,
+                        run_session, session_verdict)
 
     options = _online_options(args, cyl)
     rr_sink = None
@@ -239,32 +210,17 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         sinks = [s for s in (ConsoleSink(console, link_counters, monitor), rr_sink) if s is not None]
         if not args.quiet:
             console.say("preparing the model (compiled once, then cached) ...")
-        # the lock-step model's traces are for the viewer: without one nothing reads them, and
-        # they cost a replay about a fifth of its time. Replayed as fast as possible, the estimates
-        # reach the model a window after their data (PipelinedEstimator): it runs on from each
-        # for up to two windows before it restarts
-        lag = 2 * options.window_s if pipelined else 0.0
-        simulator = (None if rr_sink is None
-                     else LockstepSimulator(cyl, resync_s=max(2.0, lag + 0.5), history_s=max(10.0, lag + 2.0)))
-        # a live rig is acquired at real-time priority where the OS grants it; the estimator
-        # then runs ahead of ordinary work (below acquisition), else behind acquisition
-        realtime = None if args.command == "replay" else HOST_PRIORITY
-        # two threads for the estimator's model where nothing real-time can suffer from them
-        two = dataclasses.replace(options, threads=min(2, os.cpu_count() or 1))
-        if pipelined:
-            estimator = PipelinedEstimator(cyl, sample_period, two)
-        else:
-            ahead = realtime is not None and realtime_available()
-            estimator = ProcessEstimator(cyl, sample_period, two if ahead else options,
-                                         nice=ESTIMATOR_NICE_AHEAD if ahead else ESTIMATOR_NICE_BEHIND)
+        parts = assemble_session(cyl, sample_period, options, live=args.command != "replay", pipelined=pipelined,
+                                 viewer=rr_sink is not None)
+        estimator = parts.estimator
         comments = [cylinder_tag(cyl), f"combined-reality {args.command}: {cyl.name}", f"config {cyl.source}",
                     f"started {time.strftime('%Y-%m-%d %H:%M:%S')}"]
         t_wall = time.perf_counter()
         signals.in_loop = True
         result = run_session(cyl, rig, estimator=estimator, program=program, duration=duration, record_to=record,
-                             record_comments=comments, sinks=sinks, simulator=simulator, on_event=console.warn,
+                             record_comments=comments, sinks=sinks, simulator=parts.simulator, on_event=console.warn,
                              give_up_s=args.give_up, expected_period=sample_period, stop=signals.stop,
-                             realtime=realtime, monitor=monitor, on_judgement=console.say)
+                             realtime=parts.realtime, monitor=monitor, on_judgement=console.say)
     finally:
         signals.restore()
         if estimator is not None:
@@ -307,7 +263,7 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
     for d in result.monitor.drifts:
         print(f"  {drift_message(d)}")
     if args.json:
-        write_json_atomic(args.json, clean_json(_session_json(result, options, wall, link_events or [], no_estimate)))
+        write_json_atomic(args.json, clean_json(result.document(options, wall, link_events or [], no_estimate)))
         console.say(f"wrote {args.json}")
     if estimator.error:
         return 1

@@ -30,7 +30,7 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from ..files import cylinder_tag, write_run
-    from ..live import simulate_run
+    from ..simulation import simulate_run
 
     options.simulated_samples(args.duration, args.rate)
     check_paths({"-o": args.output}, inputs=[args.config])

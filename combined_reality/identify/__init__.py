@@ -8,9 +8,11 @@
 - preflight: whether runs can belong to the cylinder file and determine the chosen parameters at all
 - determined: whether a fit's estimate is one (`too_uncertain`: its standard deviation below a
   share of its value or of its effect's yardstick)
+- drives: which drive may estimate which parameter
 - shooting, smoothing: the shared machinery (intervals, Gauss-Newton, covariance; derivatives)
 """
 from .determined import not_determined, too_uncertain
+from .drives import DriveError, check_drive
 from .newton import equation_error_friction, friction_from_newton, scaled_lstsq
 from .offline import MISMATCH, Estimate, IdentifyOptions, IdentifyResult, identify
 from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
@@ -20,7 +22,8 @@ from .smoothing import derivative_kernels, savgol_kernels, velocity_estimate
 from .validation import Validation, validate, validation_gain, validation_segments
 
 __all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estimate", "IdentifyOptions",
-           "IdentifyResult", "identify", "not_determined", "check_determinable", "motion_summary", "Preflight",
+           "IdentifyResult", "identify", "not_determined", "DriveError", "check_drive", "check_determinable",
+           "motion_summary", "Preflight",
            "preflight", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError",
            "PriorRow",
            "at_bounds", "sensor_noise", "derivative_kernels", "savgol_kernels", "velocity_estimate", "Validation",

@@ -20,6 +20,7 @@ import math
 import os
 import time
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -32,6 +33,8 @@ from sim.plant import plant_for
 
 from ..files import Run, split_at_gaps
 from ..progress import Step
+from .determined import not_determined as undetermined_among
+from .drives import check_drive
 from .newton import equation_error_friction
 from .preflight import check_determinable
 from .shooting import (IdentificationError, NormalEquations, PriorRow, RunLayout, ShootingProblem, at_bounds,
@@ -167,7 +170,15 @@ class IdentifyResult:
         """Whether the model reproduces the runs to within a few times the sensor noise."""
         return self.solver["residual_sigma"] <= MISMATCH
 
+    @property
+    def not_determined(self) -> list[str]:
+        """The estimates the data do not determine (identify.not_determined): no estimates."""
+        p = self.params
+        return undetermined_among({n: e.value for n, e in p.items()}, {n: e.std for n, e in p.items()},
+                                  {n for n, e in p.items() if e.at_bound})
+
     def to_json(self) -> dict:
+        """The fit as the solver ended it (calibrate and demo write it); `document` is identify's."""
         return {
             "params": {n: {"value": e.value, "std": e.std, "unit": e.unit, "initial": e.initial,
                            **({"at_bound": True} if e.at_bound else {})} for n, e in self.params.items()},
@@ -178,6 +189,21 @@ class IdentifyResult:
             "correlation": {"names": list(self.params),
                             "matrix": None if self.correlation is None else np.round(self.correlation, 4).tolist()},
         }
+
+    def document(self, config: str | Path | None = None, inputs: Sequence[str | Path] = ()) -> dict:
+        """identify's JSON document (docs/formats.md): each estimate says whether it is
+        `determined`, a converged fit with an estimate that is not says `not_determined`, then
+        the cylinder file (`config`, default the result cylinder's source) and the runs."""
+        out = self.to_json()
+        unknown = self.not_determined
+        for n, entry in out["params"].items():
+            entry["determined"] = n not in unknown
+        if unknown and out["solver"]["status"] == "converged":
+            out["solver"]["status"] = "not_determined"
+        source = config if config is not None else self.cylinder.source
+        out["config"] = None if source is None else str(source)
+        out["inputs"] = [str(p) for p in inputs]
+        return out
 
 
 # ------------------------------------------------------------------ problem layout
@@ -209,7 +235,9 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     """Identify `options.estimate` from the runs (jointly) by multiple-shooting Gauss-Newton;
     `initial` overrides start values, `nodes` warm-starts the node states (another model's
     solution on the same runs), `prior` adds prior knowledge of the parameters. A fit that ends
-    above the noise is restarted once (options.restart_misfit), and the better one returned."""
+    above the noise is restarted once (options.restart_misfit), and the better one returned;
+    a parameter the drive cannot estimate is refused (DriveError)."""
+    check_drive(options.drive, options.estimate)
     t_start = time.perf_counter()
     first = _identify_once(cyl, runs, options, effects, initial, nodes, progress, prior)
     sol = first.solver

@@ -5,9 +5,10 @@ command line's help can read the program catalogue without loading the numerics.
 import lazy_loader
 
 __getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
+    "assembly": ["SessionParts", "assemble_session"],
     "catalogue": ["DESCRIPTIONS", "PROGRAMS", "program_revision"],
     "console": ["Console"],
-    "experiment": ["run_program", "simulate_run"],
+    "experiment": ["run_program"],
     "monitor": ["WHAT_TO_DO", "MonitorOptions", "SessionMonitor", "change_message", "drift_message",
                 "session_verdict"],
     "programs": ["PositionProgram", "ProgramOptions", "guarded", "make_program"],

@@ -580,6 +580,31 @@ class SessionResult:
     def final(self) -> OnlineEstimate | None:
         return self.estimates[-1] if self.estimates else None
 
+    def document(self, options: OnlineOptions, wall_s: float, link_events: Sequence[str] = (),
+                 no_estimate: str | None = None) -> dict:
+        """live's and replay's JSON document (docs/formats.md): the last estimate (none where
+        `no_estimate` says why the recording cannot determine the parameters), the solver's
+        figures, the link's counters, every event, the history and the monitor's judgement."""
+        final = None if no_estimate else self.final
+        walls = np.array([e.wall_s for e in self.estimates]) * 1e3
+        out = {"params": {}, "fit": {}, "solver": {
+            "status": "online" if final else "no_estimate", "method": "moving-horizon multiple shooting",
+            **({"reason": no_estimate} if no_estimate else {}), "explains_run": self.monitor.trusted,
+            "updates": len(self.estimates), "window_s": options.window_s, "wall_s": round(wall_s, 3),
+            "update_ms_p50": float(np.percentile(walls, 50)) if len(walls) else None,
+            "update_ms_p95": float(np.percentile(walls, 95)) if len(walls) else None,
+            "n_samples": int(self.run.n), "stop_reason": self.stop_reason, "rig_time_at_start": self.t0},
+            "link": self.counters, "events": self.events + list(link_events),
+            # t: s since the session's first sample; t_rig: the rig's clock (the recording's t)
+            "history": [{"t": e.t - self.t0, "t_rig": e.t, "values": e.values, "std": e.std, "sigma": e.sigma,
+                         **({"drift": e.drift.rate} if e.drift else {})} for e in self.estimates],
+            "monitor": self.monitor.to_json()}
+        if final:
+            out["params"] = {n: {"value": final.values[n], "std": final.std[n], "unit": final.units[n]}
+                             for n in final.values}
+            out["fit"] = {**final.rmse, "sigma": final.sigma, "window": list(final.window)}
+        return out
+
 
 class _Recording:
     """Every sample the session takes, in order: the file (opened with the first sample, with
