@@ -2,7 +2,6 @@
 chosen parameters, are refused with a named cause and exit status 2, never "converged"."""
 from __future__ import annotations
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
