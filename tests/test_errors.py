@@ -22,6 +22,7 @@ STATUS = {
     "hw.rig.RigError": 1,
     "hw.rig.LinkLost": 1,
     "combined_reality.options.OptionError": 2,
+    "combined_reality.identify.drives.DriveError": 2,
     "combined_reality.files.outputs.OutputError": 2,
     "combined_reality.files.outputs.WriteError": 1,
     "combined_reality.files.runs.RunFormatError": 2,

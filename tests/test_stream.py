@@ -200,16 +200,16 @@ def test_a_session_ends_within_a_second_of_a_signal_whatever_the_viewer_does(tmp
 
 def test_the_lock_step_model_runs_for_a_viewer_only_and_changes_no_estimate(cyl_a, run_a, tmp_path, monkeypatch):
     """Its traces go to Rerun alone: a replay without a viewer skips it (about a fifth of its time)."""
-    import combined_reality.live as live
+    from combined_reality.live import assembly
 
     built = []
 
-    class Counted(live.LockstepSimulator):
+    class Counted(assembly.LockstepSimulator):
         def __init__(self, *a, **kw):
             built.append(1)
             super().__init__(*a, **kw)
 
-    monkeypatch.setattr(live, "LockstepSimulator", Counted)
+    monkeypatch.setattr(assembly, "LockstepSimulator", Counted)  # where the session is assembled
     path = tmp_path / "run.csv"
     write_run(path, run_a.slice(0, 6000))
     outs = []
