@@ -35,15 +35,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from sim.inputs import checked_size
-
-    rate = args.resample
-    check_paths({"-o": args.output, "--json": args.json}, inputs=[args.raw, args.map])
-    checked_size(args.raw, "a recording", UsageError)  # a device or a FIFO refused before the readers load
-
     from ..files import clean_json, write_json_atomic, write_run
     from ..importing import MappingError, import_recording, load_mapping
 
+    rate = args.resample
+    check_paths({"-o": args.output, "--json": args.json}, inputs=[args.raw, args.map])
     say = progress_printer(args.quiet)
     try:
         mapping = load_mapping(args.map)
