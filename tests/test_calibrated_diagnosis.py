@@ -20,7 +20,6 @@ from conftest import CONFIGS
 from combined_reality.calibrate import misfit_note
 from combined_reality.calibrate.dead_band import dead_band_in_overlap, overlap_as_dead_band
 from combined_reality.cli import main
-from combined_reality.diagnose import ABSORBED, DiagnoseOptions
 from combined_reality.diagnose.calibrated import Screen, choose, train_share
 from combined_reality.files import cylinder_tag, write_run
 from combined_reality.identify import IdentifyResult
@@ -62,11 +61,6 @@ def test_a_calibration_above_the_noise_says_so_and_names_the_next_step():
     assert "with leakage still lacks" in misfit_note(_result(1.9, effects=(make_effect("leakage"),)))
     assert train_share(_result(3.0), _result(1.0)) == pytest.approx(1.0)
     assert train_share(_result(3.0), _result(math.sqrt(5.0))) == pytest.approx(0.5)
-
-
-def test_mass_and_dead_zone_are_the_calibrations_own_quantities():
-    assert set(ABSORBED) == {"mass", "valve_deadzone"}
-    assert "mass" in ABSORBED["mass"] and "overlap_extend" in ABSORBED["valve_deadzone"]
 
 
 def _curve(valve, direction: str, a: np.ndarray) -> np.ndarray:
@@ -144,11 +138,6 @@ def test_a_leak_on_a_rig_whose_file_is_off_is_named_with_the_file_calibrated_bes
     assert "--calibrate" in err.getvalue()
 
 
-def test_options_name_the_calibrated_diagnosis_rules():
-    o = DiagnoseOptions()
-    assert 0 < o.screen_min < 1 and o.nominal_give_up > 1 and 0 < o.train_dominant <= 1
-
-
 def test_separability_names_what_a_run_lacks_to_tell_an_effect_from_calibrated_quantities(cyl_a):
     """A run that holds the valve closed at 2 bar for 2 s and jumps its command 12 times, but
     moves only one way and never opens the valve wide: leakage and valve_delay are separable,
@@ -165,5 +154,4 @@ def test_separability_names_what_a_run_lacks_to_tell_an_effect_from_calibrated_q
     rows = {e["effect"]: e for e in separability(cyl_a, [Run(t, u, x, p1, p2)])}
     assert "leakage" not in rows and "valve_delay" not in rows
     assert rows["friction_asymmetry"]["amount"] == 0.0 and "both directions" in rows["friction_asymmetry"]["needs"]
-    assert "external force" in rows["friction_asymmetry"]["from"]
-    assert rows["supply_droop"]["amount"] == 0.0 and "large openings" in rows["supply_droop"]["from"]
+    assert rows["supply_droop"]["amount"] == 0.0

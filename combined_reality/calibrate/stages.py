@@ -104,9 +104,6 @@ class Calibration:
     stages: list[dict] = field(default_factory=list)
     wall_s: float = 0.0
     misfit_above: float = CalibrateOptions.misfit
-    # the first two stages' fits (their values and node states start further fits: the diagnosis)
-    force_balance: IdentifyResult | None = field(default=None, repr=False)
-    valve_chambers: IdentifyResult | None = field(default=None, repr=False)
 
     @property
     def effects(self) -> tuple[Effect, ...]:
@@ -351,8 +348,7 @@ def finish(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, joint:
     if mech is not None and mech.explains_run:
         joint.params.update(with_model_error(joint.params, mech.params))
     return Calibration(cylinder=joint.cylinder, result=joint, identifiability=assess(joint, runs), stages=stages,
-                       wall_s=time.perf_counter() - t0, misfit_above=options.misfit, force_balance=mech,
-                       valve_chambers=pneu)
+                       wall_s=time.perf_counter() - t0, misfit_above=options.misfit)
 
 
 def _dead_band_moved(cyl: Cylinder, want: set[str], say: Callable[[str], None],

@@ -71,8 +71,7 @@ def run(args) -> int:
         eprint(which)
     for warning in warnings:
         eprint(f"combined-reality diagnose: warning: {warning}")
-    diagnosis = diagnose(cyl, train if args.calibrate else train[0], valid, opts,
-                         progress=progress_printer(args.quiet))
+    diagnosis = diagnose(cyl, train, valid, opts, progress=progress_printer(args.quiet))
     result = diagnosis.to_json()
     print(format_summary(result, args.horizon))
     if args.json:
