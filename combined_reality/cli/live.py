@@ -96,8 +96,6 @@ def run_live(args) -> int:
         link_events.append(msg)
         console.warn(msg)
 
-    _online_options(args, cyl)  # the options refused before anything is said
-    rerun_mode(args.rerun)
     rig = open_rig(args, cyl, effects, rate=args.rate, paced=True, on_event=link_event)
     if not args.config:
         console.warn(BUILT_IN)
