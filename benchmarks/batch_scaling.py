@@ -42,8 +42,9 @@ TARGET_SPEEDUP = 1.8
 TARGET_OVERHEAD = 0.10
 
 # one task ~3-6 s on this 2-core machine: four 8 s runs of cylinder A, identified jointly
-# (nominal friction); or two 8 s runs of seed 004's actuator 4 with its per-direction
-# Stribeck model (cvs: more variable in time, and a larger model to load)
+# (nominal friction); or two 8 s runs of actuator 4 of seed 004 (friction of industrial
+# pneumatic actuators, Table 3) with its per-direction Stribeck model (cvs: more variable
+# in time, and a larger model to load)
 RECIPES = {
     "nominal": dict(config=REPO / "configs" / "cyl_a_32x100.toml", model="nominal", duration=8.0, runs=4,
                     effect=""),

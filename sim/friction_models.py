@@ -2,7 +2,10 @@
 
 One symbolic definition per model serves the simulation and identification (as an
 `Effect` in the plant) and the static friction-velocity map (a numeric function built
-from the same CasADi expression). Models (seeds 000, 003, 004; docs/friction.md):
+from the same CasADi expression). Models (docs/friction.md) from the seed papers: seed 000
+(Trentini et al., Karnopp friction identified by least squares in a servopneumatic axis),
+seed 003 (Romeo et al., static friction models with load terms in a pneumatic gripper) and
+seed 004 (friction of industrial pneumatic actuators: friction-velocity maps, Table 3):
 
     cv         Coulomb-viscous                         F = Fc s + B v
     karnopp    Karnopp stick band                      F = Fs s (|v| < dv),  Fc s + B v (|v| >= dv)

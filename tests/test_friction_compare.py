@@ -1,7 +1,7 @@
 """The friction models identified dynamically (multiple shooting) and ranked on a validation
 run: combined_reality.friction_identify and `combined-reality friction-compare`.
 
-Truth: seed 004's Table 3 row of actuator 4 (the cylinder of configs/ind4_norgren_50x400.toml)
+Truth: the Table 3 row of actuator 4 in seed 004 (friction of industrial pneumatic actuators) (the cylinder of configs/ind4_norgren_50x400.toml)
 as a CVS friction model on the virtual rig; 8 s runs keep the file fast (under 10 s once the
 compiled models are in the disk cache).
 """

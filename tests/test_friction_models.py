@@ -20,7 +20,7 @@ from sim.friction_models import (CV, CVS, DIRECTIONS, FRICTION_MODELS, Belforte,
                                  without_nominal_friction)
 from sim.plant import build_plant
 
-# seed 004 Table 3, actuator 2 (Norgren 32 x 100), SI, magnitudes
+# seed 004 (friction of industrial pneumatic actuators) Table 3, actuator 2 (Norgren 32 x 100), SI, magnitudes
 TABLE3_N2 = dict(Fc_pos=16.87, Fc_neg=13.47, Fs_pos=22.0, Fs_neg=20.0, vs_pos=0.00342, vs_neg=0.00616,
                  B_pos=178.85, B_neg=165.59)
 

@@ -180,8 +180,7 @@ class _Signals:
 def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, pipelined: bool,
                  console, link_events: list[str] | None = None) -> int:
     from ..files import clean_json, cylinder_tag, write_json_atomic
-    from ..live import (WHAT_TO_DO, ConsoleSink, SessionMonitor, assemble_session, change_message, drift_message,
-                        run_session, session_verdict)
+    from ..live import ConsoleSink, SessionMonitor, assemble_session, conclude_session, run_session
 
     options = _online_options(args, cyl)
     rr_sink = None
@@ -243,32 +242,12 @@ def _run_session(args, cyl, rig, program, duration, record: str | None, sample_p
         received = c.get("samples", 0) + c.get("invalid", 0) + c.get("host_overflow", 0)
         console.say(f"recorded {result.run.n} samples to {record}"
                     + ("" if "host_overflow" not in c else f" (the link received {received})"))
-    final = result.final
-    no_estimate = session_verdict(result.run, final, options.estimate, cyl)
-    trusted = result.monitor.trusted
-    if no_estimate is None:
-        print(f"online estimate at t = {final.t - result.t0:.2f} s of the session ({len(result.estimates)} updates, "
-              f"residual σ = {final.sigma:.2f} × noise)" + ("" if trusted else ", NOT TO BE TRUSTED") + ":")
-        for n, v in final.values.items():
-            print(f"  {n:4s} = {v:.6g} ± {final.std[n]:.2g} {final.units[n]}")
-    else:
-        print(f"no estimate: {no_estimate}")
-    if not trusted:
-        print(f"the model does not explain the rig (residual {final.sigma:.3g} × the sensor noise): the estimate is "
-              f"not to be trusted; {WHAT_TO_DO}.")
-    for c in result.monitor.changes:
-        print(f"  {change_message(c, final.units if final else {}, result.t0)}")
-    for d in result.monitor.drifts:
-        print(f"  {drift_message(d)}")
+    end = conclude_session(result, options.estimate, cyl)
+    for line in end.lines(result):
+        print(line)
     if args.json:
-        write_json_atomic(args.json, clean_json(result.document(options, wall, link_events or [], no_estimate)))
+        write_json_atomic(args.json, clean_json(result.document(options, wall, link_events or [], end.no_estimate)))
         console.say(f"wrote {args.json}")
     if estimator.error:
         return 1
-    if result.stop_reason.startswith("no samples"):
-        return 1
-    # a replayed run ends as identify ends on it: 1 where the model does not explain it, 2 where
-    # it cannot determine the parameters (a live session has made its recording either way)
-    if args.command == "replay" and result.estimates:
-        return 1 if not trusted else 2 if no_estimate is not None else 0
-    return 0
+    return end.status(result, replayed=args.command == "replay")

@@ -16,16 +16,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
 
-from ..files import Run, RunFormatError
-from ..identify import MISMATCH, OnlineEstimate, check_determinable
+from ..identify import MISMATCH, OnlineEstimate
 
-__all__ = ["MonitorOptions", "SessionMonitor", "session_verdict", "change_message", "drift_message", "WHAT_TO_DO"]
-
-# samples of a recording that the end of a session looks at, at most (its motion, for the
-# determinability rules: 0.1 s on a 2-core machine; an hour at 1 kHz whole took 20 s)
-_CHECKED_SAMPLES = 20_000
+__all__ = ["MonitorOptions", "SessionMonitor", "change_message", "drift_message", "WHAT_TO_DO"]
 
 WHAT_TO_DO = ("calibrate the cylinder file's valve, volumes and mass from a calibration run (combined-reality "
               "calibrate), or find the effect the model lacks (combined-reality diagnose)")
@@ -66,6 +60,9 @@ class SessionMonitor:
     _pending_sigma: float = 0.0
     _drift_on: bool = False
     _seen_explained: bool = False  # some window so far was explained
+    # identify's residual of the final estimate over the end of the recording, where the model
+    # did not explain the rig at the end (live.ending; a RunSigma)
+    run_sigma: object = None
 
     def take(self, e: OnlineEstimate) -> list[str]:
         out = []
@@ -140,7 +137,10 @@ class SessionMonitor:
 
     def to_json(self) -> dict:
         t = self.t0
+        r = self.run_sigma
         return {"explained": self.explained, "sigma_recent": self.sigma_recent, "sigma_session": self.sigma_session,
+                "sigma_run": None if r is None else r.sigma,
+                "sigma_run_span": None if r is None else [r.t_start, r.t_end],
                 "mismatch_limit": self.options.mismatch,
                 "mismatch": [{"t_start": s.t_start, "t_end": s.t_end, "sigma_max": s.sigma_max, "t_said": s.t_said}
                              for s in self.mismatch],
@@ -173,22 +173,3 @@ def change_message(c, units: dict[str, str], t0: float = 0.0) -> str:
                       for n in c.before)
     return (f"friction changed at t = {c.t - t0:.2f} ± {c.t_std:.2g} s (found at {c.t_detected - t0:.2f} s, "
             f"z = {c.z:.3g}): {parts}")
-
-
-def session_verdict(run: Run, final: OnlineEstimate | None, names: Sequence[str], cyl) -> str | None:
-    """Why the session ends with no estimate (identify's rules: a run that cannot determine
-    the parameters, a parameter whose standard deviation is as large as its value), or None."""
-    if final is None:
-        return "fewer samples than one estimation window"
-    step = -(-run.n // _CHECKED_SAMPLES)  # a long session is judged on every step-th sample
-    if step > 1:
-        run = Run(t=run.t[::step], u=run.u[::step], x=run.x[::step], p1=run.p1[::step], p2=run.p2[::step])
-    try:
-        check_determinable(cyl, [run], names)
-    except RunFormatError as e:
-        return str(e).removeprefix("the run: ")
-    loose = [n for n in names if not final.std.get(n, 0.0) < abs(final.values.get(n, 0.0))]
-    if loose:
-        return (f"{', '.join(loose)} not determined: the standard deviation is as large as the value "
-                f"({', '.join(f'{n} = {final.values[n]:.3g} ± {final.std[n]:.2g}' for n in loose)})")
-    return None
