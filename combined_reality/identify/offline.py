@@ -25,11 +25,11 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from sim.compiled import shooting_functions
+from sim.compiled import ShootingFunctions, shooting_functions
 from sim.cylinder import PARAMETERS, Cylinder
 from sim.extension import Effect
 from sim.integrator import IntegratorOptions
-from sim.plant import plant_for
+from sim.plant import Plant, plant_for
 
 from ..files import Run, split_at_gaps
 from ..progress import Step
@@ -295,7 +295,7 @@ def _gap_free_pieces(runs: Sequence[Run], drive: str, progress: Callable[[str], 
     return kept
 
 
-def _start_values(cyl: Cylinder, runs: Sequence[Run], plant, options: IdentifyOptions,
+def _start_values(cyl: Cylinder, runs: Sequence[Run], plant: Plant, options: IdentifyOptions,
                   initial: Mapping[str, float] | None,
                   progress: Callable[[str], None] | None) -> tuple[np.ndarray, np.ndarray]:
     """(the plant's parameter vector, the estimates' start within their bounds): the cylinder
@@ -325,8 +325,8 @@ class _Fit:
     merit the line search weighs steps by."""
 
     cyl: Cylinder
-    plant: object
-    sf: object
+    plant: Plant
+    sf: ShootingFunctions
     problem: ShootingProblem
     layouts: list[RunLayout]
     S0: np.ndarray  # node states to start from
@@ -399,7 +399,7 @@ class _Fit:
                                        self.nres - self.K * self.nx - self.nth)
 
 
-def _shooting_fit(cyl: Cylinder, runs: Sequence[Run], plant, options: IdentifyOptions, nodes: np.ndarray | None,
+def _shooting_fit(cyl: Cylinder, runs: Sequence[Run], plant: Plant, options: IdentifyOptions, nodes: np.ndarray | None,
                   prior: Sequence[PriorRow], progress: Callable[[str], None] | None) -> _Fit:
     """The runs laid out in shooting intervals (long runs in pieces), the compiled functions,
     the node states to start from (`nodes`: warm) and the prior."""
@@ -523,7 +523,8 @@ def _iterate(fit: _Fit, S: np.ndarray, theta: np.ndarray, p: np.ndarray, options
         Nmat, g = fit.with_prior(ev.N, ev.g, theta)
         cost = 0.5 * ev.cost2 + fit.prior_cost(theta)
         viol = float(np.sum(np.abs(ev.D)))
-        model = _OfflineStep(fit, ev, S, theta, p, cost, viol, history[-NONMONOTONE:] if creeping >= NONMONOTONE else [])
+        recent = history[-NONMONOTONE:] if creeping >= NONMONOTONE else []
+        model = _OfflineStep(fit, ev, S, theta, p, cost, viol, recent)
         out = damped_step(Nmat, g, theta, fit.lower, fit.upper, fit.n_state, fit.node_scale, lam, mu, model,
                           OFFLINE_DAMPING, end.out_of_time)
         lam, mu = out.lam, out.mu
@@ -541,8 +542,9 @@ def _iterate(fit: _Fit, S: np.ndarray, theta: np.ndarray, p: np.ndarray, options
         history.append({"iteration": it, "cost": cost, "defect": viol, "alpha": alpha, "lm": lam,
                         "theta": theta.tolist()})
         if progress:
-            progress(Step(f"  iteration {it:2d}: cost {cost:.6g}  defects {viol:.3g}  step {alpha:.3g}  "
-                          + "  ".join(f"{n}={v:.5g}" for n, v in zip(fit.estimate, theta)), "iterations", it, cost=cost))
+            values = "  ".join(f"{n}={v:.5g}" for n, v in zip(fit.estimate, theta))
+            progress(Step(f"  iteration {it:2d}: cost {cost:.6g}  defects {viol:.3g}  step {alpha:.3g}  {values}",
+                          "iterations", it, cost=cost))
         ev = fit.linearise(S, p)
         if ev is None:
             raise IdentificationError(f"the simulation stopped being finite at iteration {it} "
