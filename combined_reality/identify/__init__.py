@@ -10,6 +10,8 @@
   share of its value or of its effect's yardstick)
 - drives: which drive may estimate which parameter
 - shooting, smoothing: the shared machinery (intervals, Gauss-Newton, covariance; derivatives)
+- gauss_newton: one Gauss-Newton iteration (damped step, line search) for offline and online
+  alike, and `Exit`: every way a fit stops, named, with the status it reports
 """
 from .determined import not_determined, too_uncertain
 from .drives import DriveError, check_drive

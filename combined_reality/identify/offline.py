@@ -25,23 +25,24 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from sim.compiled import shooting_functions
+from sim.compiled import ShootingFunctions, shooting_functions
 from sim.cylinder import PARAMETERS, Cylinder
 from sim.extension import Effect
 from sim.integrator import IntegratorOptions
-from sim.plant import plant_for
+from sim.plant import Plant, plant_for
 
 from ..files import Run, split_at_gaps
 from ..progress import Step
 from .determined import not_determined as undetermined_among
 from .drives import check_drive
+from .gauss_newton import Damping, Exit, Prediction, StepOutcome, damped_step
 from .newton import equation_error_friction
 from .preflight import check_determinable
 from .shooting import (IdentificationError, NormalEquations, PriorRow, RunLayout, ShootingProblem, at_bounds,
                        concatenated_layouts, drives_with_measured_inputs, fit_metrics, free_parameters,
                        interval_residual_sigma, line_search, parameter_bounds, parameter_unit, pooled_fit,
                        prior_matrix, reported_covariance, residual_scales, run_layout, simulate_layout,
-                       solve_bounded, standard_deviations, warm_nodes, with_effect_values)
+                       standard_deviations, warm_nodes, with_effect_values)
 
 
 # a model whose residual is this many times the sensor noise does not explain the run: its
@@ -52,9 +53,6 @@ MISMATCH = 3.0
 # iterations it then looks back on
 NONMONOTONE = 3
 
-# a damped step closer than this (relative, in the scaled variables) to one whose line search
-# just failed is not searched again
-_SAME_STEP = 1e-2
 # residual sigma (x noise) up to which a fit whose parameters no longer move has converged
 # although its cost still creeps down (node states polished around gaps and end stops); above
 # it, a fit that ended is restarted once (IdentifyOptions.restart_misfit)
@@ -272,19 +270,36 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     if not runs:
         raise IdentificationError("no runs to identify from.")
     check_determinable(cyl, runs, options.estimate)  # no "converged" on runs that cannot say
-    n_runs = len(runs)
-    # the measured pressures drive the pressure-driven plant: where one was not measured, that
-    # plant has no input, so the run is cut there like at lost samples
-    inputs = ("p1", "p2") if options.drive == "pressure" else ()
-    pieces = [piece for r in runs for piece in split_at_gaps(r, channels=inputs)]
-    if len(pieces) > n_runs:
-        runs = [q for q in pieces if q.n >= 3]
-        if not runs:
-            raise IdentificationError("the runs have no gap-free stretch of 3 samples or more.")
-        if progress:
-            progress(f"  {len(pieces) - n_runs} gap(s) of lost samples: {len(runs)} gap-free pieces "
-                     "identified jointly (no simulation bridges a gap)")
+    runs = _gap_free_pieces(runs, options.drive, progress)
     plant = plant_for(cyl, options.drive, effects, options.estimate)
+    p, theta_init = _start_values(cyl, runs, plant, options, initial, progress)
+    fit = _shooting_fit(cyl, runs, plant, options, nodes, prior, progress)
+    ended = _iterate(fit, fit.S0, theta_init.copy(), p, options, progress, t_start)
+    return _result(fit, ended, options, effects, theta_init, t_start)
+
+
+def _gap_free_pieces(runs: Sequence[Run], drive: str, progress: Callable[[str], None] | None) -> Sequence[Run]:
+    """The runs cut at lost samples (no simulation bridges a gap). The measured pressures drive
+    the pressure-driven plant: where one was not measured, that plant has no input, so the run
+    is cut there too."""
+    inputs = ("p1", "p2") if drive == "pressure" else ()
+    pieces = [piece for r in runs for piece in split_at_gaps(r, channels=inputs)]
+    if len(pieces) <= len(runs):
+        return runs
+    kept = [q for q in pieces if q.n >= 3]
+    if not kept:
+        raise IdentificationError("the runs have no gap-free stretch of 3 samples or more.")
+    if progress:
+        progress(f"  {len(pieces) - len(runs)} gap(s) of lost samples: {len(kept)} gap-free pieces "
+                 "identified jointly (no simulation bridges a gap)")
+    return kept
+
+
+def _start_values(cyl: Cylinder, runs: Sequence[Run], plant: Plant, options: IdentifyOptions,
+                  initial: Mapping[str, float] | None,
+                  progress: Callable[[str], None] | None) -> tuple[np.ndarray, np.ndarray]:
+    """(the plant's parameter vector, the estimates' start within their bounds): the cylinder
+    file's values, `initial` over them, else the equation-error fit of the friction."""
     estimate = tuple(options.estimate)
     free = free_parameters(plant, estimate)
     p = np.array(plant.parameter_vector(cyl), dtype=float)
@@ -301,22 +316,107 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     lower, upper = parameter_bounds(plant, estimate)
     theta = np.clip(p[free], lower, upper)
     p[free] = theta
-    theta_init = theta.copy()
+    return p, theta.copy()
 
+
+@dataclass(frozen=True)
+class _Fit:
+    """The multiple-shooting problem of some runs: layout, compiled functions, prior, and the
+    merit the line search weighs steps by."""
+
+    cyl: Cylinder
+    plant: Plant
+    sf: ShootingFunctions
+    problem: ShootingProblem
+    layouts: list[RunLayout]
+    S0: np.ndarray  # node states to start from
+    estimate: tuple[str, ...]
+    free: list[int]
+    lower: np.ndarray
+    upper: np.ndarray
+    M: int
+    cluster: int
+    node_scale: np.ndarray  # the free node states' defect scales (the damping's bound on them)
+    Gp: np.ndarray
+    tp: np.ndarray
+    nres: float  # residuals (measured samples x outputs)
+
+    @property
+    def nx(self) -> int:
+        return self.plant.nx
+
+    @property
+    def nth(self) -> int:
+        return len(self.free)
+
+    @property
+    def K(self) -> int:  # shooting intervals in all
+        return self.problem.K
+
+    @property
+    def n_state(self) -> int:  # free node states: the first of each piece
+        return len(self.layouts) * self.nx
+
+    def closed(self, viol: float) -> bool:
+        """Whether defects summing to `viol` (scaled) are closed."""
+        return viol < 1e-2 * max(1, self.K)
+
+    def linearise(self, S: np.ndarray, p: np.ndarray) -> NormalEquations | None:
+        pieces = [(l.node0, l.K) for l in self.layouts]
+        return self.problem.linearise(S, p, NormalEquations(pieces, self.nx, self.nth, self.cluster))
+
+    def evaluate(self, S: np.ndarray, p: np.ndarray, _with_sens: bool, give_up=None):
+        return self.problem.merit_terms(S, p, give_up)
+
+    def prior_cost(self, th: np.ndarray) -> float:
+        rp = self.Gp @ th - self.tp
+        return 0.5 * float(rp @ rp)
+
+    def merit(self, sq: float, D: np.ndarray, mu: float, th: np.ndarray) -> float:
+        # a trial step so far off that its squared residuals overflow has an infinite merit,
+        # which the line search rejects: no warning for the user (sq: the residuals' sum of squares)
+        with np.errstate(over="ignore"):
+            return 0.5 * sq + self.prior_cost(th) + mu * float(np.sum(np.abs(D)))
+
+    @staticmethod
+    def merit_part(E: np.ndarray, D: np.ndarray, mu: float) -> float:
+        """merit's share of some intervals' residuals and defects (without the prior)"""
+        with np.errstate(over="ignore"):
+            return 0.5 * float(np.sum(E * E)) + mu * float(np.sum(np.abs(D)))
+
+    def with_prior(self, Nmat: np.ndarray, g: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not len(self.tp):
+            return Nmat, g
+        Nmat, g = Nmat.copy(), g.copy()
+        n0 = Nmat.shape[0] - self.nth
+        Nmat[n0:, n0:] += self.Gp.T @ self.Gp
+        g[n0:] += self.Gp.T @ (self.Gp @ th - self.tp)
+        return Nmat, g
+
+    def residual_sigma(self, S: np.ndarray, p: np.ndarray, ev: NormalEquations) -> tuple[float, float]:
+        """(residual sigma, noise floor) of a drive by measured inputs (interval_residual_sigma)."""
+        return interval_residual_sigma(self.problem, self.layouts, self.cyl, S, p, ev,
+                                       self.nres - self.K * self.nx - self.nth)
+
+
+def _shooting_fit(cyl: Cylinder, runs: Sequence[Run], plant: Plant, options: IdentifyOptions, nodes: np.ndarray | None,
+                  prior: Sequence[PriorRow], progress: Callable[[str], None] | None) -> _Fit:
+    """The runs laid out in shooting intervals (long runs in pieces), the compiled functions,
+    the node states to start from (`nodes`: warm) and the prior."""
+    estimate = tuple(options.estimate)
+    free = free_parameters(plant, estimate)
+    lower, upper = parameter_bounds(plant, estimate)
     dt0 = runs[0].sample_period
     M = max(5, int(round(options.interval_s / dt0)))
     cluster = max(1, int(round(1.0 / (M * dt0))))  # intervals per second: the robust std's clusters
     sf = shooting_functions(plant, M, free, options.integrator, progress=progress, with_sens=True)
-    nx, nth = plant.nx, len(free)
-
     cut = [part for r in runs for part in long_run_pieces(r, M)]
     if progress and len(cut) > len(runs):
         progress(f"  {len(cut) - len(runs)} cut(s) where a run is longer than {LONG_PIECE_S:g} s: {len(cut)} pieces "
                  "identified jointly, each from its own initial state")
-    runs = cut
     layouts: list[RunLayout] = []
     node0 = 0
-    for r in runs:
+    for r in cut:
         if r.n < 3:
             raise IdentificationError(f"{r.source}: a run needs at least 3 samples.")
         lay = run_layout(r, plant, cyl, M, node0)
@@ -331,246 +431,259 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     has_next = np.ones(Ktot, bool)
     for l in layouts:
         has_next[l.node0 + l.K - 1] = False
-    nxt = np.flatnonzero(has_next)
-    node_scale = np.tile(sscale, len(layouts))  # the free node states' defect scales (proximal retry)
-
     threads = max(1, min(options.threads, Ktot))
-    problem = ShootingProblem(sf, Ktot, threads, W, H, Y, mask, wts, sscale, nxt, plant.possible_states(cyl))
-    nres = float(np.sum(mask))
-    pieces = [(l.node0, l.K) for l in layouts]
-
-    def linearise(S_, p_) -> NormalEquations | None:
-        return problem.linearise(S_, p_, NormalEquations(pieces, nx, nth, cluster))
-
-    def evaluate(S_, p_, _with_sens, give_up=None):
-        return problem.merit_terms(S_, p_, give_up)
-
-    def out_of_time() -> bool:
-        return time.perf_counter() - t_start > options.time_limit_s
-
+    problem = ShootingProblem(sf, Ktot, threads, W, H, Y, mask, wts, sscale, np.flatnonzero(has_next),
+                              plant.possible_states(cyl))
     Gp, tp = prior_matrix(prior, estimate)
+    return _Fit(cyl, plant, sf, problem, layouts, S, estimate, free, lower, upper, M, cluster,
+                np.tile(sscale, len(layouts)), Gp, tp, float(np.sum(mask)))
 
-    def prior_cost(th) -> float:
-        rp = Gp @ th - tp
-        return 0.5 * float(rp @ rp)
 
-    def merit(sq, D, mu, th):
-        # a trial step so far off that its squared residuals overflow has an infinite merit,
-        # which the line search rejects: no warning for the user (sq: the residuals' sum of squares)
-        with np.errstate(over="ignore"):
-            return 0.5 * sq + prior_cost(th) + mu * float(np.sum(np.abs(D)))
+# how an offline iteration retries a step its line search could not take: eight times at most,
+# a step within 1e-2 of the one that just failed not searched again (searching the step that
+# just failed again is where a struggling fit spent its time). The node states are bounded only
+# after a failed search: the Gauss-Newton path of a fit that works stays undamped (a stiction
+# fit went to another local minimum, 1.09 x noise, when always damped so)
+OFFLINE_DAMPING = Damping(attempts=8, floor=1e-6, same_step=1e-2)
 
-    def merit_part(E, D, mu) -> float:
-        """merit's share of some intervals' residuals and defects (without the prior)"""
-        with np.errstate(over="ignore"):
-            return 0.5 * float(np.sum(E * E)) + mu * float(np.sum(np.abs(D)))
 
-    def with_prior(Nmat: np.ndarray, g: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if not len(tp):
-            return Nmat, g
-        Nmat, g = Nmat.copy(), g.copy()
-        n0 = Nmat.shape[0] - nth
-        Nmat[n0:, n0:] += Gp.T @ Gp
-        g[n0:] += Gp.T @ (Gp @ th - tp)
-        return Nmat, g
+class _OfflineStep:
+    """The step model of one offline iteration at (S, theta, p), linearised in `ev`."""
 
-    ev = linearise(S, p)
+    def __init__(self, fit: _Fit, ev: NormalEquations, S, theta, p, cost: float, viol: float, recent: list[dict]):
+        self.fit, self.ev, self.S, self.theta, self.p = fit, ev, S, theta, p
+        self.cost, self.viol = cost, viol
+        self.recent = recent  # the iterations a non-monotone search looks back on (none: monotone)
+
+    def predict(self, step: np.ndarray) -> Prediction:
+        fit = self.fit
+        gdir, quad = self.ev.predicted(step)
+        lin_prior = fit.Gp @ step[fit.n_state:]
+        gdir += float((fit.Gp @ self.theta - fit.tp) @ lin_prior)
+        quad += float(lin_prior @ lin_prior)
+        return Prediction(-(gdir + 0.5 * quad), gdir)
+
+    def nothing_to_gain(self, pred: Prediction) -> bool:
+        # nothing left to gain, statistically or numerically
+        return pred.decrease < max(1e-2, 1e-10 * self.cost) and self.fit.closed(self.viol)
+
+    def penalty(self, mu: float, pred: Prediction) -> float:
+        return max(mu, -pred.decrease / (0.5 * self.viol) + 1.0) if self.viol > 0 else mu
+
+    def search(self, step: np.ndarray, pred: Prediction, mu: float):
+        fit, ev = self.fit, self.ev
+        ds0, dth = step[: fit.n_state].reshape(len(fit.layouts), fit.nx), step[fit.n_state:]
+        dS = np.empty((fit.K, fit.nx))
+        for ri, l in enumerate(fit.layouts):
+            sl = slice(l.node0, l.node0 + l.K)
+            dS[sl] = ev.P[sl] @ ds0[ri] + ev.Q[sl] @ dth + ev.q[sl]
+        # a fit that creeps (only short steps accepted, NONMONOTONE times in a row) is in a curved
+        # valley: then a step may rise above the current merit as long as it stays below the
+        # worst of the last few (Grippo-Lampariello-Lucidi), so it takes full steps along it
+        reference = self.cost + mu * self.viol
+        if self.recent:
+            reference = max([reference] + [h["cost"] + mu * h["defect"] for h in self.recent])
+        return line_search(fit.evaluate, lambda tr, th_: fit.merit(tr[0], tr[1], mu, th_), self.S, dS.T,
+                           self.theta, dth, self.p, fit.free, fit.lower, fit.upper, reference,
+                           min(pred.gdir - mu * self.viol, 0.0), 1.0 / 64,
+                           part=lambda E_, D_: fit.merit_part(E_, D_, mu))
+
+
+@dataclass
+class _Ended:
+    """Where the iterations left a fit: why, after how many, and its state linearised in `ev`."""
+
+    exit: Exit
+    iterations: int
+    history: list[dict]
+    S: np.ndarray
+    theta: np.ndarray
+    p: np.ndarray
+    ev: NormalEquations
+
+
+def _iterate(fit: _Fit, S: np.ndarray, theta: np.ndarray, p: np.ndarray, options: IdentifyOptions,
+             progress: Callable[[str], None] | None, t_start: float) -> _Ended:
+    """Gauss-Newton iterations from (S, theta, p) until an exit of _FitEnd."""
+    ev = fit.linearise(S, p)
     if ev is None:
         raise IdentificationError("the simulation from the initial guess is not finite, or starts where this "
                                   "cylinder cannot be (a position beyond a stroke outside its travel, pressures "
                                   "beyond ten times the supply); check the cylinder file "
                                   "(units, dead volumes, supply pressure) against the run.")
+    end = _FitEnd(fit, options, t_start)
     lam, mu = 0.0, 0.0
     creeping = 0  # accepted steps in a row that were backtracked to 1/8 or less
-    status = "max_iterations"
-    history = []
-    it = 0
+    history: list[dict] = []
+    it, why = 0, Exit.MAX_ITERATIONS
     for it in range(1, options.max_iter + 1):
-        if out_of_time():
-            status = "time_limit"
+        if end.out_of_time():
+            why = Exit.TIME_LIMIT
             break
-        P, Q, q, scores = ev.P, ev.Q, ev.q, ev.clusters
-        Nmat, g = with_prior(ev.N, ev.g, theta)
-        R = len(layouts)
-        cost = 0.5 * ev.cost2 + prior_cost(theta)
+        Nmat, g = fit.with_prior(ev.N, ev.g, theta)
+        cost = 0.5 * ev.cost2 + fit.prior_cost(theta)
         viol = float(np.sum(np.abs(ev.D)))
-
-        accepted = converged_here = False
-        predicted = math.inf
-        failed_step = first_step = None
-        scale = np.sqrt(np.maximum(np.diag(Nmat), 1e-300))
-        for _attempt in range(8):
-            if _attempt and out_of_time():
-                break  # a struggling line search is where the time goes
-            # once a step has failed, the damping bounds the free node states too: a state the data
-            # cannot see (the velocity of a piston stuck where a piece starts) may have taken it
-            # all. Not before: the Gauss-Newton path of a fit that works stays as it was (a
-            # stiction fit went to another local minimum, 1.09 x noise, when always damped so)
-            step = solve_bounded(Nmat, g, theta, lower, upper, R * nx, lam,
-                                 node_scale if failed_step is not None else None)
-            if first_step is None:
-                first_step = step  # the least damped: what the model still expects to gain
-            if step is None:
-                lam = max(1e-6, lam * 10)
-                continue
-            if failed_step is not None and (np.linalg.norm((step - failed_step) * scale)
-                                            <= _SAME_STEP * np.linalg.norm(failed_step * scale)):
-                # damping too weak to change the step: searching the step that just failed again
-                # is where a struggling fit spent its time
-                lam = max(1e-6, lam * 10)
-                continue
-            ds0, dth = step[: R * nx].reshape(R, nx), step[R * nx:]
-            dS = np.empty((Ktot, nx))
-            for ri, l in enumerate(layouts):
-                sl = slice(l.node0, l.node0 + l.K)
-                dS[sl] = P[sl] @ ds0[ri] + Q[sl] @ dth + q[sl]
-            gdir, quad = ev.predicted(step)
-            lin_prior = Gp @ dth
-            gdir += float((Gp @ theta - tp) @ lin_prior)
-            quad += float(lin_prior @ lin_prior)
-            predicted = -(gdir + 0.5 * quad)  # decrease of the cost the Gauss-Newton model expects
-            if predicted < max(1e-2, 1e-10 * cost) and viol < 1e-2 * max(1, Ktot):
-                converged_here = True  # nothing left to gain, statistically or numerically
-                break
-            if viol > 0:
-                mu = max(mu, (gdir + 0.5 * quad) / (0.5 * viol) + 1.0)
-            # a fit that creeps (only short steps accepted, NONMONOTONE times in a row) is in a curved
-            # valley: then a step may rise above the current merit as long as it stays below the
-            # worst of the last few (Grippo-Lampariello-Lucidi), so it takes full steps along it
-            reference = cost + mu * viol
-            if creeping >= NONMONOTONE:
-                reference = max([reference] + [h["cost"] + mu * h["defect"] for h in history[-NONMONOTONE:]])
-            found = line_search(evaluate, lambda tr, th_: merit(tr[0], tr[1], mu, th_), S, dS.T, theta, dth, p,
-                                free, lower, upper, reference, min(gdir - mu * viol, 0.0), 1.0 / 64,
-                                part=lambda E_, D_: merit_part(E_, D_, mu))
-            if found:
-                alpha, S_try, th_try, p_try, ev_try = found
-                accepted = True
-                break
-            failed_step = step
-            lam = max(1e-6, lam * 10)
-        if converged_here:
-            status = "converged"
+        recent = history[-NONMONOTONE:] if creeping >= NONMONOTONE else []
+        model = _OfflineStep(fit, ev, S, theta, p, cost, viol, recent)
+        out = damped_step(Nmat, g, theta, fit.lower, fit.upper, fit.n_state, fit.node_scale, lam, mu, model,
+                          OFFLINE_DAMPING, end.out_of_time)
+        lam, mu = out.lam, out.mu
+        if out.converged:
+            why = Exit.NOTHING_TO_GAIN
             break
-        if not accepted:
-            # at the numerical noise floor of the cost nothing can be gained any more; nor when
-            # the step the line search could not take moves no parameter by a tenth of what the
-            # data determine (a noisy rig's cost surface is rough at that scale)
-            noise_floor = step is not None and predicted < 1.0 and viol < 1e-2 * max(1, Ktot)
-            if first_step is not None and nth:
-                std_here = standard_deviations(Nmat, R * nx, cost, nres)
-                ok = np.isfinite(std_here) & (std_here > 0)
-                tiny = np.abs(first_step[R * nx:])[ok] <= 0.1 * std_here[ok]
-                # nor when the last steps (short ones, in a curved valley of the node states)
-                # moved no parameter by a quarter of its std and the cost no longer falls: a defect
-                # left at an end stop's stiff contact (where the piston leaves the stop is all
-                # but discontinuous in the node state) is one the data cannot resolve
-                settled = parameters_settled(history, theta, std_here, cost, nres)
-                # the raw residual of a drive by measured (noisy) signals stays above the sensor
-                # noise however good the model, so it is judged against that drive's floor; and
-                # its Gauss-Newton std understates what the data leave open (the std it reports
-                # is the cluster-robust one, here ~30 times larger)
-                by_floor = (not settled and ok.all() and options.noise_floor
-                            and drives_with_measured_inputs(plant))
-                at_noise = ok.all() and 2 * cost <= SETTLED_SIGMA ** 2 * nres
-                cov_rep = (reported_covariance(Nmat, scores, R * nx, cost, nres)
-                           if by_floor or at_noise else None)
-                std_rep = None if cov_rep is None else np.sqrt(np.maximum(np.diag(cov_rep), 0.0))
-                if by_floor and std_rep is not None:
-                    def at_floor() -> bool:
-                        return interval_residual_sigma(problem, layouts, cyl, S, p, ev,
-                                                       nres - Ktot * nx - nth)[0] <= SETTLED_SIGMA
-
-                    settled = parameters_settled(history, theta, std_rep, cost, nres, at_noise=at_floor)
-                closed = viol < 1e-2 * max(1, Ktot)
-                # nor, at the sensor noise, when that step would move no parameter by half the std
-                # the fit reports: the data cannot tell the two apart (a lossy live recording, 303
-                # pieces, failed so at 1.01 x noise with its defects not quite closed)
-                at_noise_step = bool(at_noise and std_rep is not None
-                                     and np.all(np.abs(first_step[R * nx:]) <= 0.5 * std_rep))
-                noise_floor = noise_floor or bool(ok.all() and ((closed and tiny.all()) or settled or at_noise_step))
-            status = "converged" if noise_floor else "time_limit" if out_of_time() else "line_search_failed"
+        if out.found is None:
+            why = end.after_failed_step(out, Nmat, ev, S, theta, p, cost, viol, history)
             break
+        alpha, S, theta_new, p, _ = out.found
+        dth = out.step[fit.n_state:]
         lam = lam / 10 if lam > 1e-6 else 0.0
         creeping = creeping + 1 if alpha <= 0.125 else 0
-        S, theta, p = S_try, th_try, p_try
-        std = standard_deviations(Nmat, R * nx, cost, nres)
-        # a step small against what the data determine; an undetermined parameter (std not
-        # finite) must itself stop moving
-        yardstick = np.where(np.isfinite(std), std, 1e-6 * (upper - lower))
-        rel_step = np.max(np.abs(alpha * dth) / np.maximum(yardstick, 1e-300)) if nth else 0.0
+        theta, scores = theta_new, ev.clusters
         history.append({"iteration": it, "cost": cost, "defect": viol, "alpha": alpha, "lm": lam,
                         "theta": theta.tolist()})
         if progress:
-            progress(Step(f"  iteration {it:2d}: cost {cost:.6g}  defects {viol:.3g}  step {alpha:.3g}  "
-                          + "  ".join(f"{n}={v:.5g}" for n, v in zip(estimate, theta)), "iterations", it, cost=cost))
-        ev = linearise(S, p)
+            values = "  ".join(f"{n}={v:.5g}" for n, v in zip(fit.estimate, theta))
+            progress(Step(f"  iteration {it:2d}: cost {cost:.6g}  defects {viol:.3g}  step {alpha:.3g}  {values}",
+                          "iterations", it, cost=cost))
+        ev = fit.linearise(S, p)
         if ev is None:
             raise IdentificationError(f"the simulation stopped being finite at iteration {it} "
-                                      f"({', '.join(f'{n}={v:.4g}' for n, v in zip(estimate, theta))}); "
+                                      f"({', '.join(f'{n}={v:.4g}' for n, v in zip(fit.estimate, theta))}); "
                                       "check the cylinder file against the run.")
-        new_viol = float(np.sum(np.abs(ev.D)))
-        if rel_step < 1e-3 and new_viol < 1e-2 * max(1, Ktot) and alpha == 1.0:
-            status = "converged"
+        why = end.after_step(Nmat, scores, ev, theta, alpha, alpha * dth, cost, history)
+        if why is not None:
             break
-        if new_viol < 1e-2 * max(1, Ktot) and parameters_settled(history, theta, std, cost, nres):
-            status = "converged"  # short steps that only polish node states (e.g. around gaps)
-            break
-        if not nth and states_settled(history):
-            status = "converged"
-            break
-        if options.start_only and nth and len(history) >= 2 * NONMONOTONE:
-            cov_rep = reported_covariance(Nmat, scores, R * nx, cost, nres)
+        why = Exit.MAX_ITERATIONS
+    return _Ended(why, it, history, S, theta, p, ev)
+
+
+class _FitEnd:
+    """When an offline fit stops: every exit but NOTHING_TO_GAIN (damped_step's) and
+    MAX_ITERATIONS, in the order the iterations ask."""
+
+    def __init__(self, fit: _Fit, options: IdentifyOptions, t_start: float):
+        self.fit, self.options, self.t_start = fit, options, t_start
+
+    def out_of_time(self) -> bool:
+        return time.perf_counter() - self.t_start > self.options.time_limit_s
+
+    def after_step(self, Nmat: np.ndarray, scores: np.ndarray, ev: NormalEquations, theta: np.ndarray,
+                   alpha: float, moved: np.ndarray, cost: float, history: list[dict]) -> Exit | None:
+        """The exit after an accepted step of length `alpha` that moved the parameters by `moved` to `theta`
+        (Nmat, scores: of the iteration's start; ev: linearised after the step)."""
+        fit, options, nres = self.fit, self.options, self.fit.nres
+        std = standard_deviations(Nmat, fit.n_state, cost, nres)
+        # a step small against what the data determine; an undetermined parameter (std not
+        # finite) must itself stop moving
+        yardstick = np.where(np.isfinite(std), std, 1e-6 * (fit.upper - fit.lower))
+        rel_step = np.max(np.abs(moved) / np.maximum(yardstick, 1e-300)) if fit.nth else 0.0
+        closed = fit.closed(float(np.sum(np.abs(ev.D))))
+        if rel_step < 1e-3 and closed and alpha == 1.0:
+            return Exit.SMALL_STEP
+        if closed and parameters_settled(history, theta, std, cost, nres):
+            return Exit.PARAMETERS_SETTLED  # short steps that only polish node states (e.g. around gaps)
+        if not fit.nth and states_settled(history):
+            return Exit.STATES_SETTLED
+        if options.start_only and fit.nth and len(history) >= 2 * NONMONOTONE:
+            cov_rep = reported_covariance(Nmat, scores, fit.n_state, cost, nres)
             if cov_rep is not None and start_settled(history, theta, np.sqrt(np.maximum(np.diag(cov_rep), 0.0))):
-                status = "converged"
-                break
-        if (abs(cost - 0.5 * ev.cost2 - prior_cost(theta)) < 1e-12 * cost
-                and new_viol < 1e-2 * max(1, Ktot)):
-            status = "converged"
-            break
+                return Exit.START_SETTLED
+        if abs(cost - 0.5 * ev.cost2 - fit.prior_cost(theta)) < 1e-12 * cost and closed:
+            return Exit.COST_UNCHANGED
         n_last = options.give_up_after
         if (math.isfinite(options.give_up_above) and len(history) >= n_last
                 and all(h["cost"] > options.give_up_above for h in history[-n_last:])):
-            status = "above_reference"
-            break
+            return Exit.ABOVE_REFERENCE
+        return None
 
-    # final statistics at the solution (linearised in ev)
+    def after_failed_step(self, out: StepOutcome, Nmat: np.ndarray, ev: NormalEquations, S: np.ndarray,
+                          theta: np.ndarray, p: np.ndarray, cost: float, viol: float, history: list[dict]) -> Exit:
+        """The exit when no step was accepted: AT_NOISE_FLOOR where nothing can be gained any
+        more, else TIME_LIMIT or LINE_SEARCH_FAILED."""
+        if self.at_noise_floor(out, Nmat, ev, S, theta, p, cost, viol, history):
+            return Exit.AT_NOISE_FLOOR
+        return Exit.TIME_LIMIT if self.out_of_time() else Exit.LINE_SEARCH_FAILED
+
+    def at_noise_floor(self, out: StepOutcome, Nmat: np.ndarray, ev: NormalEquations, S: np.ndarray,
+                       theta: np.ndarray, p: np.ndarray, cost: float, viol: float, history: list[dict]) -> bool:
+        """Whether a step the line search could not take leaves nothing to gain: at the numerical
+        noise floor of the cost; or it moves no parameter by a tenth of what the data determine
+        (a noisy rig's cost surface is rough at that scale); or the fit has settled; or, at the
+        sensor noise, it moves no parameter by half the std the fit reports."""
+        fit, nres = self.fit, self.fit.nres
+        closed = fit.closed(viol)
+        if out.step is not None and out.predicted < 1.0 and closed:
+            return True
+        if out.first_step is None or not fit.nth:
+            return False
+        std_here = standard_deviations(Nmat, fit.n_state, cost, nres)
+        ok = np.isfinite(std_here) & (std_here > 0)
+        if not ok.all():
+            return False
+        moves = np.abs(out.first_step[fit.n_state:])
+        tiny = moves[ok] <= 0.1 * std_here[ok]
+        # nor when the last steps (short ones, in a curved valley of the node states) moved no
+        # parameter by a quarter of its std and the cost no longer falls: a defect left at an end
+        # stop's stiff contact (where the piston leaves the stop is all but discontinuous in the
+        # node state) is one the data cannot resolve
+        settled = parameters_settled(history, theta, std_here, cost, nres)
+        # the raw residual of a drive by measured (noisy) signals stays above the sensor noise
+        # however good the model, so it is judged against that drive's floor; and its
+        # Gauss-Newton std understates what the data leave open (the std it reports is the
+        # cluster-robust one, here ~30 times larger)
+        by_floor = not settled and self.options.noise_floor and drives_with_measured_inputs(fit.plant)
+        at_noise = 2 * cost <= SETTLED_SIGMA ** 2 * nres
+        cov_rep = reported_covariance(Nmat, ev.clusters, fit.n_state, cost, nres) if by_floor or at_noise else None
+        std_rep = None if cov_rep is None else np.sqrt(np.maximum(np.diag(cov_rep), 0.0))
+        if by_floor and std_rep is not None:
+            settled = parameters_settled(history, theta, std_rep, cost, nres,
+                                         at_noise=lambda: fit.residual_sigma(S, p, ev)[0] <= SETTLED_SIGMA)
+        # at the sensor noise, a step that would move no parameter by half the std the fit
+        # reports: the data cannot tell the two apart (a lossy recording with its defects not
+        # quite closed)
+        at_noise_step = bool(at_noise and std_rep is not None and np.all(moves <= 0.5 * std_rep))
+        return bool((closed and tiny.all()) or settled or at_noise_step)
+
+
+def _result(fit: _Fit, ended: _Ended, options: IdentifyOptions, effects: Sequence[Effect],
+            theta_init: np.ndarray, t_start: float) -> IdentifyResult:
+    """The estimates with their standard deviations and correlation at the solution, the fit
+    of every run simulated from its identified initial state in one piece, the solver's figures."""
+    S, theta, p, ev, plant = ended.S, ended.theta, ended.p, ended.ev, fit.plant
     cost = 0.5 * ev.cost2
-    Nfinal, _ = with_prior(ev.N, ev.g, theta)
-    cov = reported_covariance(Nfinal, ev.clusters, len(layouts) * nx, cost, nres)
-    at_bound = at_bounds(theta, lower, upper)
-    std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(nth, np.nan)
+    Nfinal, _ = fit.with_prior(ev.N, ev.g, theta)
+    cov = reported_covariance(Nfinal, ev.clusters, fit.n_state, cost, fit.nres)
+    at_bound = at_bounds(theta, fit.lower, fit.upper)
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(fit.nth, np.nan)
     corr = None
-    if cov is not None and nth:
+    if cov is not None and fit.nth:
         d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
         with np.errstate(over="ignore", invalid="ignore"):  # an undetermined parameter: no finite correlation
             corr = cov / np.outer(d, d)
     params = {n: Estimate(n, float(v), float(s), parameter_unit(plant, n), float(v0), bool(b))
-              for n, v, s, v0, b in zip(estimate, theta, std, theta_init, at_bound)}
-    # the fit: simulate every run from its identified initial state in one piece
-    sims = [simulate_layout(sf, S[:, l.node0], p, l, M) for l in layouts]
-    fit_runs = [fit_metrics(l.run, sim, plant.output_names) for l, sim in zip(layouts, sims)]
-    fit = pooled_fit([l.run for l in layouts], sims, plant.output_names)
-    values = {n: params[n].value for n in estimate if n in PARAMETERS}
-    eff_values = {}
-    for n in estimate:
+              for n, v, s, v0, b in zip(fit.estimate, theta, std, theta_init, at_bound)}
+    sims = [simulate_layout(fit.sf, S[:, l.node0], p, l, fit.M) for l in fit.layouts]
+    fit_runs = [fit_metrics(l.run, sim, plant.output_names) for l, sim in zip(fit.layouts, sims)]
+    pooled = pooled_fit([l.run for l in fit.layouts], sims, plant.output_names)
+    values = {n: params[n].value for n in fit.estimate if n in PARAMETERS}
+    eff_values: dict[str, dict[str, float]] = {}
+    for n in fit.estimate:
         if "." in n:
             ename, pname = n.split(".", 1)
             eff_values.setdefault(ename, {})[pname] = params[n].value
     new_effects = tuple(with_effect_values(e, eff_values.get(e.name, {})) for e in effects)
-    residual_sigma, floor = math.sqrt(2 * cost / max(1.0, nres - len(layouts) * nx - nth)), 1.0
+    residual_sigma, floor = math.sqrt(2 * cost / max(1.0, fit.nres - fit.n_state - fit.nth)), 1.0
     if options.noise_floor and drives_with_measured_inputs(plant):
         # measured inputs carry noise that drives the model too: the residual is told in units of
         # what that noise alone leaves, so that 1 means a perfect model in every drive
-        residual_sigma, floor = interval_residual_sigma(problem, layouts, cyl, S, p, ev,
-                                                        nres - Ktot * nx - nth)
-    solver = {"status": status, "iterations": it, "wall_s": round(time.perf_counter() - t_start, 4),
+        residual_sigma, floor = fit.residual_sigma(S, p, ev)
+    sf = fit.sf
+    solver = {"status": ended.exit.status, "iterations": ended.iterations,
+              "wall_s": round(time.perf_counter() - t_start, 4),
               "cost": cost, "residual_sigma": residual_sigma, "noise_floor": floor,
-              "n_samples": int(sum(l.run.n for l in layouts)), "n_intervals": Ktot, "interval_samples": M,
+              "n_samples": int(sum(l.run.n for l in fit.layouts)), "n_intervals": fit.K, "interval_samples": fit.M,
               "compile": {"cache_hit": sf.stats.cache_hit, "build_s": round(sf.stats.build_s + sf.stats.compile_s, 3)},
-              "history": history}
-    return IdentifyResult(params=params, fit=fit, fit_per_run=fit_runs, solver=solver,
-                          cylinder=cyl.with_values(values), effects=new_effects, drive=plant.drive,
+              "history": ended.history}
+    return IdentifyResult(params=params, fit=pooled, fit_per_run=fit_runs, solver=solver,
+                          cylinder=fit.cyl.with_values(values), effects=new_effects, drive=plant.drive,
                           simulated=sims, output_names=plant.output_names, correlation=corr, nodes=S)
-
-

@@ -56,11 +56,12 @@ from sim.integrator import IntegratorOptions
 from sim.plant import plant_for
 
 from ..files import Run
+from .gauss_newton import Damping, Exit, Prediction, StepOutcome, damped_step
 from .newton import equation_error_friction
 from .offline import MISMATCH
 from .shooting import (ShootingProblem, free_parameters, line_search, linearize, node_transitions,
                        normal_equations, parameter_bounds, parameter_unit, residual_scales, scaled_inverse,
-                       shooting_residuals, solve_bounded)
+                       shooting_residuals)
 from .smoothing import fill_missing, velocity_estimate
 from .tracking import Blocks, Change, Drift, Regime, analyse, pinv, regime_variance, trend_fit
 
@@ -216,6 +217,145 @@ class _PaddedProblem:
 
     def residuals(self, S: np.ndarray, X: np.ndarray):
         return shooting_residuals(S, X, self.Y, self.mask, self.prob.wts, self.prob.sscale, self.nxt, self.out_idx)
+
+
+@dataclass(frozen=True)
+class _Window:
+    """An update's window: intervals k0 .. k0 + Kw - 1 (`left` of the last window's left it),
+    their layout (MovingHorizonEstimator._layout) and problem, and its last real sample
+    (row r_last of the buffer, sample last_row of interval last_k)."""
+
+    k0: int
+    Kw: int
+    left: int
+    lay: dict
+    prob: _PaddedProblem
+    npar: int  # the plant's parameters (the gap offsets follow them in p)
+    r_first: int
+    r_last: int
+    last_k: int
+    last_row: int
+    t_first: float
+    t_last: float
+
+    @property
+    def pieces(self) -> list[_Piece]:
+        return self.lay["pieces"]
+
+    @property
+    def piece_of(self) -> np.ndarray:
+        return self.lay["piece_of"]
+
+    @property
+    def R(self) -> int:  # pieces: free node states
+        return len(self.lay["pieces"])
+
+    @property
+    def G(self) -> int:  # bridged gaps: command offsets estimated
+        return len(self.lay["after_gap"])
+
+    def commands(self, p: np.ndarray) -> np.ndarray:
+        """The held commands with the offsets over the bridged gaps (p[npar:]) added."""
+        W = self.lay["W"].copy()
+        W[0, self.lay["gap_w"]] += p[self.npar:]
+        return W
+
+    def evaluate(self, S: np.ndarray, p: np.ndarray, with_sens: bool):
+        self.prob.set_commands(self.commands(p))
+        return self.prob.evaluate(S, p[:self.npar], with_sens)
+
+
+@dataclass(frozen=True)
+class _Unknowns:
+    """An update's unknowns besides the node states: the parameters, then the command offsets
+    over the bridged gaps, with their bounds, the plant's parameter vector they sit in, and the
+    arrival cost's information and mean."""
+
+    theta: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    free: list[int]
+    p: np.ndarray
+    info: np.ndarray
+    mean: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """Where an update's iterations ended, with the last linearisation (red, Nm, the sensitivities
+    `sens`) and the step taken from it (None: the linearisation holds where the solution is)."""
+
+    iterations: int
+    S: np.ndarray
+    X: np.ndarray
+    E: np.ndarray
+    theta: np.ndarray
+    p: np.ndarray
+    red: "_ReducedWindow"
+    Nm: np.ndarray
+    sens: np.ndarray | None
+    step_taken: tuple | None
+
+
+# a bounded search: an update that cannot improve keeps the previous estimate and tries again
+# with the next data, instead of stalling the stream; its retry bounds the free node states
+# too (as the offline fit does)
+ONLINE_DAMPING = Damping(attempts=2, floor=1e-2, bound_states_on_retry=True)
+
+
+class _OnlineStep:
+    """The step model of one update's iteration (gauss_newton.StepModel)."""
+
+    def __init__(self, w: _Window, u: _Unknowns, red: "_ReducedWindow", Nm: np.ndarray, g: np.ndarray,
+                 S: np.ndarray, theta: np.ndarray, p: np.ndarray, dev: np.ndarray, cost: float, viol: float, nu: int):
+        self.w, self.u, self.red, self.Nm, self.g = w, u, red, Nm, g
+        self.S, self.theta, self.p, self.dev = S, theta, p, dev
+        self.cost, self.viol, self.nu = cost, viol, nu
+
+    def _split(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        R, nx = self.w.R, self.S.shape[0]
+        return step[:R * nx].reshape(R, nx), step[R * nx:]
+
+    def predict(self, step: np.ndarray) -> Prediction:
+        """The decrease the linear model promises, closing the defects included."""
+        ds0, dth = self._split(step)
+        r_lin = self.red.r0 + self.red.apply(ds0[self.w.piece_of], dth)
+        d_lin = self.dev + dth
+        return Prediction(self.cost - 0.5 * float(np.sum(r_lin * r_lin)) - 0.5 * float(d_lin @ self.u.info @ d_lin))
+
+    def nothing_to_gain(self, pred: Prediction) -> bool:
+        # less to gain than fitting nu unknowns to noise would
+        return pred.decrease < max(_noise_gain(self.nu), 1e-3 * self.cost) and self.viol < 1e-2 * self.w.Kw
+
+    def penalty(self, mu: float, pred: Prediction) -> float:
+        # the penalty on the defects needs only outweigh a cost the step would add to close them;
+        # a penalty sized by the decrease over a vanishing violation would refuse any step that
+        # opens a defect of a thousandth of the noise, as a nonlinear step does
+        d, viol = pred.decrease, self.viol
+        return max(mu, 1.0, 2.0 * -d / viol + 1.0 if d < 0 < viol else 0.0)
+
+    def search(self, step: np.ndarray, pred: Prediction, mu: float):
+        ds0, dth = self._split(step)
+        red, u = self.red, self.u
+        dS = (np.einsum("kij,kj->ki", red.P, ds0[self.w.piece_of]) + red.Q @ dth + red.q).T
+        return line_search(self.w.evaluate, lambda ev_, th: _merit(ev_, th, u.mean, u.info, mu), self.S, dS,
+                           self.theta, dth, self.p, u.free, u.lower, u.upper, self.cost + mu * self.viol,
+                           -max(pred.decrease, 0.0), 1 / 4)
+
+
+def _update_end(out: StepOutcome, it: int, iterations: int, cost: float) -> Exit | None:
+    """Why an update stops after iteration `it` (None: on, up to its iterations): nothing left to
+    gain, no step accepted (the estimate stays, the next data try again), or a full step with
+    little left to gain once `iterations` are done (the warm start was good: the real-time
+    iteration was enough)."""
+    if out.converged:
+        return Exit.NOTHING_TO_GAIN
+    if out.found is None:
+        return Exit.LINE_SEARCH_FAILED
+    pred = out.predicted
+    if it >= iterations and out.found[0] == 1.0 and (pred < 1e-3 * cost or pred < 1.0):
+        return Exit.WARM_START_ENOUGH
+    return None
 
 
 class MovingHorizonEstimator:
@@ -493,28 +633,38 @@ class MovingHorizonEstimator:
         if not self.ready():
             return None
         t_wall = time.perf_counter()
-        M, nx, nth, npar = self.M, self.plant.nx, len(self.free), len(self.p)
         prev = self._prev
+        w = self._window()
+        self._carry_over(prev, w)
+        u = self._unknowns(w)
+        S, first_ev, keep = self._warm_start(prev, w, u)
+        solved = self._solve(w, u, S, first_ev, self._iterations(prev, w, keep))
+        r_acc, t0, seen = self._keep(w, solved)
+        return self._estimate(w, solved, r_acc, t0, seen, t_wall)
+
+    def _window(self) -> "_Window":
+        """The next window: its intervals, layout and problem, and its last real sample (the
+        estimate is of that one, not of a row that marks a gap)."""
         k0, Kw, left = self._next_window()
         lay = self._layout(k0, Kw)
-        prob = self._problem(lay)
-        pieces, piece_of, has_next = lay["pieces"], lay["piece_of"], lay["has_next"]
-        R, G = len(pieces), len(lay["after_gap"])
         r_first = lay["starts"][0]
         r_last = lay["starts"][-1] + lay["lens"][-1] - 1
-        # the estimate is of the window's last real sample, not of a row that marks a gap
         last_k, last_row = Kw - 1, lay["lens"][-1] - 1
         if self._is_virtual(self._base + r_last):
             r_last -= 1
             last_k, last_row = (last_k, last_row - 1) if last_row else (Kw - 2, lay["lens"][-2] - 1)
-        t_first, t_last = float(self._buf[0, r_first]), float(self._buf[0, r_last])
+        return _Window(k0, Kw, left, lay, self._problem(lay), len(self.p), r_first, r_last, last_k, last_row,
+                       float(self._buf[0, r_first]), float(self._buf[0, r_last]))
 
+    def _carry_over(self, prev: dict | None, w: "_Window") -> None:
+        """What the last update leaves this one: the intervals that left the window into the
+        arrival cost (and a drift's prior); the first window starts from the equation-error fit."""
         if prev is not None:
-            self._absorb(prev, left)
+            self._absorb(prev, w.left)
             if self._drift is not None:
-                self._drift_prior(0.5 * (t_first + t_last))
+                self._drift_prior(0.5 * (w.t_first + w.t_last))
         elif self.options.prefit and not self._fitted and {"Fc", "Fv", "kp"} & set(self.names):
-            b = self._buf[:, r_first:r_last + 1]
+            b = self._buf[:, w.r_first:w.r_last + 1]
             start = equation_error_friction(self.cyl, [Run(t=b[0], u=b[1], x=b[2], p1=b[3], p2=b[4])])
             for n, v in start.items():
                 if n in self.names:
@@ -522,13 +672,15 @@ class MovingHorizonEstimator:
             self.theta = np.clip(self.theta, self.lower, self.upper)
             self.prior_mean = self.theta.copy()
 
-        # the unknowns: the parameters, then the command offsets over the bridged gaps, which
-        # reach the plant through the held commands (p: the plant's parameters, then the offsets)
-        # a new gap's offset starts from the command reported after it: a host that answers in
-        # time has that one latched while the samples are lost, since it sent nothing newer
+    def _unknowns(self, w: "_Window") -> "_Unknowns":
+        """The parameters, then the command offsets over the bridged gaps, which reach the plant
+        through the held commands (p: the plant's parameters, then the offsets). A new gap's
+        offset starts from the command reported after it: a host that answers in time has that
+        one latched while the samples are lost, since it sent nothing newer."""
+        lay, G, nth, npar = w.lay, w.G, len(self.free), len(self.p)
         W0 = lay["W"][0]
-        jump = W0[lay["after_gap"] * (M + 1)] - W0[lay["gap_w"]]
-        du = np.array([self._du.get(k0 + k, d) for k, d in zip(lay["after_gap"], jump)])
+        jump = W0[lay["after_gap"] * (self.M + 1)] - W0[lay["gap_w"]]
+        du = np.array([self._du.get(w.k0 + k, d) for k, d in zip(lay["after_gap"], jump)])
         theta = np.r_[self.theta, du]
         lower, upper = np.r_[self.lower, np.full(G, -_DU_RANGE)], np.r_[self.upper, np.full(G, _DU_RANGE)]
         free = list(self.free) + list(range(npar, npar + G))
@@ -537,141 +689,136 @@ class MovingHorizonEstimator:
         info = np.zeros((nth + G, nth + G))
         info[:nth, :nth] = self.info
         info[nth:, nth:] = np.eye(G) / _DU_RANGE**2  # weak: an offset the data after its gap do not fix stays small
-        mean = np.r_[self.prior_mean, np.zeros(G)]
+        return _Unknowns(theta, lower, upper, free, p, info, np.r_[self.prior_mean, np.zeros(G)])
 
-        def commands(p_):
-            W = lay["W"].copy()
-            W[0, lay["gap_w"]] += p_[npar:]
-            return W
-
-        def evaluate(S_, p_, with_sens):
-            prob.set_commands(commands(p_))
-            return prob.evaluate(S_, p_[:npar], with_sens)
-
-        # warm start (shift and forward-simulate): the previous nodes and trajectories where
-        # the windows overlap; new intervals run on from the one before, or start from the
-        # measured state where a new piece begins
-        keep = prev["Kw"] - left if prev is not None else 0
+    def _warm_start(self, prev: dict | None, w: "_Window", u: "_Unknowns"):
+        """(node states, the first iteration's evaluation or None, intervals shared with the last
+        window): the previous nodes and trajectories where the windows overlap (shift and
+        forward-simulate); new intervals run on from the one before, or start from the measured
+        state where a new piece begins."""
+        M, nx, nth, Kw, lay, p = self.M, self.plant.nx, len(self.free), w.Kw, w.lay, u.p
+        keep = prev["Kw"] - w.left if prev is not None else 0
         S = self._node_guesses(lay, np.arange(Kw) >= keep)
-        first_ev = None  # the first iteration's evaluation, when the overlap provides it
-        if keep > 0:
-            X = np.empty((nx, Kw, M))
-            S[:, :keep] = prev["S"][:, left:]
-            X[:, :keep] = prev["X"][:, left:]
-            W = commands(p)
-            # when the last update took no step, its linearisation holds where this window
-            # starts: the intervals both windows share are not simulated again (an update that
-            # takes no step then costs the new intervals, not the window)
-            Sens = None
-            if prev["Sens"] is not None:
-                Sens = np.empty((nx, Kw, M, nx + nth))
-                Sens[:, :keep] = prev["Sens"][:, left:]
-            for k in range(keep - 1, Kw):  # the old last interval may have a successor now
-                if k >= keep and has_next[k - 1]:
-                    S[:, k] = X[:, k - 1, M - 1]
-                args = (S[:, k], W[:, k * (M + 1):(k + 1) * (M + 1)], p[:npar], lay["H"][:, k * M:(k + 1) * M])
-                if Sens is None:
-                    X[:, k] = np.asarray(self.sf.interval(*args))
-                else:
-                    X[:, k], sens_k = self._sens_one(*args)
-                    Sens[:, k] = sens_k.reshape(nx, M, nx + nth)
-            if Sens is not None and prob.allows(S) and np.all(np.isfinite(X)):
-                first_ev = (*prob.residuals(S, X), X, Sens)
-        # (else: the first iteration's evaluation is the first simulation of these nodes)
-        lam, mu, it = 0.0, 0.0, 0
-        step_taken = None
-        # the first window starts cold; a piece that starts in the new data (after an outage)
-        # gets a few more iterations than a warm start
+        if keep <= 0:
+            return S, None, keep  # the first iteration's evaluation is the first simulation of these nodes
+        X = np.empty((nx, Kw, M))
+        S[:, :keep] = prev["S"][:, w.left:]
+        X[:, :keep] = prev["X"][:, w.left:]
+        W = w.commands(p)
+        # when the last update took no step, its linearisation holds where this window starts:
+        # the intervals both windows share are not simulated again (an update that takes no
+        # step then costs the new intervals, not the window)
+        Sens = None
+        if prev["Sens"] is not None:
+            Sens = np.empty((nx, Kw, M, nx + nth))
+            Sens[:, :keep] = prev["Sens"][:, w.left:]
+        for k in range(keep - 1, Kw):  # the old last interval may have a successor now
+            if k >= keep and lay["has_next"][k - 1]:
+                S[:, k] = X[:, k - 1, M - 1]
+            args = (S[:, k], W[:, k * (M + 1):(k + 1) * (M + 1)], p[:w.npar], lay["H"][:, k * M:(k + 1) * M])
+            if Sens is None:
+                X[:, k] = np.asarray(self.sf.interval(*args))
+            else:
+                X[:, k], sens_k = self._sens_one(*args)
+                Sens[:, k] = sens_k.reshape(nx, M, nx + nth)
+        first_ev = None
+        if Sens is not None and w.prob.allows(S) and np.all(np.isfinite(X)):
+            first_ev = (*w.prob.residuals(S, X), X, Sens)
+        return S, first_ev, keep
+
+    def _iterations(self, prev: dict | None, w: "_Window", keep: int) -> int:
+        """Gauss-Newton iterations this update may take: the first window starts cold; a piece
+        that starts in the new data (after an outage) gets a few more than a warm start, and so
+        does a window mostly of new data (an estimator that fell behind slides far)."""
         n_iter = self.options.first_iterations if prev is None else self.options.max_iterations
-        # (so does a window mostly of new data: an estimator that fell behind slides far)
-        if prev is not None and (any(pc.node0 >= keep for pc in pieces) or keep < Kw // 2):
+        if prev is not None and (any(pc.node0 >= keep for pc in w.pieces) or keep < w.Kw // 2):
             n_iter = max(n_iter, min(3, self.options.first_iterations))
-        nu = nth + G
-        th_sl = slice(R * nx, R * nx + nu)
-        node_scale = np.tile(self.sscale, R)  # the free node states' defect scales (proximal retry)
+        return n_iter
+
+    def _solve(self, w: "_Window", u: "_Unknowns", S: np.ndarray, first_ev, n_iter: int) -> "_Solved":
+        """Up to n_iter Gauss-Newton iterations (gauss_newton.damped_step) until _update_end."""
+        nx, R = self.plant.nx, w.R
+        node_scale = np.tile(self.sscale, R)  # the free node states' defect scales (the damping's bound)
+        theta, p = u.theta, u.p
+        lam, mu, it = 0.0, 0.0, 0
         for it in range(1, n_iter + 1):
             # Jacobians are taken fresh every iteration: reusing those of the overlap (taken
             # before the last step) fails at reversals, where stick and slip switch
-            ev = first_ev if it == 1 and first_ev is not None else evaluate(S, p, True)
+            ev = first_ev if it == 1 and first_ev is not None else w.evaluate(S, p, True)
             if ev is None:
-                raise RuntimeError(f"online estimate: the simulation of the window at t = {t_first:.3f} s "
+                raise RuntimeError(f"online estimate: the simulation of the window at t = {w.t_first:.3f} s "
                                    "is not finite; check the cylinder file against the rig")
-            E, D, X = ev[0], ev[1], ev[2]
-            lin = linearize(ev, prob.out_idx, self.wts, lay["mask"], M, nx, len(self.wts), nth)
-            if G:
-                lin = self._with_gap_offsets(lin, S, X, p, commands(p), lay, k0)
-            red = _ReducedWindow(lin, E, D * self.sscale[:, None], has_next, nx, nth)
-            P, Q, q, r0 = red.P, red.Q, red.q, red.r0
-            Nm, g = red.normal_equations(pieces)
-            dev = theta - mean
-            Nm[th_sl, th_sl] += info
-            g[th_sl] += info @ dev
-            lin_sens, step_taken = ev[3], None
-            cost = 0.5 * float(np.sum(E * E)) + 0.5 * float(dev @ info @ dev)
-            viol = float(np.sum(np.abs(D)))
-            accepted = converged = False
-            # a bounded line search: an update that cannot improve keeps the previous
-            # estimate and tries again with the next data, instead of stalling the stream
-            for attempt, lam in enumerate((lam, max(1e-2, 10 * lam))):
-                # the second attempt also bounds the free node states (as the offline fit does)
-                step = solve_bounded(Nm, g, theta, lower, upper, R * nx, lam,
-                                     node_scale if attempt else None)
-                if step is None:
-                    continue
-                ds0, dth = step[:R * nx].reshape(R, nx), step[R * nx:]
-                dS = (np.einsum("kij,kj->ki", P, ds0[piece_of]) + Q @ dth + q).T
-                # the decrease the linear model promises, closing the defects included
-                r_lin = r0 + red.apply(ds0[piece_of], dth)
-                d_lin = dev + dth
-                pred = cost - 0.5 * float(np.sum(r_lin * r_lin)) - 0.5 * float(d_lin @ info @ d_lin)
-                if pred < max(_noise_gain(nu), 1e-3 * cost) and viol < 1e-2 * Kw:
-                    converged = True  # less to gain than fitting nu unknowns to noise would
-                    break
-                # the penalty on the defects needs only outweigh a cost the step would add to close
-                # them; a penalty sized by the decrease over a vanishing violation would refuse any
-                # step that opens a defect of a thousandth of the noise, as a nonlinear step does
-                mu = max(mu, 1.0, 2.0 * -pred / viol + 1.0 if pred < 0 < viol else 0.0)
-                found = line_search(evaluate, lambda ev_, th: _merit(ev_, th, mean, info, mu), S, dS, theta, dth, p,
-                                    free, lower, upper, cost + mu * viol, -max(pred, 0.0), 1 / 4)
-                if found:
-                    alpha, S_try, th_try, p_try, ev_try = found
-                    accepted = True
-                    break
-            if converged or not accepted:
+            E, X = ev[0], ev[2]
+            model = self._step_model(w, u, ev, S, theta, p)
+            out = damped_step(model.Nm, model.g, theta, u.lower, u.upper, R * nx, node_scale, lam, mu, model,
+                              ONLINE_DAMPING)
+            lam, mu, step_taken = out.lam, out.mu, None
+            why = _update_end(out, it, self.options.iterations, model.cost)
+            if out.found is not None:
+                lam = lam / 10 if lam > 1e-6 else 0.0
+                alpha, S, th_try, p, ev_try = out.found
+                step_taken = (alpha * out.step[:R * nx].reshape(R, nx)[w.piece_of], th_try - theta)
+                theta, E, X = th_try, ev_try[0], ev_try[2]
+            if why is not None:
                 break
-            lam = lam / 10 if lam > 1e-6 else 0.0
-            step_taken = (alpha * ds0[piece_of], th_try - theta)
-            S, theta, p = S_try, th_try, p_try
-            E, D, X = ev_try[0], ev_try[1], ev_try[2]
-            if it >= self.options.iterations and alpha == 1.0 and (pred < 1e-3 * cost or pred < 1.0):
-                break  # the warm start was good: the real-time iteration was enough
-        self.theta, self.p = theta[:nth].copy(), p[:npar].copy()
-        self._du = {k0 + k: float(v) for k, v in zip(lay["after_gap"], theta[nth:])}
+        return _Solved(it, S, X, E, theta, p, model.red, model.Nm, ev[3], step_taken)
+
+    def _step_model(self, w: "_Window", u: "_Unknowns", ev, S: np.ndarray, theta: np.ndarray,
+                    p: np.ndarray) -> "_OnlineStep":
+        """The window linearised at (S, theta, p), evaluated in `ev`: its reduced normal
+        equations with the arrival cost (and the gap offsets' prior) added."""
+        M, nx, nth, lay = self.M, self.plant.nx, len(self.free), w.lay
+        E, D, X = ev[0], ev[1], ev[2]
+        lin = linearize(ev, w.prob.out_idx, self.wts, lay["mask"], M, nx, len(self.wts), nth)
+        if w.G:
+            lin = self._with_gap_offsets(lin, S, X, p, w.commands(p), lay, w.k0)
+        red = _ReducedWindow(lin, E, D * self.sscale[:, None], lay["has_next"], nx, nth)
+        Nm, g = red.normal_equations(w.pieces)
+        th_sl = slice(w.R * nx, w.R * nx + nth + w.G)
+        dev = theta - u.mean
+        Nm[th_sl, th_sl] += u.info
+        g[th_sl] += u.info @ dev
+        cost = 0.5 * float(np.sum(E * E)) + 0.5 * float(dev @ u.info @ dev)
+        return _OnlineStep(w, u, red, Nm, g, S, theta, p, dev, cost, float(np.sum(np.abs(D))), nth + w.G)
+
+    def _keep(self, w: "_Window", solved: "_Solved"):
+        """Keep this update's solution and linearisation for the next one, and drop the rows and
+        intervals no later window can need: (residuals at the accepted point as the last
+        linearisation predicts them, the intervals' start times, samples seen so far)."""
+        nth, lay, red = len(self.free), w.lay, solved.red
+        self.theta, self.p = solved.theta[:nth].copy(), solved.p[:w.npar].copy()
+        self._du = {w.k0 + k: float(v) for k, v in zip(lay["after_gap"], solved.theta[nth:])}
         self._fitted = True
-        # residuals at the accepted point, as the last linearisation (red) predicts them
-        r_acc = red.r0 if step_taken is None else red.r0 + red.apply(*step_taken)
+        r_acc = red.r0 if solved.step_taken is None else red.r0 + red.apply(*solved.step_taken)
         t0 = self._buf[0, lay["starts"]]
         t1 = self._buf[0, lay["starts"] + lay["lens"] - 1]
-        self._prev = {"k0": k0, "Kw": Kw, "S": S, "X": X, "red": red, "r": r_acc, "theta": self.theta,
-                      "piece_of": piece_of, "mask": lay["mask"], "t0": t0, "t1": t1, "after_gap": lay["after_gap"],
-                      "Sens": lin_sens if step_taken is None else None}
+        self._prev = {"k0": w.k0, "Kw": w.Kw, "S": solved.S, "X": solved.X, "red": red, "r": r_acc,
+                      "theta": self.theta, "piece_of": w.piece_of, "mask": lay["mask"], "t0": t0, "t1": t1,
+                      "after_gap": lay["after_gap"], "Sens": solved.sens if solved.step_taken is None else None}
+        r_last = w.r_last
         seen = self._base + r_last + 1 - self._virtual_gone - bisect.bisect_right(self._virtual, self._base + r_last)
-        # what later windows can still need
-        if r_first > 0:  # (buffer positions)
-            self._buf = self._buf[:, r_first:]
-            self._base += r_first
+        if w.r_first > 0:  # (buffer positions)
+            self._buf = self._buf[:, w.r_first:]
+            self._base += w.r_first
             gone_rows = bisect.bisect_left(self._virtual, self._base)
             del self._virtual[:gone_rows]
             self._virtual_gone += gone_rows
-        gone = k0 - self._iv_base
+        gone = w.k0 - self._iv_base
         if gone > 0:
             del self._iv_start[:gone], self._iv_rows[:gone], self._iv_link[:gone]
-            self._iv_base = k0
+            self._iv_base = w.k0
+        return r_acc, t0, seen
 
+    def _estimate(self, w: "_Window", solved: "_Solved", r_acc: np.ndarray, t0: np.ndarray, seen: int,
+                  t_wall: float) -> OnlineEstimate:
+        """The update's estimate: the parameters with the whole session's std (or a followed
+        drift's value now), a change this refit reports, the window's fit, the model state at
+        its last sample. A change found here restarts the window from the change on."""
+        lay, R, E, t_last = w.lay, w.R, solved.E, w.t_last
         nres = float(lay["mask"].sum())
-        sigma = math.sqrt(float(np.sum(E * E)) / max(1.0, nres - R * nx - nu))
+        sigma = math.sqrt(float(np.sum(E * E)) / max(1.0, nres - R * self.plant.nx - (len(self.free) + w.G)))
         value = self.theta
-        std = self._std(Nm, R, piece_of, red, r_acc, lay["mask"], t0, self.theta)
+        std = self._std(solved.Nm, R, w.piece_of, solved.red, r_acc, lay["mask"], t0, self.theta)
         if self.options.track:
             followed = self._track(self._prev, t_last, sigma)
             if followed == "restart":
@@ -685,15 +832,15 @@ class MovingHorizonEstimator:
             change = replace(change, after=dict(zip(self.names, value.tolist())),
                              std_after=dict(zip(self.names, std.tolist())),
                              std={n: math.hypot(change.std_before[n], s_) for n, s_ in zip(self.names, std.tolist())})
-        w = self.wts
-        rmse = {f"rmse_{n}": float(np.sqrt(np.sum(E[..., j] ** 2) / max(lay["mask"][..., j].sum(), 1))) / w[j]
+        wts = self.wts
+        rmse = {f"rmse_{n}": float(np.sqrt(np.sum(E[..., j] ** 2) / max(lay["mask"][..., j].sum(), 1))) / wts[j]
                 for j, n in enumerate(self.plant.output_names)}
-        state = S[:, last_k] if last_row == 0 else X[:, last_k, last_row - 1]
+        state = solved.S[:, w.last_k] if w.last_row == 0 else solved.X[:, w.last_k, w.last_row - 1]
         return OnlineEstimate(
             t=t_last, values=dict(zip(self.names, value.tolist())), std=dict(zip(self.names, std.tolist())),
-            units=self.units, window=(t_first, t_last), samples_seen=int(seen), sigma=sigma, rmse=rmse,
-            iterations=it, wall_s=time.perf_counter() - t_wall, pieces=R, gaps=G, state=state.copy(),
-            params=self.p.copy(), change=change, drift=self._drift,
+            units=self.units, window=(w.t_first, t_last), samples_seen=int(seen), sigma=sigma, rmse=rmse,
+            iterations=solved.iterations, wall_s=time.perf_counter() - t_wall, pieces=R, gaps=w.G,
+            state=state.copy(), params=self.p.copy(), change=change, drift=self._drift,
             step_pending=bool(self.analysis is not None and self.analysis.pending >= self.options.change_z
                               and self._t_tested == t_last))
 

@@ -660,174 +660,212 @@ def run_session(cyl: Cylinder, rig: Rig, *, estimator: Estimator, program=None, 
     to a sample. `monitor` judges every estimate (validity, changes of the rig); what it says
     joins the events and goes to `on_judgement` (else on_event) and to every sink's
     `note(t, text)`."""
-    events: list[str] = []
-    monitor = monitor if monitor is not None else SessionMonitor()
-
-    def event(msg: str) -> None:
-        events.append(msg)
-        if on_event:
-            on_event(msg)
-
-    # what may come with every sample (a sensor that dropped out) is said once a second at most
-    per_sample = EventLimiter(1.0)
-
-    def sample_event(key: str, msg: str) -> None:
-        per_sample.say(key, msg)
-        for line in per_sample.pop_lines():
-            event(line)
-
-    pending: list[tuple] = []
-    estimates: list[OnlineEstimate] = []
-    counters = {"samples": 0, "gaps": 0, "estimates": 0, "incomplete": 0, "invalid": 0, "rig_overruns": 0}
-    t0 = None
-    t_prev = seq_prev = None
-    dt_nominal = None
-    first_dts: list[float] = []
-    reason = "duration reached"
-    stopped = False
-    stats = None
-    last_sample_wall = time.monotonic()
-    rec = _Recording(record_to, record_comments, event)
-
-    def flush_block() -> None:
-        if not pending:
-            return
-        rows_all = np.array(pending).T  # t, u, x, p1, p2, lost_before
-        rows = rows_all[:5]
-        pending.clear()
-        estimator.add(rows_all)
-        sim = None
-        if simulator is not None:
-            sim = simulator.advance(rows)
-        for s in sinks:
-            s.rows(rows, sim)
-        for e in estimator.poll():
-            take(e)
-
-    def take(e: OnlineEstimate) -> None:
-        estimates.append(e)
-        counters["estimates"] += 1
-        if simulator is not None:
-            simulator.set_estimate(e)
-        monitor.t0 = t0
-        judged = monitor.take(e)
-        for s in sinks:
-            s.estimate(e)
-        for msg in judged:
-            events.append(msg)
-            (on_judgement or on_event or (lambda m: None))(msg)
-            for s in sinks:
-                s.note(e.t, msg)
-
-    def take_sample(s: Sample) -> bool:
-        """Record one sample and queue it for the model; False if it cannot be a row."""
-        nonlocal t0, t_prev, seq_prev, dt_nominal
-        if (not (math.isfinite(s.t) and math.isfinite(s.u_applied)) or abs(s.u_applied) > COMMAND_LIMIT
-                or (t_prev is not None and s.t <= t_prev)):
-            # a row needs its time (after the one before) and the command the valve held
-            counters["invalid"] += 1
-            sample_event("invalid", f"a sample without a valid time or command (t = {s.t!r}, u = {s.u_applied!r}) "
-                                    "cannot be a row of the run; left out")
-            return False
-        if t0 is None:
-            t0 = s.t
-        lost_before = False
-        if t_prev is not None:
-            dt = s.t - t_prev
-            if len(first_dts) < 50:
-                first_dts.append(dt)
-                dt_nominal = float(np.median(first_dts))
-                if len(first_dts) == 50 and expected_period and abs(dt_nominal / expected_period - 1) > 0.02:
-                    event(f"the rig samples every {dt_nominal * 1e3:.4g} ms, not every {expected_period * 1e3:.4g} ms "
-                          "as expected (--rate): the estimator's windows are that much longer or shorter")
-            if s.seq is not None and seq_prev is not None:
-                lost_before = s.seq != seq_prev + 1  # the rig numbers its samples: exact
-            elif len(first_dts) == 50:
-                lost_before = dt > 1.9 * dt_nominal  # at least one period without a sample
-            counters["gaps"] += lost_before
-        t_prev, seq_prev = s.t, s.seq
-        # not measured: missing, not finite, or beyond any reading (a sensor or link fault)
-        x, p1, p2, ps = (measured_value(n, v) for n, v in (("x", s.x), ("p1", s.p1), ("p2", s.p2), ("ps", s.ps)))
-        if not (math.isfinite(x) and math.isfinite(p1) and math.isfinite(p2)):
-            counters["incomplete"] += 1
-            missing = ", ".join(n if getattr(s, n) is None or not math.isfinite(getattr(s, n))
-                                else f"{n} (read {getattr(s, n):.4g}, not physical)"
-                                for n, v in (("x", x), ("p1", p1), ("p2", p2)) if not math.isfinite(v))
-            sample_event("incomplete", f"sample at t = {s.t - t0:.3f} s: {missing} not measured (recorded as an "
-                                       "empty cell)")
-        if s.status and s.status & Status.OVERRUN:  # a healthy sample skips the (slow) flag arithmetic
-            counters["rig_overruns"] += 1
-        rec.append(s.t, s.u_applied, x, p1, p2, None if math.isnan(ps) else ps)
-        counters["samples"] += 1
-        pending.append((s.t, s.u_applied, x, p1, p2, float(lost_before)))
-        if len(pending) >= block:
-            flush_block()
-        return True
-
+    session = _Session(estimator, sinks, simulator, monitor if monitor is not None else SessionMonitor(),
+                       on_event, on_judgement, block, expected_period, record_to, record_comments)
     # a full garbage collection can pause the loop for tens of milliseconds, long enough for
     # the rig's watchdog: collect now and keep what exists out of later collections
     gc.collect()
     gc.freeze()
     rig.start()
-    taken = False  # whether this thread runs under SCHED_FIFO and gives it back at the end
-    if realtime is not None:
-        taken, why = take_host_priority(rig, realtime)
-        if why is not None:
-            event(f"acquisition runs without real-time priority ({why}): on a busy machine the answers to samples "
-                  "come late more often (give this user an rtprio limit to change that)")
+    taken = session.take_priority(rig, realtime)
+    stats = None
     try:
-        while True:
-            why = stop() if stop is not None else None
-            if why:
-                reason, stopped = why, True
-                break
-            try:
-                s = rig.read(timeout=0.1)
-            except EndOfRun:
-                reason = "end of the recorded run"
-                break
-            if s is None:
-                silent = time.monotonic() - last_sample_wall
-                if silent >= give_up_s:
-                    reason = f"no samples for {silent:.1f} s: the rig has gone"
-                    event(f"rig silent for {silent:.1f} s; stopping (the recording holds every sample received)")
-                    break
-                continue
-            last_sample_wall = time.monotonic()
-            if t0 is not None and program is not None:
-                rig.send(program.command(s.t - t0, s.x))
-            elif program is not None:
-                rig.send(program.command(0.0, s.x))
-            if take_sample(s) and duration is not None and s.t - t0 >= duration:
-                break
+        reason, stopped = session.acquire(rig, program, duration, give_up_s, stop)
     except KeyboardInterrupt:
         reason, stopped = "interrupted (Ctrl-C)", True
     finally:
         try:
-            rig.stop()
-            # what arrived but was not read yet is recorded too: nothing received is lost
-            for s in rig.drain():
-                take_sample(s)
-            # the link's counters as the recording closes: they and the recording tell the same
-            stats = rig.stats
+            stats = session.stop_rig(rig)
         finally:
             gc.unfreeze()
-            rec.close()
+            session.rec.close()
             if taken:
                 make_normal()
     if stopped:
-        event(f"{reason}: valve centred, recording closed")
-    flush_block()
+        session.event(f"{reason}: valve centred, recording closed")
     # a signal while the estimator finishes ends that too (the session ends within a second)
-    for e in estimator.finish(0.1 if stopped else finish_timeout_s,
-                              cancelled=lambda: stop is not None and stop() is not None):
-        take(e)
-    if estimator.error:
-        event(f"online estimator failed: {estimator.error}")
-    for s in sinks:
-        s.close()
+    session.finish(0.1 if stopped else finish_timeout_s, cancelled=lambda: stop is not None and stop() is not None)
     if stats is not None:  # the link's counters; "samples" stays the rows taken (the recording's, the run's)
-        counters.update({("received" if k == "samples" else k): v for k, v in vars(stats).items()
-                         if isinstance(v, (int, float))})
-    return SessionResult(run=rec.run(), estimates=estimates, stop_reason=reason, counters=counters, events=events,
-                         t0=0.0 if t0 is None else t0, monitor=monitor)
+        session.counters.update({("received" if k == "samples" else k): v for k, v in vars(stats).items()
+                                 if isinstance(v, (int, float))})
+    return SessionResult(run=session.rec.run(), estimates=session.estimates, stop_reason=reason,
+                         counters=session.counters, events=session.events,
+                         t0=0.0 if session.t0 is None else session.t0, monitor=session.monitor)
+
+
+class _Session:
+    """One session while it runs: the samples taken (recorded, and queued in blocks for the
+    model, the estimator and the sinks), the estimates, the counters and what was said."""
+
+    def __init__(self, estimator: Estimator, sinks: Sequence[Sink], simulator: LockstepSimulator | None,
+                 monitor: SessionMonitor, on_event: Callable[[str], None] | None,
+                 on_judgement: Callable[[str], None] | None, block: int, expected_period: float | None,
+                 record_to: str | os.PathLike | None, record_comments: Sequence[str]):
+        self.estimator, self.sinks, self.simulator, self.monitor = estimator, sinks, simulator, monitor
+        self.on_event, self.on_judgement = on_event, on_judgement
+        self.block, self.expected_period = block, expected_period
+        self.rec = _Recording(record_to, record_comments, self.event)
+        self.events: list[str] = []
+        # what may come with every sample (a sensor that dropped out) is said once a second at most
+        self.per_sample = EventLimiter(1.0)
+        self.pending: list[tuple] = []
+        self.estimates: list[OnlineEstimate] = []
+        self.counters = {"samples": 0, "gaps": 0, "estimates": 0, "incomplete": 0, "invalid": 0, "rig_overruns": 0}
+        self.t0: float | None = None
+        self.t_prev: float | None = None
+        self.seq_prev: int | None = None
+        self.dt_nominal: float | None = None
+        self.first_dts: list[float] = []
+
+    def event(self, msg: str) -> None:
+        self.events.append(msg)
+        if self.on_event:
+            self.on_event(msg)
+
+    def sample_event(self, key: str, msg: str) -> None:
+        self.per_sample.say(key, msg)
+        for line in self.per_sample.pop_lines():
+            self.event(line)
+
+    def take_priority(self, rig: Rig, realtime: int | None) -> bool:
+        """Whether acquisition runs under SCHED_FIFO (and gives it back at the end)."""
+        if realtime is None:
+            return False
+        taken, why = take_host_priority(rig, realtime)
+        if why is not None:
+            self.event(f"acquisition runs without real-time priority ({why}): on a busy machine the answers to "
+                       "samples come late more often (give this user an rtprio limit to change that)")
+        return taken
+
+    def acquire(self, rig: Rig, program, duration: float | None, give_up_s: float,
+                stop: Callable[[], str | None] | None) -> tuple[str, bool]:
+        """Read, answer and take samples until the session ends: (why, whether it was stopped)."""
+        last_sample_wall = time.monotonic()
+        while True:
+            why = stop() if stop is not None else None
+            if why:
+                return why, True
+            try:
+                s = rig.read(timeout=0.1)
+            except EndOfRun:
+                return "end of the recorded run", False
+            if s is None:
+                silent = time.monotonic() - last_sample_wall
+                if silent >= give_up_s:
+                    self.event(f"rig silent for {silent:.1f} s; stopping (the recording holds every sample received)")
+                    return f"no samples for {silent:.1f} s: the rig has gone", False
+                continue
+            last_sample_wall = time.monotonic()
+            if self.t0 is not None and program is not None:
+                rig.send(program.command(s.t - self.t0, s.x))
+            elif program is not None:
+                rig.send(program.command(0.0, s.x))
+            if self.take_sample(s) and duration is not None and s.t - self.t0 >= duration:
+                return "duration reached", False
+
+    def stop_rig(self, rig: Rig):
+        """Stop the rig and take what arrived but was not read yet (nothing received is lost);
+        the link's counters as the recording closes: they and the recording tell the same."""
+        rig.stop()
+        for s in rig.drain():
+            self.take_sample(s)
+        return rig.stats
+
+    def finish(self, timeout: float, cancelled: Callable[[], bool]) -> None:
+        """The last block to the model and the estimator, its last estimates, the sinks closed."""
+        self.flush_block()
+        for e in self.estimator.finish(timeout, cancelled=cancelled):
+            self.take(e)
+        if self.estimator.error:
+            self.event(f"online estimator failed: {self.estimator.error}")
+        for s in self.sinks:
+            s.close()
+
+    def flush_block(self) -> None:
+        if not self.pending:
+            return
+        rows_all = np.array(self.pending).T  # t, u, x, p1, p2, lost_before
+        rows = rows_all[:5]
+        self.pending.clear()
+        self.estimator.add(rows_all)
+        sim = None
+        if self.simulator is not None:
+            sim = self.simulator.advance(rows)
+        for s in self.sinks:
+            s.rows(rows, sim)
+        for e in self.estimator.poll():
+            self.take(e)
+
+    def take(self, e: OnlineEstimate) -> None:
+        self.estimates.append(e)
+        self.counters["estimates"] += 1
+        if self.simulator is not None:
+            self.simulator.set_estimate(e)
+        self.monitor.t0 = self.t0
+        judged = self.monitor.take(e)
+        for s in self.sinks:
+            s.estimate(e)
+        for msg in judged:
+            self.events.append(msg)
+            (self.on_judgement or self.on_event or (lambda m: None))(msg)
+            for s in self.sinks:
+                s.note(e.t, msg)
+
+    def take_sample(self, s: Sample) -> bool:
+        """Record one sample and queue it for the model; False if it cannot be a row."""
+        if (not (math.isfinite(s.t) and math.isfinite(s.u_applied)) or abs(s.u_applied) > COMMAND_LIMIT
+                or (self.t_prev is not None and s.t <= self.t_prev)):
+            # a row needs its time (after the one before) and the command the valve held
+            self.counters["invalid"] += 1
+            self.sample_event("invalid", f"a sample without a valid time or command (t = {s.t!r}, "
+                                         f"u = {s.u_applied!r}) cannot be a row of the run; left out")
+            return False
+        if self.t0 is None:
+            self.t0 = s.t
+        lost_before = self.lost_before(s)
+        self.t_prev, self.seq_prev = s.t, s.seq
+        x, p1, p2, ps = self.measured(s)
+        if s.status and s.status & Status.OVERRUN:  # a healthy sample skips the (slow) flag arithmetic
+            self.counters["rig_overruns"] += 1
+        self.rec.append(s.t, s.u_applied, x, p1, p2, None if math.isnan(ps) else ps)
+        self.counters["samples"] += 1
+        self.pending.append((s.t, s.u_applied, x, p1, p2, float(lost_before)))
+        if len(self.pending) >= self.block:
+            self.flush_block()
+        return True
+
+    def lost_before(self, s: Sample) -> bool:
+        """Whether samples were lost before `s`: by the rig's sequence numbers where it numbers
+        them (exact), else by a step of more than 1.9 sampling periods (the median of the first
+        50 steps, said when it is not the expected one)."""
+        if self.t_prev is None:
+            return False
+        dt = s.t - self.t_prev
+        first_dts = self.first_dts
+        if len(first_dts) < 50:
+            first_dts.append(dt)
+            self.dt_nominal = float(np.median(first_dts))
+            expected = self.expected_period
+            if len(first_dts) == 50 and expected and abs(self.dt_nominal / expected - 1) > 0.02:
+                self.event(f"the rig samples every {self.dt_nominal * 1e3:.4g} ms, not every {expected * 1e3:.4g} "
+                           "ms as expected (--rate): the estimator's windows are that much longer or shorter")
+        lost = False
+        if s.seq is not None and self.seq_prev is not None:
+            lost = s.seq != self.seq_prev + 1  # the rig numbers its samples: exact
+        elif len(first_dts) == 50:
+            lost = dt > 1.9 * self.dt_nominal  # at least one period without a sample
+        self.counters["gaps"] += lost
+        return lost
+
+    def measured(self, s: Sample) -> tuple[float, float, float, float]:
+        """(x, p1, p2, ps), NaN where not measured: missing, not finite, or beyond any reading
+        (a sensor or link fault); a sample without x, p1 or p2 is said (once a second at most)."""
+        x, p1, p2, ps = (measured_value(n, v) for n, v in (("x", s.x), ("p1", s.p1), ("p2", s.p2), ("ps", s.ps)))
+        if not (math.isfinite(x) and math.isfinite(p1) and math.isfinite(p2)):
+            self.counters["incomplete"] += 1
+            missing = ", ".join(n if getattr(s, n) is None or not math.isfinite(getattr(s, n))
+                                else f"{n} (read {getattr(s, n):.4g}, not physical)"
+                                for n, v in (("x", x), ("p1", p1), ("p2", p2)) if not math.isfinite(v))
+            self.sample_event("incomplete", f"sample at t = {s.t - self.t0:.3f} s: {missing} not measured "
+                                            "(recorded as an empty cell)")
+        return x, p1, p2, ps
