@@ -150,3 +150,19 @@ def test_live_help_lists_every_program(capsys):
     text = " ".join(capsys.readouterr().out.split())
     for name in [*PROGRAMS, "file:CMD.csv"]:
         assert name in text, name
+
+
+def test_identify_in_the_chambers_drive_prints_the_pressures_fit(tmp_path, capsys):
+    """The chambers drive has no position output: its fit is told in pressures (it once ended
+    in 'internal error: rmse_x' after writing its JSON)."""
+    from combined_reality.files import write_run
+    from combined_reality.simulation import simulate_run
+    from sim.cylinder import load_cylinder
+
+    run = tmp_path / "run.csv"
+    write_run(run, simulate_run(load_cylinder(CFG), 4.0, seed=2))
+    code, out, err = _run(["identify", "--config", CFG, run, "--drive", "chambers", "--estimate", "dead_volume_cap",
+                           "--json", tmp_path / "o.json"], capsys)
+    assert code == 0, err
+    assert "fit: rmse_p1" in out and "rmse_x" not in out and "chambers drive" in out
+    assert json.loads((tmp_path / "o.json").read_text())["params"]["dead_volume_cap"]["std"] > 0

@@ -62,7 +62,7 @@ def format_table(result, truth: Cylinder | None = None) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
     f = result.fit
-    fit = [f"rmse_x {f['rmse_x'] * 1e6:.2f} um (R2 {f['r2_x']:.6f})"]
+    fit = [f"rmse_x {f['rmse_x'] * 1e6:.2f} um (R2 {f['r2_x']:.6f})"] if "rmse_x" in f else []  # (chambers: no x)
     if "rmse_p1" in f:
         fit.append(f"rmse_p1 {f['rmse_p1']:.0f} Pa, rmse_p2 {f['rmse_p2']:.0f} Pa")
     if "kp" in result.params:
