@@ -493,3 +493,16 @@ def test_a_trial_step_given_up_part_way_changes_nothing_but_the_work(cyl_a, monk
     assert [h["alpha"] for h in pieces.solver["history"]] == [h["alpha"] for h in at_once.solver["history"]]
     assert {n: e.value for n, e in pieces.params.items()} == {n: e.value for n, e in at_once.params.items()}
     assert pieces.solver["cost"] == at_once.solver["cost"]
+
+
+def test_correlations_are_coefficients_or_not_defined():
+    """A correlation lies in [-1, 1]; where a variance is not positive (an undetermined parameter)
+    or rounding left the covariance indefinite, it is not defined (NaN), never 1e294 (as a
+    calibrated diagnosis once listed a 'confounded' pair)."""
+    from combined_reality.identify.shooting import correlation
+
+    cov = np.array([[4.0, 1.0, 3.0, 0.0], [1.0, 1.0, 0.0, 0.0], [3.0, 0.0, 1e-300, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    r = correlation(cov)
+    assert r[0, 1] == pytest.approx(0.5) and r[0, 0] == r[1, 1] == 1.0
+    assert np.isnan(r[0, 2]) and np.isnan(r[2, 0])  # 3 / sqrt(4e-300): beyond 1
+    assert np.isnan(r[3]).all() and np.isnan(r[:, 3]).all()  # variance 0: undetermined

@@ -39,7 +39,7 @@ from .gauss_newton import Damping, Exit, Prediction, StepOutcome, damped_step
 from .newton import equation_error_friction
 from .preflight import check_determinable
 from .shooting import (IdentificationError, NormalEquations, PriorRow, RunLayout, ShootingProblem, at_bounds,
-                       concatenated_layouts, drives_with_measured_inputs, fit_metrics, free_parameters,
+                       concatenated_layouts, correlation, drives_with_measured_inputs, fit_metrics, free_parameters,
                        interval_residual_sigma, line_search, parameter_bounds, parameter_unit, pooled_fit,
                        prior_matrix, reported_covariance, residual_scales, run_layout, simulate_layout,
                        standard_deviations, warm_nodes, with_effect_values)
@@ -655,11 +655,7 @@ def _result(fit: _Fit, ended: _Ended, options: IdentifyOptions, effects: Sequenc
     cov = reported_covariance(Nfinal, ev.clusters, fit.n_state, cost, fit.nres)
     at_bound = at_bounds(theta, fit.lower, fit.upper)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(fit.nth, np.nan)
-    corr = None
-    if cov is not None and fit.nth:
-        d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
-        with np.errstate(over="ignore", invalid="ignore"):  # an undetermined parameter: no finite correlation
-            corr = cov / np.outer(d, d)
+    corr = correlation(cov) if cov is not None and fit.nth else None
     params = {n: Estimate(n, float(v), float(s), parameter_unit(plant, n), float(v0), bool(b))
               for n, v, s, v0, b in zip(fit.estimate, theta, std, theta_init, at_bound)}
     sims = [simulate_layout(fit.sf, S[:, l.node0], p, l, fit.M) for l in fit.layouts]

@@ -703,6 +703,19 @@ def reported_covariance(N: np.ndarray, clusters: np.ndarray, n_state: int, cost:
     return cov_gn * np.outer(scale, scale)
 
 
+def correlation(cov: np.ndarray) -> np.ndarray:
+    """The correlation matrix of a covariance; NaN where it is not defined: a variance that is
+    not positive and finite (an undetermined parameter), or a coefficient beyond +-1 (a
+    covariance that rounding left indefinite there)."""
+    var = np.diag(cov)
+    ok = np.isfinite(var) & (var > 0)
+    d = np.sqrt(np.where(ok, var, 1.0))
+    with np.errstate(over="ignore", invalid="ignore"):
+        r = cov / np.outer(d, d)
+    r[~(ok[:, None] & ok[None, :]) | ~(np.abs(r) <= 1.0 + 1e-9)] = np.nan
+    return np.clip(r, -1.0, 1.0)
+
+
 def standard_deviations(N, n_state, cost, nres) -> np.ndarray:
     cov = covariance(N, n_state, cost, nres)
     if cov is None:
