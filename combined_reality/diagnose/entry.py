@@ -1,4 +1,4 @@
-"""The diagnosis's entry: with the cylinder file's values as they are (analysis), or calibrated
+"""The diagnosis's entry: with the cylinder file's values as they are (diagnosis), or calibrated
 with every candidate (calibrated, DiagnoseOptions.calibrate)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from typing import Callable, Sequence
 from sim.cylinder import Cylinder
 
 from ..files import Run
-from .analysis import DiagnoseOptions, Diagnosis, diagnose_as_filed
+from .diagnosis import DiagnoseOptions, Diagnosis, diagnose_as_filed
 from .calibrated import diagnose_calibrated
 
 __all__ = ["diagnose"]

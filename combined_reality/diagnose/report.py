@@ -22,7 +22,7 @@ import numpy as np
 from ..report.figures import new_figure, png_bytes, wrap_lines
 from ..report.html import CSS, escape, img_tag, write_html_and_plots
 from ..report.text import finite, pct, sig, um
-from .analysis import MIN_REGION_FRACTION, whiteness
+from .diagnosis import MIN_REGION_FRACTION, whiteness
 from .text import effect_description, friction_text, headline, params_text, subsystem_value, z_text
 
 __all__ = ["write_report", "render_report"]
