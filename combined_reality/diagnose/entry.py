@@ -7,8 +7,9 @@ from typing import Callable, Sequence
 from sim.cylinder import Cylinder
 
 from ..files import Run
-from .diagnosis import DiagnoseOptions, Diagnosis, diagnose_as_filed
 from .calibrated import diagnose_calibrated
+from .diagnosis import Diagnosis, diagnose_as_filed
+from .options import DiagnoseOptions
 
 __all__ = ["diagnose"]
 
