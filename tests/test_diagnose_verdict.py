@@ -11,9 +11,12 @@ import numpy as np
 import pytest
 
 from combined_reality.cli.diagnose import format_summary
-from combined_reality.diagnose import (Candidate, DiagnoseOptions, NominalFit, analysis, best_of_starts,
+from combined_reality.diagnose import fits, verdict as verdict_module
+from combined_reality.diagnose import (Candidate, DiagnoseOptions, NominalFit, best_of_starts,
                                        candidate_starts, decide, explained_share, fit_candidate, further_starts,
                                        has_nested_start, neutral_start)
+from combined_reality.diagnose.candidates import closes_gap
+from combined_reality.diagnose.verdict import best_pair, pair_need
 from combined_reality.identify import Validation
 from combined_reality.parallel import iter_jobs, run_jobs
 from sim.effects import EFFECTS
@@ -107,13 +110,13 @@ def test_further_starts_end_at_the_first_in_job_order_that_closes_the_gap(monkey
     effect's best scored start (also one scored in this round) is not scored, said in words."""
     scored = []
     base, stub = _validated_to({"leakage": 9.0, "valve_deadzone": 1.0, "mass": 8.0, "stiction": 1.0}, scored)
-    monkeypatch.setattr(analysis, "further_fit", _slow_first_fit)
-    monkeypatch.setattr(analysis, "validate_candidate", stub)
+    monkeypatch.setattr(fits, "further_fit", _slow_first_fit)
+    monkeypatch.setattr(fits, "validate_candidate", stub)
     nominal = NominalFit(None, None, None, 100.0, base)
     opts = DiagnoseOptions(workers=workers)
 
     def run(jobs, beat):
-        return analysis.further_scored(jobs, dict(beat), nominal, None, None, 1e-4, opts)
+        return fits.further_scored(jobs, dict(beat), nominal, None, None, 1e-4, opts)
 
     jobs = [("leakage", 0.5, 50.0), ("mass", 0.0, 40.0), ("mass", 0.0, 45.0), ("valve_deadzone", 0.0, 30.0),
             ("stiction", 0.0, 20.0)]
@@ -159,8 +162,8 @@ def test_one_start_closes_the_gap_when_it_is_significant_and_near_the_noise():
         c.validation.simulated[:] = base.residual - c.validation.residual
         c.score = -1.0
     opts = DiagnoseOptions()
-    assert analysis.closes_gap(near, base, 1e-4, opts) and not analysis.closes_gap(far, base, 1e-4, opts)
-    assert not analysis.closes_gap(Candidate("mass"), base, 1e-4, opts)  # not validated: no fit on TRAIN
+    assert closes_gap(near, base, 1e-4, opts) and not closes_gap(far, base, 1e-4, opts)
+    assert not closes_gap(Candidate("mass"), base, 1e-4, opts)  # not validated: no fit on TRAIN
     assert near.score == -1.0  # scored on a copy
 
 
@@ -226,7 +229,7 @@ def test_candidate_fits_have_no_wall_clock_limit_and_the_nested_start_is_the_nom
         r.params = {n: type("E", (), {"value": 1.0, "std": 0.1})() for n in options.estimate}
         return r
 
-    monkeypatch.setattr(analysis, "identify", fake_identify)
+    monkeypatch.setattr(fits, "identify", fake_identify)
     optimum = cyl_a.with_values({"Fc": 20.0})
     nodes = np.ones((4, 2))
     nominal = NominalFit(cyl_a, optimum, nodes, 100.0, _val(3.0))
@@ -260,12 +263,12 @@ def test_a_further_start_that_ends_above_its_effects_best_start_is_not_scored(cy
         r.params = {n: type("E", (), {"value": 1.0, "std": 0.1})() for n in options.estimate}
         return r
 
-    monkeypatch.setattr(analysis, "identify", fake_identify)
-    monkeypatch.setattr(analysis, "validate_candidate", lambda args: scored.append(args[0]) or args[0])
+    monkeypatch.setattr(fits, "identify", fake_identify)
+    monkeypatch.setattr(fits, "validate_candidate", lambda args: scored.append(args[0]) or args[0])
     nominal = NominalFit(cyl_a, cyl_a, np.ones((4, 2)), 100.0, _val(3.0))
     opts = DiagnoseOptions(candidates=("leakage",), workers=1)
     job = (nominal, None, (candidate_starts("leakage")[1],), 1, opts)
-    c, = analysis.further_scored([job], {"leakage": 60.0}, nominal, None, None, 1e-4, opts)
+    c, = fits.further_scored([job], {"leakage": 60.0}, nominal, None, None, 1e-4, opts)
     assert seen == [pytest.approx(100.0 * (1 + opts.min_train_gain))] and not scored
     assert c.status == "no_better_start" and "worse than the effect's best start" in c.error
     assert "max_iterations after" in c.error
@@ -273,7 +276,7 @@ def test_a_further_start_that_ends_above_its_effects_best_start_is_not_scored(cy
     best.train_cost = 60.0
     assert best_of_starts([best, c], nominal)[0] is best
     # with nothing to beat, the same fit is scored
-    c, = analysis.further_scored([job], {}, nominal, None, None, 1e-4, opts)
+    c, = fits.further_scored([job], {}, nominal, None, None, 1e-4, opts)
     assert scored == [c]
 
 
@@ -345,12 +348,12 @@ def test_validations_run_in_the_order_of_the_train_fit_and_end_at_the_first_that
     seen = []
     base, stub = _validated_to({"leakage": 1.0 if closer else 3.0, "friction_asymmetry": 6.0, "mass": 9.0,
                                 "valve_delay": 9.9}, seen)
-    monkeypatch.setattr(analysis, "validate_candidate", stub)
+    monkeypatch.setattr(fits, "validate_candidate", stub)
     nominal = NominalFit(None, None, None, 100.0, base)
     costs = {"mass": 60.0, "leakage": 1e-3, "friction_asymmetry": 40.0, "valve_delay": 95.0, "stiction": 100.0}
     cands = [Candidate(n, status="converged", train_cost=c) for n, c in costs.items()]
     cands[-1].status = "no_gain_on_train"
-    out = {c.effect: c for c in analysis.validate_screened(cands, nominal, None, None, 1e-4,
+    out = {c.effect: c for c in fits.validate_screened(cands, nominal, None, None, 1e-4,
                                                              DiagnoseOptions(workers=1))}
     assert list(out) == list(costs)  # the candidates' order is kept
     assert out["valve_delay"].status == "screened_out" and "under 10% of the best" in out["valve_delay"].error
@@ -380,34 +383,34 @@ def test_a_first_fit_that_finds_nothing_tries_the_defaults_in_the_same_job(cyl_a
         return r
 
     moved = 1
-    monkeypatch.setattr(analysis, "identify", fake_identify)
+    monkeypatch.setattr(fits, "identify", fake_identify)
     nominal = NominalFit(cyl_a, cyl_a, np.ones((4, 2)), 100.0, _val(3.0))
-    out = analysis.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), True))
+    out = fits.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), True))
     assert [c.start for c in out] == [0, 1] and starts == [False, True]
     assert out[0].status == "no_gain_on_train" and out[1].status == "converged"
     assert best_of_starts(out, nominal)[0].start == 1
     # not where the nominal model leaves no gap (a clean run: nothing to find), nor after a
     # nested fit that moved and found nothing (its defaults wait for the further starts)
-    assert len(analysis.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), False))) == 1
+    assert len(fits.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), False))) == 1
     moved = 10
-    assert len(analysis.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), True))) == 1
+    assert len(fits.fit_first((nominal, None, "stiction", 0, DiagnoseOptions(), True))) == 1
     # a first start that gains keeps its job to itself; so does one from the defaults already
-    assert [c.start for c in analysis.fit_first((nominal, None, "heat_transfer", 1, DiagnoseOptions(), True))] == [1]
+    assert [c.start for c in fits.fit_first((nominal, None, "heat_transfer", 1, DiagnoseOptions(), True))] == [1]
 
 
 def test_no_pair_is_fitted_where_the_best_candidate_leaves_no_gap(cyl_a, monkeypatch):
     """A pair can be the verdict only where the best single effect leaves more than 1.2 x the
     noise (decide); below that its fit (10 s of a 56 s diagnosis) changed nothing."""
-    fits = []
-    monkeypatch.setattr(analysis, "fit_candidate", lambda args: fits.append(args) or _cand("x+y", 1.0))
+    pair_fits = []
+    monkeypatch.setattr(verdict_module, "fit_candidate", lambda args: pair_fits.append(args) or _cand("x+y", 1.0))
     nominal = NominalFit(cyl_a, cyl_a, None, 100.0, _val(5.0))
     ranking = [_cand("valve_delay", 1.07), _cand("heat_transfer", 3.2)]
     args = (nominal, None, None, ranking, _val(5.0), 1e-4, None, DiagnoseOptions(), lambda _m: None)
-    assert analysis._best_pair(*args) is None and not fits
+    assert best_pair(*args) is None and not pair_fits
     ranking[0] = _cand("valve_delay", 1.3)
     ranking[0].effects = (neutral_start("valve_delay"),)
-    analysis._best_pair(nominal, None, None, ranking, *args[4:])
-    assert len(fits) == 1
+    best_pair(nominal, None, None, ranking, *args[4:])
+    assert len(pair_fits) == 1
 
 
 def _index_and_process(job):
@@ -433,15 +436,15 @@ def test_what_a_pair_needs_to_change_the_verdict():
     where that closes the gap to 1.2 x the noise, or where it lifts a weak single effect's
     share of the gap to one half (then named, not `unexplained`)."""
     opts = DiagnoseOptions()
-    assert analysis.pair_need(_val(10.0), _val(4.0), opts) == pytest.approx(0.8)
-    assert analysis.pair_need(_val(10.0), _val(1.3), opts) == pytest.approx((1.69 - 1.44) / 0.69)
+    assert pair_need(_val(10.0), _val(4.0), opts) == pytest.approx(0.8)
+    assert pair_need(_val(10.0), _val(1.3), opts) == pytest.approx((1.69 - 1.44) / 0.69)
     weak = _val(math.sqrt(100 - 0.4 * 99))  # explains 40 % of the gap
-    assert analysis.pair_need(_val(10.0), weak, opts) == pytest.approx(0.1 / 0.6)
+    assert pair_need(_val(10.0), weak, opts) == pytest.approx(0.1 / 0.6)
     # a pair that just meets the need changes the verdict (it is the pair, or the weak single
     # effect is named instead of `unexplained`); one just short of it does not
     for best, (met, short) in ((_val(4.0), ("mass+leakage", "mass")), (_val(1.3), ("mass+leakage", "mass")),
                                (weak, ("mass", "unexplained"))):
-        need = analysis.pair_need(_val(10.0), best, opts)
+        need = pair_need(_val(10.0), best, opts)
         b2 = best.normalized_rms() ** 2
         single = Candidate("mass", significant=True, validation=best)
         for share, verdict in ((need + 1e-3, met), (need - 1e-3, short)):
@@ -462,8 +465,8 @@ def test_a_pair_that_stays_far_from_what_it_needs_on_train_gives_up_unvalidated(
         r.params = {n: type("E", (), {"value": 1.0, "std": 0.1})() for n in options.estimate}
         return r
 
-    monkeypatch.setattr(analysis, "identify", fake_identify)
-    monkeypatch.setattr(analysis, "validate_candidate", lambda args: scored.append(args[0]) or args[0])
+    monkeypatch.setattr(fits, "identify", fake_identify)
+    monkeypatch.setattr(fits, "validate_candidate", lambda args: scored.append(args[0]) or args[0])
     base = _val(10.0)
     nominal = NominalFit(cyl_a, cyl_a, None, 1000.0, base, noise_cost=10.0)
     best = _cand("valve_deadzone", 4.0)  # leaves 4 x the noise: the pair needs 80 % of the rest
@@ -471,16 +474,16 @@ def test_a_pair_that_stays_far_from_what_it_needs_on_train_gives_up_unvalidated(
     ranking = [best, _cand("heat_transfer", 8.0)]
     args = (nominal, None, None, ranking, base, 1e-4, None, DiagnoseOptions(), lambda _m: None)
     cost, status = 95.0, "above_reference"
-    pair = analysis._best_pair(*args)
+    pair = best_pair(*args)
     assert seen == [pytest.approx(110.0 - 0.5 * 0.8 * 100.0)]  # the single's cost less 40 % of its excess
     assert pair.status == "falls_short" and not scored and not pair.significant
     assert "together they explain 15% of what valve_deadzone leaves on TRAIN" in pair.error
     assert "the pair needs 80% of it, and its fit stayed under 40% for 6 iterations" in pair.error
     # a pair that got there, or ran its course, is validated as before
     for cost, status in ((60.0, "above_reference"), (95.0, "max_iterations")):
-        assert analysis._best_pair(*args).status == status and scored[-1].effect == "valve_deadzone+heat_transfer"
+        assert best_pair(*args).status == status and scored[-1].effect == "valve_deadzone+heat_transfer"
     assert len(scored) == 2
     # without a noise level (no excess known) the pair gives up only above the single effect
     nominal.noise_cost = math.nan
-    analysis._best_pair(*args)
+    best_pair(*args)
     assert seen[-1] == pytest.approx(110.0 * (1 + DiagnoseOptions().min_train_gain))

@@ -16,9 +16,11 @@ from scipy.optimize import curve_fit
 
 from combined_reality.cli import friction_map as cli_friction
 from combined_reality.errors import InputError
-from combined_reality.friction.map import (FIT_SPECS, PARSIMONY, MapPoint, PointsFormatError, SegmentOptions,
-                                           TooFewPointsError, build_map, fit_model, linear_fit, points_from_run,
-                                           read_points)
+from combined_reality.friction.fits import fit_model, linear_fit
+from combined_reality.friction.map import build_map
+from combined_reality.friction.points import MapPoint, points_from_run
+from combined_reality.friction.specs import FIT_SPECS, PARSIMONY, PointsFormatError, SegmentOptions, TooFewPointsError
+from combined_reality.friction.tables import read_points
 from combined_reality.files import Run, write_run
 from sim.friction_models import (CV, CVS, DIRECTIONS, Belforte, CVLoad, CVPressure, CVSLoad, Efficiency, Karnopp,
                                  LuGre, Threlfall, without_nominal_friction)
@@ -573,7 +575,7 @@ def test_points_from_a_run_with_channels_not_measured(cyl_a, run_a):
     not measured, and the rest of the run still gives its points."""
     from dataclasses import replace
 
-    from combined_reality.friction.map import points_from_run
+    from combined_reality.friction.points import points_from_run
 
     full = points_from_run(cyl_a, run_a)
     x = run_a.x.copy()

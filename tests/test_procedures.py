@@ -125,7 +125,7 @@ def test_sweep_gives_coulomb_and_viscous_friction(cyl, stiction, tmp_path):
 
 
 def test_the_points_tables_are_what_the_friction_map_reads(cyl, stiction, tmp_path):
-    from combined_reality.friction import map as fm
+    from combined_reality.friction import tables as fm
 
     b = breakaway_test(VirtualRig(cyl, [stiction], seed=5), cyl, BreakawayOptions(trials=2))
     s = speed_sweep(VirtualRig(cyl, [stiction], seed=6), cyl, SweepOptions(speeds=2, v_min=0.05, v_max=0.15))
@@ -143,7 +143,8 @@ def test_the_static_procedures_recover_the_truth_through_the_friction_map(cyl, s
     """Issue 5: sweep and breakaway tables, fed to the map together, give the breakaway force, Fc
     and Fv within 5 % and the Stribeck velocity with an interval that holds the truth (and a flag:
     no steady sliding exists below the Stribeck dip, so vs lies below the slowest sliding point)."""
-    from combined_reality.friction.map import build_map, read_points as read_map_points
+    from combined_reality.friction.map import build_map
+    from combined_reality.friction.tables import read_points as read_map_points
 
     b = breakaway_test(VirtualRig(cyl, [stiction], seed=11), cyl, BreakawayOptions(trials=3))
     # one attempt per stroke: the table is the same with two, but the retried slow strokes use up

@@ -63,7 +63,7 @@ def _model_names(args) -> tuple[list[str] | None, bool]:
 
 def run(args) -> int:
     from ..files import clean_json, read_run, write_json_atomic
-    from ..friction.map import build_map, is_points_table, plot_map, points_from_run, read_points
+    from ..friction import build_map, is_points_table, plot_map, points_from_run, read_points
 
     models, explicit = _model_names(args)
     if args.plot and os.path.splitext(args.plot)[1].lstrip(".").lower() not in PLOT_FORMATS:

@@ -33,7 +33,7 @@ on VALID; the nominal calibration is one of them (`none`), not the ground the ot
    fits TRAIN worse than `none`.
 4. The calibrated models are scored on VALID, the best screen first, ending at the first that
    closes the gap or removes nearly all of what `none` leaves on TRAIN; the verdict by the
-   rules of the diagnosis (analysis.decide): significance against the nominal calibration, the
+   rules of the diagnosis (verdict.decide): significance against the nominal calibration, the
    share of the gap explained, the pair. Where no candidate improves VALID and the nominal
    calibration fits TRAIN to the noise, the verdict is `none` (no effect shows in TRAIN).
 
@@ -62,10 +62,14 @@ from ..calibrate import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, fi
 from ..files import Run
 from ..identify import IdentificationError, IdentifyResult, validate, validation_segments
 from ..parallel import run_jobs, workers_here
-from .analysis import (NESTED_START, Candidate, DiagnoseOptions, Diagnosis, NominalFit, candidate_starts, closes_gap,
-                       decide, gain_over, has_nested_start, mis_set_quantities, neutral_start, pair_need, ranked,
-                       regions, regressor_correlations, score_candidate, subsystem_split, validate_candidate,
-                       whiteness)
+from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, closes_gap, gain_over, has_nested_start,
+                         neutral_start, score_candidate)
+from .diagnosis import Diagnosis, mis_set_quantities
+from .fits import validate_candidate
+from .options import DiagnoseOptions
+from .subsystems import regressor_correlations, subsystem_split
+from .verdict import decide, pair_need, ranked
+from .where import regions, whiteness
 
 __all__ = ["ABSORBED", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
            "choose", "confounded", "diagnose_calibrated"]
@@ -584,7 +588,7 @@ def _calibrated_pair(cyl, runs, valid, ranking, fitting: NominalFit, base_val, b
     """The verdict's effect with the runner-up, calibrated as a whole nested from the best
     candidate's calibration (the runner-up neutral), when the best alone leaves a gap that the
     runner-up also addresses; given up, unvalidated, when it stays under pair_give_up of what
-    it needs on TRAIN to change the verdict (analysis._best_pair's rule)."""
+    it needs on TRAIN to change the verdict (verdict.best_pair's rule)."""
     best = ranking[0]
     second = next((c for c in ranking[1:] if c.significant), None)
     if second is None or best.validation is None or best.validation.normalized_rms() <= opts.closed_gap:

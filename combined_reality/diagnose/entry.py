@@ -1,4 +1,4 @@
-"""The diagnosis's entry: with the cylinder file's values as they are (analysis), or calibrated
+"""The diagnosis's entry: with the cylinder file's values as they are (diagnosis), or calibrated
 with every candidate (calibrated, DiagnoseOptions.calibrate)."""
 from __future__ import annotations
 
@@ -7,8 +7,9 @@ from typing import Callable, Sequence
 from sim.cylinder import Cylinder
 
 from ..files import Run
-from .analysis import DiagnoseOptions, Diagnosis, diagnose_as_filed
 from .calibrated import diagnose_calibrated
+from .diagnosis import Diagnosis, diagnose_as_filed
+from .options import DiagnoseOptions
 
 __all__ = ["diagnose"]
 

@@ -30,7 +30,8 @@ from sim.friction_models import DIRECTIONS, FRICTION_MODELS, FrictionModel, make
 from ..files import Run
 from ..identify import (IdentificationError, IdentifyOptions, IdentifyResult, friction_from_newton, identify,
                         not_determined, validate)
-from .map import MapPoint, fit_model
+from .fits import fit_model
+from .points import MapPoint
 from .specs import DYNAMIC_SPECS, FIT_SPECS, FitSpec, FrictionMapError
 
 _BINS_PER_DIRECTION = 24
