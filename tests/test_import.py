@@ -281,6 +281,7 @@ def test_bad_mappings_and_recordings_are_refused_with_a_located_sentence(tmp_pat
     raw = write_lab_csv(tmp_path / "messung.csv", short_run, preamble="")
     code, err, out = do_import(tmp_path, capsys, raw, edit(EXAMPLE_MAP))
     assert_refused(code, err, *fragments)
+    assert err.strip().endswith(".") and not err.strip().endswith("..")  # the importer's own sentence, one stop
     assert not out.exists()
 
 
