@@ -622,13 +622,15 @@ def test_a_byte_order_mark_does_not_move_the_byte_that_is_not_text(tmp_path, bom
     from combined_reality.batch import ManifestError, load_manifest
     from combined_reality.importing import MappingError, load_mapping
     from combined_reality.importing.delimited import read_delimited
+    from combined_reality.live.programs import command_file_program
     from sim.cylinder import ConfigError, load_cylinder
 
     head = bom + b"# one\n# two\n\xfc # three\n"
     cases = {"c.toml": (head + (CONFIGS / "cyl_a_32x100.toml").read_bytes(), load_cylinder, ConfigError),
              "fleet.toml": (head, load_manifest, ManifestError),
              "r.csv": (head + b"t,u,x,p1,p2\n", read_run, RunFormatError),
-             "lab.csv": (head, lambda p: read_delimited(p, load_mapping(tmp_path / "m.toml")), MappingError)}
+             "lab.csv": (head, lambda p: read_delimited(p, load_mapping(tmp_path / "m.toml")), MappingError),
+             "cmds.csv": (head + b"t,u\n0,0\n", lambda p: command_file_program(p, load_cylinder(CFG)), ValueError)}
     (tmp_path / "m.toml").write_text(FUZZ_MAPPING.replace("[source]\n", '[source]\nencoding = "utf-8"\n', 1))
     for name, (data, read, error) in cases.items():
         (tmp_path / name).write_bytes(data)
