@@ -18,7 +18,7 @@ from typing import Callable
 
 from .errors import InputError
 
-__all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "regular_file_size",
+__all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "file_kind", "regular_file_size",
            "checked_size", "read_checked", "read_bounded", "decode_text", "parse_toml"]
 
 TOML_MAX_BYTES = 1 << 20  # a cylinder file or a mapping is a few kB; 1 MiB is far beyond any
@@ -31,10 +31,13 @@ class InputFileError(InputError):
     (exit status 2)."""
 
 
-def _kind(mode: int) -> str | None:
-    """What a file that is not a regular file (nor a folder) is, in words; None for a regular file."""
-    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+def file_kind(mode: int) -> str | None:
+    """What a file that is not a regular file is, in words ("a folder", "a device", ...), from
+    its st_mode; None for a regular file."""
+    if stat.S_ISREG(mode):
         return None
+    if stat.S_ISDIR(mode):
+        return "a folder"
     if stat.S_ISFIFO(mode):
         return "a FIFO (named pipe)"
     if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
@@ -52,7 +55,7 @@ def regular_file_size(path: str | os.PathLike[str], what: str, limit: int | None
     st = os.stat(path)  # follows links: a link to /dev/zero is /dev/zero
     if stat.S_ISDIR(st.st_mode):
         raise IsADirectoryError(21, "Is a directory", str(path))
-    kind = _kind(st.st_mode)
+    kind = file_kind(st.st_mode)
     if kind is not None:
         raise InputFileError(f"{path} is {kind}, not {what}; give a regular file.")
     if limit is not None and st.st_size > limit:
