@@ -318,6 +318,22 @@ def test_command_on_a_points_table(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_a_plot_that_cannot_be_written_says_the_json_is(tmp_path, capsys, monkeypatch):
+    """The plot is written after the JSON: when it fails (here its folder is gone after the
+    outputs were checked), the one line says so, and that the JSON is there."""
+    pytest.importorskip("matplotlib")
+    from combined_reality import cli
+
+    table = _table(tmp_path, _points(CVS(**TABLE3_N2), np.geomspace(1e-3, 0.3, 12)))
+    out, png = tmp_path / "map.json", tmp_path / "gone" / "map.png"
+    monkeypatch.setattr(cli_friction, "check_paths", lambda *a, **kw: None)
+    code = cli.main(["friction-map", str(table), "--model", "cv", "--json", str(out), "--plot", str(png), "-q"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and json.loads(out.read_text())["models"], err
+    assert err.startswith(f"combined-reality friction-map: --plot {png}: cannot write it: the folder does not exist")
+    assert err.endswith(f"; the JSON {out} is written.")
+
+
 def test_command_default_models_skip_what_the_points_cannot_feed(tmp_path, capsys):
     table = _table(tmp_path, _points(CVS(**TABLE3_N2), np.geomspace(1e-3, 0.3, 12)))
     out = tmp_path / "map.json"

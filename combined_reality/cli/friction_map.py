@@ -62,7 +62,7 @@ def _model_names(args) -> tuple[list[str] | None, bool]:
 
 
 def run(args) -> int:
-    from ..files import clean_json, read_run, write_json_atomic
+    from ..files import OutputError, WriteError, clean_json, read_run, write_json_atomic
     from ..friction.map import build_map, is_points_table, plot_map, points_from_run, read_points
 
     models, explicit = _model_names(args)
@@ -143,10 +143,9 @@ def run(args) -> int:
         except FrictionMapError as e:
             eprint(f"combined-reality friction-map: {e}")
             return 1
-        except OSError as e:
-            eprint(f"combined-reality friction-map: --plot {args.plot}: cannot be written ({e.strerror or e}); "
-                    f"the JSON is written.")
-            return 1
+        except (OutputError, WriteError) as e:  # atomic_write's sentence, with what is there
+            eprint(f"combined-reality friction-map: --plot {str(e).rstrip('.')}; the JSON {args.json} is written.")
+            return e.exit_status
         say(f"wrote {args.plot}")
     return 0
 
