@@ -614,6 +614,43 @@ def test_a_long_run_is_read_in_bounded_memory_and_located_exactly(tmp_path, monk
         read_run(tmp_path / "r.csv", max_rows=40_000)  # refused by a count of its lines, unparsed
 
 
+def test_a_run_file_is_read_once(tmp_path, monkeypatch):
+    """read_run reads every byte of a run once (its columns sized from the first block, grown if
+    need be; no count of the lines first). More than --max-rows lines are refused with their
+    exact count: unparsed when the first block foretells them, else when a later block passes
+    the limit (the rest counted, not parsed)."""
+    import io
+
+    monkeypatch.setattr(runs_module, "_BLOCK", 8192)
+    got: list[int] = []
+
+    class Counting(io.BufferedReader):
+        def read(self, n=-1):
+            data = super().read(n)
+            got.append(len(data))
+            return data
+
+    monkeypatch.setattr(runs_module, "open", lambda p, mode: Counting(io.FileIO(p, "r")), raising=False)
+    run = _moving_run(40_000)
+    path, long_head = tmp_path / "r.csv", tmp_path / "long_head.csv"
+    write_run(path, run)
+    back = read_run(path)
+    assert sum(got) == path.stat().st_size
+    for name in ("t", "u", "x", "p1", "p2"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(run, name))
+    got.clear()
+    with pytest.raises(RunFormatError, match=r"r.csv: 40001 lines, more than the 39990 .*--max-rows"):
+        read_run(path, max_rows=39_990)  # foretold by the first block: counted, not parsed
+    assert sum(got) == 8192 + path.stat().st_size
+    write_run(long_head, run, comments=["c" * 4000] * 3)  # a first block of long lines foretells few
+    got.clear()
+    with pytest.raises(RunFormatError, match=r"long_head.csv: 40004 lines, more than the 40000 .*--max-rows"):
+        read_run(long_head, max_rows=40_000)
+    assert sum(got) == long_head.stat().st_size
+    got.clear()
+    assert read_run(long_head, max_rows=40_004).n == 40_000 and sum(got) == long_head.stat().st_size
+
+
 @pytest.mark.parametrize("bom", [b"", b"\xef\xbb\xbf"])
 def test_a_byte_order_mark_does_not_move_the_byte_that_is_not_text(tmp_path, bom):
     """A byte that is not UTF-8 at the start of line 3, after a byte order mark or none: each
