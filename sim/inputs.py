@@ -18,8 +18,8 @@ from typing import Callable
 
 from .errors import InputError
 
-__all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "file_kind", "regular_file_size",
-           "checked_size", "read_checked", "read_bounded", "decode_text", "parse_toml"]
+__all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "file_kind",
+           "regular_file_size", "checked_size", "read_checked", "read_bounded", "decode_text", "line_breaks", "parse_toml"]
 
 TOML_MAX_BYTES = 1 << 20  # a cylinder file or a mapping is a few kB; 1 MiB is far beyond any
 TOML_MAX_LINE = 1 << 16  # characters per line of a TOML file
@@ -86,7 +86,7 @@ def read_checked(path: str | os.PathLike[str], what: str, error: type[Exception]
     whose size the caller has bounded already."""
     checked_size(path, what, error, limit)
     try:
-        return read_bounded(path, what, limit)
+        return _read_at_most(path, what, limit)
     except InputFileError as e:
         raise error(str(e)) from None
     except OSError as e:
@@ -97,6 +97,11 @@ def read_bounded(path: str | os.PathLike[str], what: str, limit: int | None, lim
     """The bytes of the regular file `path`, at most `limit` of them (a file that grows while it
     is read past the limit is refused too)."""
     regular_file_size(path, what, limit, limit_hint)
+    return _read_at_most(path, what, limit, limit_hint)
+
+
+def _read_at_most(path: str | os.PathLike[str], what: str, limit: int | None, limit_hint: str = "") -> bytes:
+    """The bytes of `path`, checked already to be a regular file (one status a read)."""
     with open(path, "rb") as f:
         data = f.read() if limit is None else f.read(limit + 1)
     if limit is not None and len(data) > limit:
@@ -119,9 +124,14 @@ def decode_text(data: bytes, not_text: Callable[[int, int], Exception] | None = 
     except UnicodeDecodeError as e:
         if not_text is None:
             raise
-        head = data[:e.start]
-        breaks = head.count(b"\n") + (head.count(b"\r") - head.count(b"\r\n") if cr_ends_lines else 0)
-        raise not_text(line0 + breaks, e.start) from None
+        raise not_text(line0 + line_breaks(data[:e.start], cr_ends_lines), e.start) from None
+
+
+def line_breaks(data: bytes, cr_ends_lines: bool = True) -> int:
+    """The line breaks in `data`: each \n, and with `cr_ends_lines` (a CSV) each \r\n and each
+    bare \r too."""
+    n = data.count(b"\n")
+    return n + data.count(b"\r") - data.count(b"\r\n") if cr_ends_lines and b"\r" in data else n
 
 
 def parse_toml(text: str, max_line: int = TOML_MAX_LINE) -> dict:

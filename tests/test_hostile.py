@@ -614,6 +614,19 @@ def test_a_long_run_is_read_in_bounded_memory_and_located_exactly(tmp_path, monk
         read_run(tmp_path / "r.csv", max_rows=40_000)  # refused by a count of its lines, unparsed
 
 
+def test_a_bounded_read_looks_at_the_file_once(monkeypatch):
+    """sim.inputs.read_checked (cylinder files, mappings, command files) takes the file's
+    status once, to refuse a special or too large file, before it reads it."""
+    import sim.inputs
+    from sim.cylinder import load_cylinder
+
+    seen = []
+    real = os.stat
+    monkeypatch.setattr(sim.inputs.os, "stat", lambda p, *a, **kw: seen.append(str(p)) or real(p, *a, **kw))
+    load_cylinder(CFG)
+    assert seen.count(str(CFG)) == 1
+
+
 def test_a_run_file_is_read_once(tmp_path, monkeypatch):
     """read_run reads every byte of a run once (its columns sized from the first block, grown if
     need be; no count of the lines first). More than --max-rows lines are refused with their

@@ -27,7 +27,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from sim.inputs import checked_size, decode_text, shorten
+from sim.inputs import checked_size, decode_text, line_breaks, shorten
 
 from ..errors import InputError
 from ..options import MAX_ROWS
@@ -216,14 +216,9 @@ def _count_lines(f) -> int:
     f.seek(0)
     breaks, last, after_cr = 0, b"", False
     while data := f.read(_BLOCK):
-        breaks += _line_breaks(data) - (after_cr and data.startswith(b"\n"))  # \r\n across two pieces
+        breaks += line_breaks(data) - (after_cr and data.startswith(b"\n"))  # \r\n across two pieces
         after_cr, last = data.endswith(b"\r"), data[-1:]
     return breaks + (last not in (b"", b"\n", b"\r"))
-
-
-def _line_breaks(data: bytes) -> int:
-    n = data.count(b"\n")
-    return n + data.count(b"\r") - data.count(b"\r\n") if b"\r" in data else n
 
 
 def _blocks(f, fail: _Fail, first: bytes | None = None):
@@ -237,12 +232,12 @@ def _blocks(f, fail: _Fail, first: bytes | None = None):
         data = rest + chunk
         if not chunk:
             if data:
-                yield offset, line, data, _line_breaks(data)
+                yield offset, line, data, line_breaks(data)
             return
         end = len(data) - 1 if data.endswith(b"\r") else len(data)  # \r\n must stay together
         cut = max(data.rfind(b"\n", 0, end), data.rfind(b"\r", 0, end))
         block, rest = data[:cut + 1], data[cut + 1:]
-        breaks = _line_breaks(block)
+        breaks = line_breaks(block)
         if len(rest) > MAX_LINE:
             raise fail(f"longer than {MAX_LINE} bytes: not a line of a run CSV.", line + breaks)
         if block:
@@ -332,7 +327,7 @@ class _RunReader:
         """The first block, and from it the columns' size; a file that it foretells to be longer
         than max_rows lines has its lines counted before any is parsed (refused if so)."""
         head = self.f.read(_BLOCK)
-        lines = _line_breaks(head) + 1
+        lines = line_breaks(head) + 1
         if len(head) < _BLOCK:
             self.capacity = lines
             return head
