@@ -67,9 +67,9 @@ def _table(cal, start) -> str:
 
 def run(args) -> int:
     from ..calibrate import CALIBRATED, CalibrateOptions, calibrate, validation_figures
-    from ..files import check_moves, check_train_and_valid, clean_json, read_run, write_json_atomic
+    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import check_determinable, validate
+    from ..identify import validate
 
     check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
                 inputs=[args.config, *args.runs, args.validate])
@@ -89,11 +89,9 @@ def run(args) -> int:
     if args.validate:
         valid = read_run(args.validate, args.max_rows)
         warning = check_train_and_valid(start, runs[0], valid, args.runs[0], args.validate)
-    # runs without motion, or friction they cannot determine, end before the fit (identify's rules)
-    check_moves(runs, start, "calibration needs motion: record runs with `combined-reality live --program "
-                             "calibration`")
-    preflight_runs(start, runs + ([valid] if valid is not None else []))  # its notes follow no refusal
-    check_determinable(start, runs, [n for n in ("Fc", "Fv", "kp") if n in estimate])
+    # runs without motion, or friction they cannot determine, end before the fit (identify's rules);
+    # its notes follow no refusal
+    preflight_runs(start, runs, estimate, held_out=[valid] if valid is not None else [])
     if warning:
         eprint(f"combined-reality calibrate: warning: {warning}")
     say = progress_printer(args.quiet)

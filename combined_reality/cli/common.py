@@ -175,11 +175,11 @@ def cylinder_for_runs(path: str | None, runs: Sequence) -> tuple[Cylinder, str |
         " (the run's header names no cylinder file)")
 
 
-def preflight_runs(cyl: Cylinder, runs: Sequence, estimate: Sequence[str] = ()):
+def preflight_runs(cyl: Cylinder, runs: Sequence, estimate: Sequence[str] = (), held_out: Sequence = ()):
     """identify.preflight (refuses what it is sure of: exit status 2), its notes on stderr."""
     from ..identify import preflight
 
-    found = preflight(cyl, runs, estimate)
+    found = preflight(cyl, runs, estimate, held_out)
     for note in found.notes:
         eprint(f"note: {note}.")
     return found

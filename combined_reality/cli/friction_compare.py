@@ -80,7 +80,7 @@ def _compare_models(args) -> list[str]:
 
 
 def run(args) -> int:
-    from ..files import check_moves, check_train_and_valid, clean_json, read_run, write_json_atomic
+    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..friction import compare_friction_models
     from ..identify import IdentifyOptions
 
@@ -91,13 +91,12 @@ def run(args) -> int:
     cyl = load_config(args.config)
     train, valid = read_run(args.train, args.max_rows), read_run(args.validate, args.max_rows)
     warning = check_train_and_valid(cyl, train, valid, args.train, args.validate)
-    check_moves([train], cyl, "friction shows only in motion, so no model has an estimate from it")
-    preflight_runs(cyl, [train, valid])
+    options = IdentifyOptions(max_iter=40)  # no wall-clock limit: the ranking must not depend on load
+    preflight_runs(cyl, [train], options.estimate, held_out=[valid])  # TRAIN must determine the nominal friction
     if warning:
         eprint(f"combined-reality friction-compare: warning: {warning}")
 
     say = (lambda msg: None) if args.quiet else eprint
-    options = IdentifyOptions(max_iter=40)  # no wall-clock limit: the ranking must not depend on load
     workers = min(args.workers, len(models))
     say(f"friction-compare: {len(models)} model(s) identified on {args.train} ({train.duration:.1f} s) and scored on "
         f"{args.validate} ({valid.duration:.1f} s, segments of {args.horizon:g} s), {workers} worker(s)")
