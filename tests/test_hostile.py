@@ -454,16 +454,25 @@ def test_the_hostile_corpus_is_refused_in_one_sentence(world, capsys):
     assert counts["hangs"] == counts["internal errors"] == counts["tracebacks"] == 0
 
 
-def test_diagnose_warns_when_valid_is_train(world):
-    from combined_reality.files import check_train_and_valid
-    from sim.cylinder import load_cylinder
+def test_diagnose_warns_when_valid_is_train(world, capsys, monkeypatch):
+    """`diagnose` with VALID holding TRAIN's samples warns, once its input is accepted and
+    before the fits (stubbed here: the warning is what is tested); another VALID draws none."""
+    import combined_reality.diagnose as diagnose_pkg
+    from combined_reality.errors import InputError
 
+    def fits(*a, **kw):
+        raise InputError("the fits would start here.")
+
+    monkeypatch.setattr(diagnose_pkg, "diagnose", fits)
     w, _ = world
-    cyl = load_cylinder(w / "cyl.toml")
-    run, copy = read_run(w / "run.csv"), read_run(w / "other.csv")
-    assert check_train_and_valid(cyl, run, copy, "run.csv", "other.csv") is None
-    said = check_train_and_valid(cyl, run, read_run(w / "run.csv"), "run.csv", "run.csv")
-    assert "holds the same samples" in said and "validate on another run" in said
+    for valid, warned in ((w / "run.csv", True), (w / "other.csv", False)):
+        code, err, _ = _call(["diagnose", w / "run.csv", "--validate", valid, "--config", w / "cyl.toml", "-q"],
+                             capsys)
+        lines = err.strip().splitlines()
+        assert code == 2 and lines[-1] == "combined-reality diagnose: the fits would start here.", err
+        assert lines[:-1] == ([f"combined-reality diagnose: warning: {valid} holds the same samples as "
+                               f"{w / 'run.csv'}: the validation scores the fit on the data it was fitted to, so it "
+                               "cannot tell a real gain from overfitting; validate on another run."] if warned else [])
 
 
 def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cyl_a):
