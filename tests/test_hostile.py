@@ -161,9 +161,10 @@ def _targets(w: Path, device, option: str, the_input: Path) -> dict:
     if device is not None:
         out["a device"] = (device, 2, "is a device")
     if option in ("--report", "--plot"):  # the suffix is checked first: another sentence, the same refusal
-        out["the input"] = (the_input, 2, "")
+        says = "the report is HTML; name it REPORT.html" if option == "--report" else "name the plot with one of"
+        out["the input"] = (the_input, 2, says)
         if device is not None:
-            out["a device"] = (device, 2, "")
+            out["a device"] = (device, 2, says)
     return out
 
 
