@@ -4,7 +4,7 @@ from __future__ import annotations
 import time
 
 from .. import options
-from .common import (UsageError, add_max_rows, check_paths, eprint, load_config, preflight_runs, progress_printer,
+from .common import (add_max_rows, check_paths, eprint, load_config, preflight_runs, progress_printer,
                      read_runs, typed)
 
 
@@ -26,7 +26,7 @@ def add_parser(sub) -> None:
                    help="a run of the same cylinder no fit sees: the calibrated model is scored on it")
     c.add_argument("--json", metavar="OUT.json", help="write the result (identify format plus valve, stages, "
                                                       "identifiability and validation)")
-    c.add_argument("--report", metavar="REPORT.html",
+    c.add_argument("--report", metavar="REPORT.html", type=typed(options.report_file),
                    help="write a self-contained HTML report: the values against the file's, the valve characteristic "
                         "per direction with its band, the fit of every run, VALID's traces, what the runs could not "
                         "determine and what to record")
@@ -73,15 +73,8 @@ def run(args) -> int:
 
     check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
                 inputs=[args.config, *args.runs, args.validate])
-    estimate = CALIBRATED
-    if args.estimate is not None:
-        estimate = args.estimate
-        unknown = [n for n in estimate if n not in CALIBRATED]
-        if unknown:
-            raise UsageError(f"--estimate: {', '.join(unknown)} is not calibrated (calibrated: "
-                             f"{', '.join(CALIBRATED)}).")
-    if args.report and not args.report.lower().endswith((".html", ".htm")):
-        raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
+    estimate = CALIBRATED if args.estimate is None else args.estimate
+    options.check_estimable(estimate, CALIBRATED)
     start = load_config(args.config)
     runs = read_runs(args.runs, args)
     valid = None

@@ -47,7 +47,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help=f"model to compare, repeatable or comma-separated (known: {', '.join(known)}; default: "
                         f"all of them except the load models {' and '.join(_LOAD_MODELS)}, which are included "
                         f"only with --load)")
-    p.add_argument("--load", type=float, metavar="N",
+    p.add_argument("--load", type=typed(options.load), metavar="N",
                    help="constant normal load on the seals and guides, N: the load models (cv_load, cvs_load) need "
                         "it, since runs do not record a load and at their default Fn = 0 the load terms do nothing; "
                         "at one constant load those terms are not separable from Fc, Fs, B (see their std)")
@@ -85,8 +85,6 @@ def run(args) -> int:
     from ..identify import IdentifyOptions
 
     models = _compare_models(args)
-    if args.load is not None and not (math.isfinite(args.load) and args.load >= 0):
-        raise UsageError(f"--load must be a non-negative force in N, not {args.load}.")
     check_paths({"--json": args.json}, inputs=[args.config, args.train, args.validate])
     cyl = load_config(args.config)
     train, valid = read_run(args.train, args.max_rows), read_run(args.validate, args.max_rows)
