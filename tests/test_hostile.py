@@ -476,9 +476,10 @@ def test_diagnose_warns_when_valid_is_train(world, capsys, monkeypatch):
                                "cannot tell a real gain from overfitting; validate on another run."] if warned else [])
 
 
-def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cyl_a):
+def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cyl_a, monkeypatch):
     """A 3e38 Pa reading from the rig: recorded and counted as not measured (like NaN), so
-    the summary's samples, the run's and the file's agree, and the recording stays readable."""
+    the summary's samples, the run's and the file's agree, and the recording stays readable.
+    It is judged once, by the session: the recorder writes what the session judged."""
     from hw.rig import Rig, Sample
     from combined_reality.live import run_session
     from combined_reality.live.session import EndOfRun
@@ -502,7 +503,11 @@ def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cy
         def poll(self): return []
         def finish(self, timeout=30.0, cancelled=None): return []
 
+    judged = []
+    real = runs_module.measured_value
+    monkeypatch.setattr(runs_module, "measured_value", lambda *a: judged.append(a) or real(*a))
     res = run_session(cyl_a, FromList(), estimator=NoEstimator(), record_to=tmp_path / "r.csv")
+    assert judged == []  # the recorder judged nothing again
     back = read_run(tmp_path / "r.csv")
     assert res.counters["samples"] == res.run.n == back.n == 50
     assert res.counters["incomplete"] == 1 and np.isnan(res.run.p1[7]) and np.isnan(back.p1[7])

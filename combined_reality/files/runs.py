@@ -758,8 +758,12 @@ def _comment_lines(comments: Iterable[str]) -> str:
 def _cell(name: str, value: float | None) -> str:
     """A measured value as a cell: empty when it was not measured (None), is not finite or is
     beyond what a reading can be (files.plausibility.measured_value)."""
-    v = measured_value(name, value)
-    return "" if v != v else repr(v)
+    return _checked_cell(name, measured_value(name, value))
+
+
+def _checked_cell(name: str, value: float | None) -> str:
+    """A value measured_value has judged already: empty when not measured (NaN or None)."""
+    return "" if value is None or value != value else repr(float(value))
 
 
 class RunRecorder:
@@ -792,7 +796,10 @@ class RunRecorder:
         self._write((_comment_lines(comments or ()) + _join(names) + "\n").encode("utf-8"))
 
     def append(self, t: float, u: float, x: float | None, p1: float | None, p2: float | None,
-               ps: float | None = None) -> None:
+               ps: float | None = None, *, checked: bool = False) -> None:
+        """One sample as one line. `checked`: x, p1, p2 (and ps) have been through
+        files.plausibility.measured_value already (NaN: not measured), so they are written as
+        they are, without judging them again (a live session's samples)."""
         if self._error is not None:
             raise self._error
         if self._f.closed:
@@ -803,9 +810,10 @@ class RunRecorder:
         if not (math.isfinite(t) and math.isfinite(u)):
             raise ValueError(f"RunRecorder for {self.path}: the time and the command of a sample must be finite "
                              f"(got t={t!r}, u={u!r}).")
-        cells = [repr(t), repr(u), _cell("x", x), _cell("p1", p1), _cell("p2", p2)]
+        cell = _checked_cell if checked else _cell
+        cells = [repr(t), repr(u), cell("x", x), cell("p1", p1), cell("p2", p2)]
         if self.with_ps:
-            cells.append(_cell("ps", ps))
+            cells.append(cell("ps", ps))
         self._write((",".join(cells) + "\n").encode("ascii"))
         self.n += 1
 
