@@ -17,7 +17,8 @@ from .errors import InputError, shorten
 
 __all__ = ["OptionError", "SEED_MAX", "RATE_MIN", "RATE_MAX", "INTERVAL_MAX", "MIN_SAMPLES", "MAX_SIMULATED_SAMPLES",
            "MAX_LIVE_DURATION", "MAX_ITER", "MAX_ROWS", "MAX_WINDOW", "MIN_UPDATE", "seed", "sample_rate",
-           "positive_number", "load", "replay_speed", "report_file", "positive_seconds", "interval", "whole_number", "simulated_samples", "window", "update", "live_duration",
+           "positive_number", "load", "replay_speed", "report_file", "positive_seconds", "interval", "whole_number",
+           "simulated_samples", "window", "update", "live_duration",
            "parameter_names", "check_estimable", "scheduler_address", "max_rows"]
 
 SEED_MAX = 2**32 - 1

@@ -19,7 +19,8 @@ from typing import Callable
 from .errors import InputError
 
 __all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "file_kind",
-           "regular_file_size", "checked_size", "read_checked", "read_bounded", "decode_text", "line_breaks", "parse_toml"]
+           "regular_file_size", "checked_size", "read_checked", "read_bounded", "decode_text", "line_breaks",
+           "parse_toml"]
 
 TOML_MAX_BYTES = 1 << 20  # a cylinder file or a mapping is a few kB; 1 MiB is far beyond any
 TOML_MAX_LINE = 1 << 16  # characters per line of a TOML file

@@ -12,8 +12,8 @@ import argparse
 import math
 import os
 
-from ..friction.specs import FIT_SPECS, PARSIMONY, PLOT_FORMATS, FrictionMapError, SegmentOptions
 from .. import options
+from ..friction.specs import FIT_SPECS, PARSIMONY, PLOT_FORMATS, FrictionMapError, SegmentOptions
 from .common import (UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint, preflight_runs,
                      progress_printer, typed)
 
