@@ -11,11 +11,14 @@ import math
 import re
 from typing import Iterable, Sequence
 
+from sim.cylinder import parameter_list_problem
+
 from .errors import InputError, shorten
 
 __all__ = ["OptionError", "SEED_MAX", "RATE_MIN", "RATE_MAX", "INTERVAL_MAX", "MIN_SAMPLES", "MAX_SIMULATED_SAMPLES",
            "MAX_LIVE_DURATION", "MAX_ITER", "MAX_ROWS", "MAX_WINDOW", "MIN_UPDATE", "seed", "sample_rate",
-           "positive_seconds", "interval", "whole_number", "simulated_samples", "window", "update", "live_duration",
+           "positive_number", "load", "replay_speed", "report_file", "positive_seconds", "interval", "whole_number",
+           "simulated_samples", "window", "update", "live_duration",
            "parameter_names", "check_estimable", "scheduler_address", "max_rows"]
 
 SEED_MAX = 2**32 - 1
@@ -72,6 +75,43 @@ def sample_rate(value, name: str = "--rate") -> float:
     if not RATE_MIN <= v <= RATE_MAX:
         raise OptionError(f"{name} must lie between {RATE_MIN:g} and {RATE_MAX:g} Hz, not {shorten(value)}.")
     return v
+
+
+def positive_number(value, name: str) -> float:
+    """A positive, finite number (a speed in m/s, a relative spread)."""
+    v = _number(value, name)
+    if not (v > 0 and math.isfinite(v)):
+        raise OptionError(f"{name} must be a positive number, not {shorten(value)}.")
+    return v
+
+
+def load(value, name: str = "--load") -> float:
+    """A constant normal load on the seals and guides: a finite force of at least 0 N."""
+    v = _number(value, name)
+    if not (v >= 0 and math.isfinite(v)):
+        raise OptionError(f"{name} must be a non-negative force in N, not {shorten(value)}.")
+    return v
+
+
+def replay_speed(value, name: str = "--speed") -> float:
+    """How fast a run is replayed: a positive, finite factor of real time, or max (infinity)."""
+    if str(value).strip() == "max":
+        return math.inf
+    try:
+        v = float(str(value).strip())
+    except ValueError:
+        raise OptionError(f"{name} {shorten(value)}: give a number or max.") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise OptionError(f"{name} must be positive, not {shorten(value)}.")
+    return v
+
+
+def report_file(value, name: str = "--report") -> str:
+    """An HTML report's file name: it ends in .html or .htm."""
+    text = str(value)
+    if not text.lower().endswith((".html", ".htm")):
+        raise OptionError(f"{name} {shorten(text)}: the report is HTML; name it REPORT.html.")
+    return text
 
 
 def positive_seconds(value, name: str, allow_inf: bool = False) -> float:
@@ -132,23 +172,22 @@ def live_duration(value, name: str = "--duration") -> float:
 
 def parameter_names(value, name: str = "--estimate") -> tuple[str, ...]:
     """A comma-separated list of names (or a list): at least one, each once (parameters to
-    estimate, effects to try)."""
+    estimate, effects to try; sim.cylinder.parameter_list_problem, as a cylinder file's)."""
     items = value.split(",") if isinstance(value, str) else list(value)
     names = tuple(str(s).strip() for s in items if str(s).strip())
     if not names:
         raise OptionError(f"{name} needs at least one name.")
-    twice = sorted({n for n in names if names.count(n) > 1})
-    if twice:
-        raise OptionError(f"{name} names {', '.join(shorten(n) for n in twice)} more than once; give each once.")
+    problem = parameter_list_problem(names)
+    if problem:
+        raise OptionError(f"{name} {problem}.")
     return names
 
 
 def check_estimable(names: Sequence[str], known: Iterable[str], name: str = "--estimate") -> None:
     """Refuse a parameter that is not among `known`, listing those that are."""
-    known = tuple(known)
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        raise OptionError(f"{name}: unknown parameter '{shorten(unknown[0])}' (estimable: {', '.join(known)}).")
+    problem = parameter_list_problem(names, tuple(known))
+    if problem:
+        raise OptionError(f"{name} {problem}.")
 
 
 _SCHEMES = ("tcp", "tls", "ws", "wss", "ucx", "inproc")

@@ -15,7 +15,7 @@ import math
 import tomllib
 from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from .errors import InputError
 from .inputs import TOML_MAX_BYTES, decode_text, parse_toml, read_checked, shorten
@@ -366,13 +366,23 @@ def _check_identify(key: str, v: Any, fail) -> Any:
         return v
     if not isinstance(v, list) or not v or not all(isinstance(s, str) for s in v):
         raise fail("key 'identify.estimate' must be a non-empty list of parameter names.")
-    if len(set(v)) != len(v):
-        raise fail("key 'identify.estimate' names a parameter more than once.")
-    for s in v:
-        if s not in ESTIMABLE:
-            raise fail(f"key 'identify.estimate' names unknown parameter '{shorten(s)}' (estimable: "
-                       f"{', '.join(ESTIMABLE)}).")
+    problem = parameter_list_problem(v, ESTIMABLE)
+    if problem:
+        raise fail(f"key 'identify.estimate' {problem}.")
     return tuple(v)
+
+
+def parameter_list_problem(names: Sequence[str], known: Sequence[str] | None = None) -> str | None:
+    """What is wrong with a list of parameter names, to follow the option's or key's name: one
+    named more than once, or (with `known`) one not among them; None if nothing is. The one
+    rule of a cylinder file's identify.estimate and of the command line's lists."""
+    twice = sorted({n for n in names if list(names).count(n) > 1})
+    if twice:
+        return f"names {', '.join(shorten(n) for n in twice)} more than once; give each once"
+    unknown = [n for n in names if known is not None and n not in known]
+    if unknown:
+        return f"names unknown parameter '{shorten(unknown[0])}' (estimable: {', '.join(known)})"
+    return None
 
 
 def _check_physics(v: dict[str, dict[str, Any]], fail) -> None:

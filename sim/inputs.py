@@ -18,8 +18,9 @@ from typing import Callable
 
 from .errors import InputError
 
-__all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "regular_file_size",
-           "checked_size", "read_checked", "read_bounded", "decode_text", "parse_toml"]
+__all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "file_kind",
+           "regular_file_size", "checked_size", "read_checked", "read_bounded", "decode_text", "line_breaks",
+           "parse_toml"]
 
 TOML_MAX_BYTES = 1 << 20  # a cylinder file or a mapping is a few kB; 1 MiB is far beyond any
 TOML_MAX_LINE = 1 << 16  # characters per line of a TOML file
@@ -31,10 +32,13 @@ class InputFileError(InputError):
     (exit status 2)."""
 
 
-def _kind(mode: int) -> str | None:
-    """What a file that is not a regular file (nor a folder) is, in words; None for a regular file."""
-    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+def file_kind(mode: int) -> str | None:
+    """What a file that is not a regular file is, in words ("a folder", "a device", ...), from
+    its st_mode; None for a regular file."""
+    if stat.S_ISREG(mode):
         return None
+    if stat.S_ISDIR(mode):
+        return "a folder"
     if stat.S_ISFIFO(mode):
         return "a FIFO (named pipe)"
     if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
@@ -52,7 +56,7 @@ def regular_file_size(path: str | os.PathLike[str], what: str, limit: int | None
     st = os.stat(path)  # follows links: a link to /dev/zero is /dev/zero
     if stat.S_ISDIR(st.st_mode):
         raise IsADirectoryError(21, "Is a directory", str(path))
-    kind = _kind(st.st_mode)
+    kind = file_kind(st.st_mode)
     if kind is not None:
         raise InputFileError(f"{path} is {kind}, not {what}; give a regular file.")
     if limit is not None and st.st_size > limit:
@@ -83,7 +87,7 @@ def read_checked(path: str | os.PathLike[str], what: str, error: type[Exception]
     whose size the caller has bounded already."""
     checked_size(path, what, error, limit)
     try:
-        return read_bounded(path, what, limit)
+        return _read_at_most(path, what, limit)
     except InputFileError as e:
         raise error(str(e)) from None
     except OSError as e:
@@ -94,6 +98,11 @@ def read_bounded(path: str | os.PathLike[str], what: str, limit: int | None, lim
     """The bytes of the regular file `path`, at most `limit` of them (a file that grows while it
     is read past the limit is refused too)."""
     regular_file_size(path, what, limit, limit_hint)
+    return _read_at_most(path, what, limit, limit_hint)
+
+
+def _read_at_most(path: str | os.PathLike[str], what: str, limit: int | None, limit_hint: str = "") -> bytes:
+    """The bytes of `path`, checked already to be a regular file (one status a read)."""
     with open(path, "rb") as f:
         data = f.read() if limit is None else f.read(limit + 1)
     if limit is not None and len(data) > limit:
@@ -116,9 +125,14 @@ def decode_text(data: bytes, not_text: Callable[[int, int], Exception] | None = 
     except UnicodeDecodeError as e:
         if not_text is None:
             raise
-        head = data[:e.start]
-        breaks = head.count(b"\n") + (head.count(b"\r") - head.count(b"\r\n") if cr_ends_lines else 0)
-        raise not_text(line0 + breaks, e.start) from None
+        raise not_text(line0 + line_breaks(data[:e.start], cr_ends_lines), e.start) from None
+
+
+def line_breaks(data: bytes, cr_ends_lines: bool = True) -> int:
+    """The line breaks in `data`: each \n, and with `cr_ends_lines` (a CSV) each \r\n and each
+    bare \r too."""
+    n = data.count(b"\n")
+    return n + data.count(b"\r") - data.count(b"\r\n") if cr_ends_lines and b"\r" in data else n
 
 
 def parse_toml(text: str, max_line: int = TOML_MAX_LINE) -> dict:

@@ -302,6 +302,20 @@ def test_parameter_estimated_twice(tmp_path: Path) -> None:
     refused(tmp_path, EXAMPLE + '\n[identify]\nestimate = ["Fc", "Fv", "Fc"]\n', "'identify.estimate'")
 
 
+def test_a_parameter_list_is_judged_by_one_rule_in_the_file_and_on_the_command_line(tmp_path: Path) -> None:
+    """identify.estimate in a cylinder file and --estimate on the command line: the same words
+    after the key's or the option's name (sim.cylinder.parameter_list_problem)."""
+    from combined_reality import options
+
+    for names, after in ((["Fc", "Fv", "Fc"], "names Fc more than once; give each once."),
+                         (["Fc", "bore"], "names unknown parameter 'bore' (estimable: ")):
+        msg = refused(tmp_path, EXAMPLE + f'\n[identify]\nestimate = {names!r}\n'.replace("'", '"'))
+        assert f"key 'identify.estimate' {after}" in msg, msg
+        with pytest.raises(options.OptionError) as e:
+            options.check_estimable(options.parameter_names(",".join(names)), ESTIMABLE)
+        assert str(e.value).startswith(f"--estimate {after}"), str(e.value)
+
+
 def test_bad_drive(tmp_path: Path) -> None:
     refused(tmp_path, EXAMPLE + '\n[identify]\ndrive = "voltage"\n', "'identify.drive'")
 

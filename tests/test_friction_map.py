@@ -320,6 +320,22 @@ def test_command_on_a_points_table(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_a_plot_that_cannot_be_written_says_the_json_is(tmp_path, capsys, monkeypatch):
+    """The plot is written after the JSON: when it fails (here its folder is gone after the
+    outputs were checked), the one line says so, and that the JSON is there."""
+    pytest.importorskip("matplotlib")
+    from combined_reality import cli
+
+    table = _table(tmp_path, _points(CVS(**TABLE3_N2), np.geomspace(1e-3, 0.3, 12)))
+    out, png = tmp_path / "map.json", tmp_path / "gone" / "map.png"
+    monkeypatch.setattr(cli_friction, "check_paths", lambda *a, **kw: None)
+    code = cli.main(["friction-map", str(table), "--model", "cv", "--json", str(out), "--plot", str(png), "-q"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and json.loads(out.read_text())["models"], err
+    assert err.startswith(f"combined-reality friction-map: --plot {png}: cannot write it: the folder does not exist")
+    assert err.endswith(f"; the JSON {out} is written.")
+
+
 def test_command_default_models_skip_what_the_points_cannot_feed(tmp_path, capsys):
     table = _table(tmp_path, _points(CVS(**TABLE3_N2), np.geomspace(1e-3, 0.3, 12)))
     out = tmp_path / "map.json"
@@ -334,12 +350,32 @@ def test_command_default_models_skip_what_the_points_cannot_feed(tmp_path, capsy
     assert set(json.loads(out.read_text())["directions"]["retraction"]["models"]) == {"belforte", "cv_load"}
 
 
+@pytest.mark.parametrize("option, value, says", [
+    ("--min-speed", "-1", "--min-speed must be a positive number, not -1."),
+    ("--spread", "nan", "--spread must be a positive number, not nan."),
+    ("--min-duration", "0", "--min-duration must be a positive number of seconds, not 0."),
+    ("--load", "-5", "--load must be a non-negative force in N, not -5."),
+])
+def test_segment_and_load_options_are_refused_as_parsed(tmp_path, capsys, option, value, says):
+    """The options' rules (combined_reality.options), said as the option is parsed, in the
+    sentence every subcommand with the option says (friction-compare's --load alike)."""
+    from combined_reality import cli
+
+    out = tmp_path / "o.json"
+    assert cli.main(["friction-map", "t.csv", "--json", str(out), option, value]) == 2
+    assert capsys.readouterr().err.strip() == f"combined-reality friction-map: {says}"
+    if option == "--load":
+        assert cli.main(["friction-compare", "t.csv", "--validate", "v.csv", "--config", "c.toml", option,
+                         value]) == 2
+        assert capsys.readouterr().err.strip() == f"combined-reality friction-compare: {says}"
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("argv, fragments", [
     (["{table}", "--model", "cvs,stribeck"], ["unknown model stribeck"]),
     (["{small}", "--model", "cvs"], ["small.csv", "3 points, too few to fit cvs with 4 parameters"]),
     (["{bad}"], ["bad.csv", "line 3", "column 'F'"]),
     (["{tmp}/nope.csv"], ["nope.csv", "not found"]),
-    (["{table}", "--min-speed", "-1"], ["--min-speed must be a positive number"]),
 ])
 def test_command_refuses_bad_input_in_one_sentence(tmp_path, argv, fragments):
     pts = _points(CVS(**TABLE3_N2), np.geomspace(1e-3, 0.3, 8))

@@ -244,7 +244,7 @@ def test_mutated_command_files(workdir, cyl_a, data):
 OPTION_RANGES = {
     ("simulate", "--seed"): (0, 2**32 - 1), ("simulate", "--rate"): (10, 1e5), ("identify", "--interval"): (0, 10),
     ("identify", "--max-iter"): (1, 10_000), ("live", "--rate"): (10, 1e5), ("live", "--duration"): (0, 86_400),
-    ("replay", "--window"): (0, math.inf), ("import", "--resample"): (10, 1e5), ("batch", "--workers"): (1, 1024),
+    ("replay", "--window"): (0, 600), ("import", "--resample"): (10, 1e5), ("batch", "--workers"): (1, 1024),
     ("identify", "--max-rows"): (2, math.inf),
 }
 VALUES = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-2**70, 2**70).map(str),

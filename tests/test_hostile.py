@@ -161,9 +161,10 @@ def _targets(w: Path, device, option: str, the_input: Path) -> dict:
     if device is not None:
         out["a device"] = (device, 2, "is a device")
     if option in ("--report", "--plot"):  # the suffix is checked first: another sentence, the same refusal
-        out["the input"] = (the_input, 2, "")
+        says = "the report is HTML; name it REPORT.html" if option == "--report" else "name the plot with one of"
+        out["the input"] = (the_input, 2, says)
         if device is not None:
-            out["a device"] = (device, 2, "")
+            out["a device"] = (device, 2, says)
     return out
 
 
@@ -373,9 +374,12 @@ def _silent_cases(w: Path) -> dict:
                            out / "l.csv"], 2, "--rate"),
         "batch --scheduler 'not a url'": (["batch", w / "fleet.toml", "--out", out / "b", "--scheduler",
                                            "not a url"], 2, "not a scheduler address"),
-        "calibrate without motion": (["calibrate", "--config", cfg, w / "still.csv", "-q"], 2, "does not move"),
+        "calibrate without motion": (["calibrate", "--config", cfg, w / "still.csv", "-q"], 2,
+                                     "still.csv: this run cannot determine Fc, Fv, kp: the piston does not move"),
         "friction-compare without motion": (["friction-compare", w / "still.csv", "--validate", run, "--config",
-                                             cfg, "-q"], 2, "does not move"),
+                                             cfg, "-q"], 2,
+                                            "still.csv: this run cannot determine Fc, Fv, kp: the piston does not "
+                                            "move"),
         "a cylinder of 10000 [": (["simulate", "--config", w / "deep_cyl.toml", "-o", out / "s.csv"], 2,
                                   "nested too deeply"),
         "import --resample 1e9": (["import", w / "lab.csv", "--map", w / "map.toml", "-o", out / "i.csv",
@@ -451,21 +455,31 @@ def test_the_hostile_corpus_is_refused_in_one_sentence(world, capsys):
     assert counts["hangs"] == counts["internal errors"] == counts["tracebacks"] == 0
 
 
-def test_diagnose_warns_when_valid_is_train(world):
-    from combined_reality.files import check_train_and_valid
-    from sim.cylinder import load_cylinder
+def test_diagnose_warns_when_valid_is_train(world, capsys, monkeypatch):
+    """`diagnose` with VALID holding TRAIN's samples warns, once its input is accepted and
+    before the fits (stubbed here: the warning is what is tested); another VALID draws none."""
+    import combined_reality.diagnose as diagnose_pkg
+    from combined_reality.errors import InputError
 
+    def fits(*a, **kw):
+        raise InputError("the fits would start here.")
+
+    monkeypatch.setattr(diagnose_pkg, "diagnose", fits)
     w, _ = world
-    cyl = load_cylinder(w / "cyl.toml")
-    run, copy = read_run(w / "run.csv"), read_run(w / "other.csv")
-    assert check_train_and_valid(cyl, run, copy, "run.csv", "other.csv") is None
-    said = check_train_and_valid(cyl, run, read_run(w / "run.csv"), "run.csv", "run.csv")
-    assert "holds the same samples" in said and "validate on another run" in said
+    for valid, warned in ((w / "run.csv", True), (w / "other.csv", False)):
+        code, err, _ = _call(["diagnose", w / "run.csv", "--validate", valid, "--config", w / "cyl.toml", "-q"],
+                             capsys)
+        lines = err.strip().splitlines()
+        assert code == 2 and lines[-1] == "combined-reality diagnose: the fits would start here.", err
+        assert lines[:-1] == ([f"combined-reality diagnose: warning: {valid} holds the same samples as "
+                               f"{w / 'run.csv'}: the validation scores the fit on the data it was fitted to, so it "
+                               "cannot tell a real gain from overfitting; validate on another run."] if warned else [])
 
 
-def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cyl_a):
+def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cyl_a, monkeypatch):
     """A 3e38 Pa reading from the rig: recorded and counted as not measured (like NaN), so
-    the summary's samples, the run's and the file's agree, and the recording stays readable."""
+    the summary's samples, the run's and the file's agree, and the recording stays readable.
+    It is judged once, by the session: the recorder writes what the session judged."""
     from hw.rig import Rig, Sample
     from combined_reality.live import run_session
     from combined_reality.live.session import EndOfRun
@@ -489,7 +503,11 @@ def test_a_reading_beyond_physics_is_not_measured_and_counted_alike(tmp_path, cy
         def poll(self): return []
         def finish(self, timeout=30.0, cancelled=None): return []
 
+    judged = []
+    real = runs_module.measured_value
+    monkeypatch.setattr(runs_module, "measured_value", lambda *a: judged.append(a) or real(*a))
     res = run_session(cyl_a, FromList(), estimator=NoEstimator(), record_to=tmp_path / "r.csv")
+    assert judged == []  # the recorder judged nothing again
     back = read_run(tmp_path / "r.csv")
     assert res.counters["samples"] == res.run.n == back.n == 50
     assert res.counters["incomplete"] == 1 and np.isnan(res.run.p1[7]) and np.isnan(back.p1[7])
@@ -614,6 +632,56 @@ def test_a_long_run_is_read_in_bounded_memory_and_located_exactly(tmp_path, monk
         read_run(tmp_path / "r.csv", max_rows=40_000)  # refused by a count of its lines, unparsed
 
 
+def test_a_bounded_read_looks_at_the_file_once(monkeypatch):
+    """sim.inputs.read_checked (cylinder files, mappings, command files) takes the file's
+    status once, to refuse a special or too large file, before it reads it."""
+    import sim.inputs
+    from sim.cylinder import load_cylinder
+
+    seen = []
+    real = os.stat
+    monkeypatch.setattr(sim.inputs.os, "stat", lambda p, *a, **kw: seen.append(str(p)) or real(p, *a, **kw))
+    load_cylinder(CFG)
+    assert seen.count(str(CFG)) == 1
+
+
+def test_a_run_file_is_read_once(tmp_path, monkeypatch):
+    """read_run reads every byte of a run once (its columns sized from the first block, grown if
+    need be; no count of the lines first). More than --max-rows lines are refused with their
+    exact count: unparsed when the first block foretells them, else when a later block passes
+    the limit (the rest counted, not parsed)."""
+    import io
+
+    monkeypatch.setattr(runs_module, "_BLOCK", 8192)
+    got: list[int] = []
+
+    class Counting(io.BufferedReader):
+        def read(self, n=-1):
+            data = super().read(n)
+            got.append(len(data))
+            return data
+
+    monkeypatch.setattr(runs_module, "open", lambda p, mode: Counting(io.FileIO(p, "r")), raising=False)
+    run = _moving_run(40_000)
+    path, long_head = tmp_path / "r.csv", tmp_path / "long_head.csv"
+    write_run(path, run)
+    back = read_run(path)
+    assert sum(got) == path.stat().st_size
+    for name in ("t", "u", "x", "p1", "p2"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(run, name))
+    got.clear()
+    with pytest.raises(RunFormatError, match=r"r.csv: 40001 lines, more than the 39990 .*--max-rows"):
+        read_run(path, max_rows=39_990)  # foretold by the first block: counted, not parsed
+    assert sum(got) == 8192 + path.stat().st_size
+    write_run(long_head, run, comments=["c" * 4000] * 3)  # a first block of long lines foretells few
+    got.clear()
+    with pytest.raises(RunFormatError, match=r"long_head.csv: 40004 lines, more than the 40000 .*--max-rows"):
+        read_run(long_head, max_rows=40_000)
+    assert sum(got) == long_head.stat().st_size
+    got.clear()
+    assert read_run(long_head, max_rows=40_004).n == 40_000 and sum(got) == long_head.stat().st_size
+
+
 @pytest.mark.parametrize("bom", [b"", b"\xef\xbb\xbf"])
 def test_a_byte_order_mark_does_not_move_the_byte_that_is_not_text(tmp_path, bom):
     """A byte that is not UTF-8 at the start of line 3, after a byte order mark or none: each
@@ -622,13 +690,15 @@ def test_a_byte_order_mark_does_not_move_the_byte_that_is_not_text(tmp_path, bom
     from combined_reality.batch import ManifestError, load_manifest
     from combined_reality.importing import MappingError, load_mapping
     from combined_reality.importing.delimited import read_delimited
+    from combined_reality.live.programs import command_file_program
     from sim.cylinder import ConfigError, load_cylinder
 
     head = bom + b"# one\n# two\n\xfc # three\n"
     cases = {"c.toml": (head + (CONFIGS / "cyl_a_32x100.toml").read_bytes(), load_cylinder, ConfigError),
              "fleet.toml": (head, load_manifest, ManifestError),
              "r.csv": (head + b"t,u,x,p1,p2\n", read_run, RunFormatError),
-             "lab.csv": (head, lambda p: read_delimited(p, load_mapping(tmp_path / "m.toml")), MappingError)}
+             "lab.csv": (head, lambda p: read_delimited(p, load_mapping(tmp_path / "m.toml")), MappingError),
+             "cmds.csv": (head + b"t,u\n0,0\n", lambda p: command_file_program(p, load_cylinder(CFG)), ValueError)}
     (tmp_path / "m.toml").write_text(FUZZ_MAPPING.replace("[source]\n", '[source]\nencoding = "utf-8"\n', 1))
     for name, (data, read, error) in cases.items():
         (tmp_path / name).write_bytes(data)

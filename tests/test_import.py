@@ -281,6 +281,20 @@ def test_bad_mappings_and_recordings_are_refused_with_a_located_sentence(tmp_pat
     raw = write_lab_csv(tmp_path / "messung.csv", short_run, preamble="")
     code, err, out = do_import(tmp_path, capsys, raw, edit(EXAMPLE_MAP))
     assert_refused(code, err, *fragments)
+    assert err.strip().endswith(".") and not err.strip().endswith("..")  # the importer's own sentence, one stop
+    assert not out.exists()
+
+
+def test_a_recording_of_too_many_lines_is_refused_by_its_line_count_whatever_ends_its_lines(tmp_path, capsys,
+                                                                                           short_run):
+    """--max-rows bounds a delimited recording's lines (besides the header's search) as it is
+    read, before its text is split: lines that end in a bare \r (old Mac files) count too."""
+    raw = write_lab_csv(tmp_path / "messung.csv", short_run, preamble="")
+    lines = raw.read_text(encoding="cp1252").splitlines()
+    raw.write_text("\r".join(lines) + "\r", encoding="cp1252")
+    limit = 50  # the header may be sought in the first 500 lines: 601 lines are more than 550
+    code, err, out = do_import(tmp_path, capsys, raw, EXAMPLE_MAP, "--max-rows", limit)
+    assert_refused(code, err, f"messung.csv: {len(lines)} lines, more than the {limit} rows a run may have")
     assert not out.exists()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import time
 
 from .. import options
-from .common import (UsageError, add_max_rows, check_paths, eprint, load_config, preflight_runs, progress_printer,
+from .common import (add_max_rows, check_paths, eprint, load_config, preflight_runs, progress_printer,
                      read_runs, typed)
 
 
@@ -26,7 +26,7 @@ def add_parser(sub) -> None:
                    help="a run of the same cylinder no fit sees: the calibrated model is scored on it")
     c.add_argument("--json", metavar="OUT.json", help="write the result (identify format plus valve, stages, "
                                                       "identifiability and validation)")
-    c.add_argument("--report", metavar="REPORT.html",
+    c.add_argument("--report", metavar="REPORT.html", type=typed(options.report_file),
                    help="write a self-contained HTML report: the values against the file's, the valve characteristic "
                         "per direction with its band, the fit of every run, VALID's traces, what the runs could not "
                         "determine and what to record")
@@ -67,21 +67,14 @@ def _table(cal, start) -> str:
 
 def run(args) -> int:
     from ..calibrate import CALIBRATED, CalibrateOptions, calibrate, validation_figures
-    from ..files import check_moves, check_train_and_valid, clean_json, read_run, write_json_atomic
+    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..files.cylinder_file import write_cylinder_file
-    from ..identify import check_determinable, validate
+    from ..identify import validate
 
     check_paths({"--json": args.json, "--write-config": args.write_config, "--report": args.report},
                 inputs=[args.config, *args.runs, args.validate])
-    estimate = CALIBRATED
-    if args.estimate is not None:
-        estimate = args.estimate
-        unknown = [n for n in estimate if n not in CALIBRATED]
-        if unknown:
-            raise UsageError(f"--estimate: {', '.join(unknown)} is not calibrated (calibrated: "
-                             f"{', '.join(CALIBRATED)}).")
-    if args.report and not args.report.lower().endswith((".html", ".htm")):
-        raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
+    estimate = CALIBRATED if args.estimate is None else args.estimate
+    options.check_estimable(estimate, CALIBRATED)
     start = load_config(args.config)
     runs = read_runs(args.runs, args)
     valid = None
@@ -89,11 +82,9 @@ def run(args) -> int:
     if args.validate:
         valid = read_run(args.validate, args.max_rows)
         warning = check_train_and_valid(start, runs[0], valid, args.runs[0], args.validate)
-    # runs without motion, or friction they cannot determine, end before the fit (identify's rules)
-    check_moves(runs, start, "calibration needs motion: record runs with `combined-reality live --program "
-                             "calibration`")
-    preflight_runs(start, runs + ([valid] if valid is not None else []))  # its notes follow no refusal
-    check_determinable(start, runs, [n for n in ("Fc", "Fv", "kp") if n in estimate])
+    # runs without motion, or friction they cannot determine, end before the fit (identify's rules);
+    # its notes follow no refusal
+    preflight_runs(start, runs, estimate, held_out=[valid] if valid is not None else [])
     if warning:
         eprint(f"combined-reality calibrate: warning: {warning}")
     say = progress_printer(args.quiet)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import atexit
 import argparse
-import math
 import re
 import sys
 import threading
@@ -25,7 +24,7 @@ from ..errors import InputError
 
 __all__ = ["UsageError", "OneLineParser", "typed", "check_paths", "add_max_rows", "read_runs", "eprint",
            "progress_printer", "ProgressView", "default_config_path", "load_config", "BUILT_IN", "cylinder_for_runs",
-           "preflight_runs", "parse_effects", "estimate_list", "positive_float", "rerun_mode", "open_rig",
+           "preflight_runs", "parse_effects", "estimate_list", "rerun_mode", "open_rig",
            "EFFECT_HELP"]
 
 EFFECT_HELP = ("an unmodelled effect, e.g. stiction:Fs_excess=8,v_stribeck=0.01 (repeatable; any word of the "
@@ -175,11 +174,11 @@ def cylinder_for_runs(path: str | None, runs: Sequence) -> tuple[Cylinder, str |
         " (the run's header names no cylinder file)")
 
 
-def preflight_runs(cyl: Cylinder, runs: Sequence, estimate: Sequence[str] = ()):
+def preflight_runs(cyl: Cylinder, runs: Sequence, estimate: Sequence[str] = (), held_out: Sequence = ()):
     """identify.preflight (refuses what it is sure of: exit status 2), its notes on stderr."""
     from ..identify import preflight
 
-    found = preflight(cyl, runs, estimate)
+    found = preflight(cyl, runs, estimate, held_out)
     for note in found.notes:
         eprint(f"note: {note}.")
     return found
@@ -235,17 +234,6 @@ def read_runs(paths: Sequence[str], args) -> list:
     runs = [read_run(p, args.max_rows) for p in paths]
     check_distinct_runs(runs, [str(p) for p in paths])
     return runs
-
-
-def positive_float(text: str, what: str) -> float:
-    """A positive, finite number given as text, or a UsageError naming the option."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise UsageError(f"{what} {text}: give a number or max.") from None
-    if not (v > 0 and math.isfinite(v)):
-        raise UsageError(f"{what} must be positive, not {text}.")
-    return v
 
 
 def rerun_mode(words: Sequence[str]) -> tuple[str, str | None]:

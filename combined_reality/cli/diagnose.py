@@ -24,7 +24,8 @@ def add_parser(sub) -> None:
     dg.add_argument("--config", help="cylinder TOML (default: the one TRAIN's header names, else the built-in "
                                      "cylinder A)")
     dg.add_argument("--json", help="write the diagnosis (docs/formats.md)")
-    dg.add_argument("--report", metavar="REPORT.html", help="write a self-contained HTML report with plots")
+    dg.add_argument("--report", metavar="REPORT.html", type=typed(options.report_file),
+                    help="write a self-contained HTML report with plots")
     dg.add_argument("--rerun", nargs="+", default=["off"], metavar="MODE",
                     help="show the diagnosis in Rerun: spawn | connect ADDR | save FILE.rrd | off (default)")
     dg.add_argument("--candidates", help="comma-separated effects to try (default: the whole vocabulary)")
@@ -56,8 +57,6 @@ def run(args) -> int:
     if unknown:
         raise UsageError(f"--candidates: unknown effect {', '.join(unknown)} (known: {', '.join(EFFECTS)}).")
     mode, target = rerun_mode(args.rerun)
-    if args.report and not args.report.lower().endswith((".html", ".htm")):
-        raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     check_paths({"--json": args.json, "--report": args.report, "--rerun save": target if mode == "save" else None},
                 inputs=[args.config, *args.train, args.validate])
     train, valid = [read_run(p, args.max_rows) for p in args.train], read_run(args.validate, args.max_rows)

@@ -47,7 +47,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help=f"model to compare, repeatable or comma-separated (known: {', '.join(known)}; default: "
                         f"all of them except the load models {' and '.join(_LOAD_MODELS)}, which are included "
                         f"only with --load)")
-    p.add_argument("--load", type=float, metavar="N",
+    p.add_argument("--load", type=typed(options.load), metavar="N",
                    help="constant normal load on the seals and guides, N: the load models (cv_load, cvs_load) need "
                         "it, since runs do not record a load and at their default Fn = 0 the load terms do nothing; "
                         "at one constant load those terms are not separable from Fc, Fs, B (see their std)")
@@ -80,24 +80,21 @@ def _compare_models(args) -> list[str]:
 
 
 def run(args) -> int:
-    from ..files import check_moves, check_train_and_valid, clean_json, read_run, write_json_atomic
+    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
     from ..friction import compare_friction_models
     from ..identify import IdentifyOptions
 
     models = _compare_models(args)
-    if args.load is not None and not (math.isfinite(args.load) and args.load >= 0):
-        raise UsageError(f"--load must be a non-negative force in N, not {args.load}.")
     check_paths({"--json": args.json}, inputs=[args.config, args.train, args.validate])
     cyl = load_config(args.config)
     train, valid = read_run(args.train, args.max_rows), read_run(args.validate, args.max_rows)
     warning = check_train_and_valid(cyl, train, valid, args.train, args.validate)
-    check_moves([train], cyl, "friction shows only in motion, so no model has an estimate from it")
-    preflight_runs(cyl, [train, valid])
+    options = IdentifyOptions(max_iter=40)  # no wall-clock limit: the ranking must not depend on load
+    preflight_runs(cyl, [train], options.estimate, held_out=[valid])  # TRAIN must determine the nominal friction
     if warning:
         eprint(f"combined-reality friction-compare: warning: {warning}")
 
     say = (lambda msg: None) if args.quiet else eprint
-    options = IdentifyOptions(max_iter=40)  # no wall-clock limit: the ranking must not depend on load
     workers = min(args.workers, len(models))
     say(f"friction-compare: {len(models)} model(s) identified on {args.train} ({train.duration:.1f} s) and scored on "
         f"{args.validate} ({valid.duration:.1f} s, segments of {args.horizon:g} s), {workers} worker(s)")

@@ -12,9 +12,10 @@ import argparse
 import math
 import os
 
+from .. import options
 from ..friction.specs import FIT_SPECS, PARSIMONY, PLOT_FORMATS, FrictionMapError, SegmentOptions
 from .common import (UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint, preflight_runs,
-                     progress_printer)
+                     progress_printer, typed)
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -35,14 +36,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                     "else the built-in cylinder A)")
     p.add_argument("--json", required=True, metavar="OUT.json", help="write the map and the fits")
     p.add_argument("--plot", metavar="OUT.png", help="plot the map with the fitted curves (needs matplotlib)")
-    p.add_argument("--min-duration", type=float, default=SegmentOptions.min_duration,
+    p.add_argument("--min-duration", type=typed(options.positive_seconds, "--min-duration"),
+                   default=SegmentOptions.min_duration,
                    help=f"shortest constant-velocity stretch of a run, s (default {SegmentOptions.min_duration:g})")
-    p.add_argument("--min-speed", type=float, default=SegmentOptions.min_speed,
+    p.add_argument("--min-speed", type=typed(options.positive_number, "--min-speed"), default=SegmentOptions.min_speed,
                    help=f"slowest sustained motion that makes a point, m/s (default {SegmentOptions.min_speed:g})")
-    p.add_argument("--spread", type=float, default=SegmentOptions.spread,
+    p.add_argument("--spread", type=typed(options.positive_number, "--spread"), default=SegmentOptions.spread,
                    help=f"largest relative change and spread of the velocity trend within a stretch "
                         f"(default {SegmentOptions.spread:g})")
-    p.add_argument("--load", type=float, metavar="N",
+    p.add_argument("--load", type=typed(options.load), metavar="N",
                    help="constant normal load of the runs, N (for the load models cv_load, cvs_load)")
     add_max_rows(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
@@ -62,7 +64,7 @@ def _model_names(args) -> tuple[list[str] | None, bool]:
 
 
 def run(args) -> int:
-    from ..files import clean_json, read_run, write_json_atomic
+    from ..files import OutputError, WriteError, clean_json, read_run, write_json_atomic
     from ..friction import build_map, is_points_table, plot_map, points_from_run, read_points
 
     models, explicit = _model_names(args)
@@ -70,12 +72,7 @@ def run(args) -> int:
         raise UsageError(f"--plot {args.plot}: name the plot with one of the suffixes "
                          f"{', '.join('.' + f for f in PLOT_FORMATS)} (it says the image format).")
     check_paths({"--json": args.json, "--plot": args.plot}, inputs=[args.config, *args.inputs])
-    try:
-        options = SegmentOptions(min_duration=args.min_duration, min_speed=args.min_speed, spread=args.spread)
-    except FrictionMapError as e:
-        raise UsageError(f"{str(e).rstrip('.').replace('min_', '--min-').replace('spread', '--spread')}.") from None
-    if args.load is not None and not (math.isfinite(args.load) and args.load >= 0):
-        raise UsageError(f"--load must be a non-negative force in N, not {args.load}.")
+    segments = SegmentOptions(min_duration=args.min_duration, min_speed=args.min_speed, spread=args.spread)
     say = (lambda msg: None) if args.quiet else eprint
 
     cyl, which = None, None
@@ -96,7 +93,7 @@ def run(args) -> int:
         if which:  # once the run is accepted: a refusal stays the only line
             say(which)
             which = None
-        rp = points_from_run(cyl, run_, options, load=args.load)
+        rp = points_from_run(cyl, run_, segments, load=args.load)
         points.extend(rp.points)
         breakaways.extend(rp.breakaways)
         stuck_time = (stuck_time or 0.0) + rp.stuck_time
@@ -112,12 +109,12 @@ def run(args) -> int:
         raise UsageError(f"{inputs}: only breakaway rows, no sliding points; give the map a sweep's points table "
                          f"or a recorded run beside the breakaway table.")
     if not points:
-        raise UsageError(f"{inputs}: no constant-velocity stretch found (at least {options.min_duration:g} s above "
-                         f"{options.min_speed:g} m/s within {options.spread:.0%} velocity spread); record moves at "
+        raise UsageError(f"{inputs}: no constant-velocity stretch found (at least {segments.min_duration:g} s above "
+                         f"{segments.min_speed:g} m/s within {segments.spread:.0%} velocity spread); record moves at "
                          f"constant speed or relax --min-duration / --spread.")
     try:
         fmap = build_map(points, models, breakaways, stuck_speed=max(stuck_speeds) if stuck_speeds else None,
-                         stuck_time=stuck_time, min_speed=options.min_speed if runs_json else None, strict=explicit,
+                         stuck_time=stuck_time, min_speed=segments.min_speed if runs_json else None, strict=explicit,
                          progress=progress_printer(args.quiet))
     except FrictionMapError as e:
         raise UsageError(f"{inputs}: {e}") from None
@@ -132,9 +129,9 @@ def run(args) -> int:
     if cyl is not None:
         out["config"] = str(cyl.source) if cyl.source else None
         out["runs"] = runs_json
-        out["segment_options"] = {"min_duration": options.min_duration, "min_speed": options.min_speed,
-                                  "spread": options.spread, "stuck_speed": max(stuck_speeds),
-                                  "stuck_duration": options.stuck_duration}
+        out["segment_options"] = {"min_duration": segments.min_duration, "min_speed": segments.min_speed,
+                                  "spread": segments.spread, "stuck_speed": max(stuck_speeds),
+                                  "stuck_duration": segments.stuck_duration}
     write_json_atomic(args.json, clean_json(out))
     say(f"wrote {args.json}")
     if args.plot:
@@ -143,10 +140,9 @@ def run(args) -> int:
         except FrictionMapError as e:
             eprint(f"combined-reality friction-map: {e}")
             return 1
-        except OSError as e:
-            eprint(f"combined-reality friction-map: --plot {args.plot}: cannot be written ({e.strerror or e}); "
-                    f"the JSON is written.")
-            return 1
+        except (OutputError, WriteError) as e:  # atomic_write's sentence, with what is there
+            eprint(f"combined-reality friction-map: --plot {str(e).rstrip('.')}; the JSON {args.json} is written.")
+            return e.exit_status
         say(f"wrote {args.plot}")
     return 0
 

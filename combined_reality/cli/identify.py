@@ -21,7 +21,7 @@ def add_parser(sub) -> None:
     i.add_argument("--config", required=True, help="cylinder TOML file (its values are the starting point)")
     i.add_argument("runs", nargs="+", metavar="RUN.csv", help="recorded runs")
     i.add_argument("--json", help="write the result as JSON (docs/formats.md)")
-    i.add_argument("--report", metavar="REPORT.html",
+    i.add_argument("--report", metavar="REPORT.html", type=typed(options.report_file),
                    help="write a self-contained HTML report: measured vs simulated per run, the errors against time, "
                         "velocity and position, the friction law found, the iterations")
     i.add_argument("--estimate", type=typed(options.parameter_names),
@@ -91,8 +91,6 @@ def run(args) -> int:
     runs = read_runs(args.runs, args)
     drive = args.drive or cyl.identify.drive
     check_drive(drive, estimate)
-    if args.report and not args.report.lower().endswith((".html", ".htm")):
-        raise UsageError(f"--report {args.report}: the report is HTML; name it REPORT.html.")
     opts = IdentifyOptions(drive=drive, estimate=estimate, interval_s=args.interval, max_iter=args.max_iter,
                            prefit=not args.no_prefit)
     preflight_runs(cyl, runs, estimate)  # before any progress line: a refusal is the only line on stderr

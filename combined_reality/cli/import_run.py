@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .. import options
-from .common import UsageError, add_max_rows, check_paths, eprint, progress_printer, typed
+from .common import add_max_rows, check_paths, eprint, progress_printer, typed
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -36,16 +36,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def run(args) -> int:
     from ..files import clean_json, write_json_atomic, write_run
-    from ..importing import MappingError, import_recording, load_mapping
+    from ..importing import import_recording, load_mapping
 
     rate = args.resample
     check_paths({"-o": args.output, "--json": args.json}, inputs=[args.raw, args.map])
     say = progress_printer(args.quiet)
-    try:
-        mapping = load_mapping(args.map)
-        result = import_recording(args.raw, mapping, rate, max_rows=args.max_rows)
-    except MappingError as e:
-        raise UsageError(str(e).rstrip(".") + ".") from None
+    mapping = load_mapping(args.map)  # a MappingError is bad input (exit status 2), its sentence ends in one stop
+    result = import_recording(args.raw, mapping, rate, max_rows=args.max_rows)
     write_run(args.output, result.run, comments=result.comments)
     for warning in result.warnings:  # said also with -q: the run may be wrong though it was written
         eprint(f"combined-reality import: warning: {warning}.")

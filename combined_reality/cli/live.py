@@ -10,7 +10,7 @@ from pathlib import Path
 from .. import options
 from ..live.catalogue import DESCRIPTIONS
 from .common import (BUILT_IN, EFFECT_HELP, UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint,
-                     estimate_list, load_config, open_rig, parse_effects, positive_float, preflight_runs, rerun_mode,
+                     estimate_list, load_config, open_rig, parse_effects, preflight_runs, rerun_mode,
                      typed)
 
 
@@ -66,7 +66,8 @@ def add_parsers(sub) -> None:
                                     "model simulated with the recorded command, the online estimate, the console "
                                     "and Rerun views.")
     rp.add_argument("run", help="recorded run CSV")
-    rp.add_argument("--speed", default="1", help="1 = real time, 2 = twice as fast, max = as fast as possible")
+    rp.add_argument("--speed", type=typed(options.replay_speed), default=1.0,
+                    help="1 = real time, 2 = twice as fast, max = as fast as possible")
     add_max_rows(rp)
     _add_online_arguments(rp)
     rp.set_defaults(func=run_replay)
@@ -107,7 +108,7 @@ def run_replay(args) -> int:
     from ..files import read_run
     from ..live import Console, ReplayRig
 
-    speed = math.inf if args.speed == "max" else positive_float(args.speed, "--speed")
+    speed = args.speed
     _check_outputs(args, None, [args.config, args.run])
     run = read_run(args.run, args.max_rows)
     cyl, which = cylinder_for_runs(args.config, [run])

@@ -4,7 +4,7 @@ before the work (outputs) and atomic writing of every output.
 
 Cylinder files themselves are parsed where their parameters live (sim.cylinder)."""
 from .atomic import atomic_write, atomic_writer, clean_json, write_json_atomic, write_text_atomic
-from .checks import (check_distinct_runs, check_moves, check_run_against_cylinder, check_train_and_valid, run_name,
+from .checks import (check_distinct_runs, check_run_against_cylinder, check_train_and_valid, run_name,
                      same_data)
 from .outputs import OutputError, WriteError, check_outputs, os_error, refuse_special
 from .plausibility import first_implausible, measured_value, time_unit_problem
@@ -13,7 +13,7 @@ from .runs import (MAX_ROWS, MEASURED_CHANNELS, REQUIRED_COLUMNS, Run, RunFormat
                    split_at_gaps, write_run)
 
 __all__ = ["atomic_write", "atomic_writer", "clean_json", "write_json_atomic", "write_text_atomic",
-           "check_distinct_runs", "check_moves", "check_run_against_cylinder", "check_train_and_valid", "run_name",
+           "check_distinct_runs", "check_run_against_cylinder", "check_train_and_valid", "run_name",
            "same_data", "OutputError", "WriteError", "check_outputs", "os_error", "refuse_special", "first_implausible",
            "measured_value", "time_unit_problem", "MAX_ROWS", "MEASURED_CHANNELS", "REQUIRED_COLUMNS", "Run",
            "RunFormatError", "RunRecorder", "cylinder_identity", "cylinder_tag", "read_run", "recorded_cylinder",

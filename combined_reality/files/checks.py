@@ -19,7 +19,7 @@ from .runs import GEOMETRY, Run, RunFormatError, recorded_cylinder, recorded_fil
 
 __all__ = ["check_run_against_cylinder", "check_run_shape", "check_supply", "check_pressures_absolute", "supply_seen",
            "check_train_and_valid", "run_name", "header_geometry", "header_cylinder_file", "GAUGE_FIX", "same_data",
-           "check_distinct_runs", "check_moves"]
+           "check_distinct_runs"]
 
 # how gauge readings become absolute, for every message that suspects them
 GAUGE_FIX = "add the atmosphere to them (or set gauge = true for them in the import map)"
@@ -217,20 +217,6 @@ def supply_seen(run: Run) -> tuple[float, int] | None:
     idx = np.flatnonzero(rest)
     # the chamber is still filling at first: the upper part of its values is the plateau
     return float(np.percentile(filled[idx], 90)), int(idx[0])
-
-
-_STILL = 0.005  # of the stroke: a piston whose position spans less has not moved
-
-
-def check_moves(runs: Sequence[Run], cyl: Cylinder, advice: str) -> None:
-    """Refuse runs in which the piston never moves (its position spans less than 0.5 % of the
-    stroke): nothing that shows only in motion can be fitted to them. `advice` ends the
-    sentence ('...; {advice}.')."""
-    span = max((float(np.nanmax(r.x) - np.nanmin(r.x)) for r in runs if np.isfinite(r.x).any()), default=0.0)
-    if span < _STILL * cyl.geometry.stroke:
-        names = ", ".join(str(r.source.name) if r.source is not None else "the run" for r in runs)
-        raise RunFormatError(f"{names}: the piston does not move (its position spans {span * 1e6:.3g} um of the "
-                             f"{cyl.geometry.stroke:g} m stroke); {advice}.")
 
 
 def _digest(run: Run) -> bytes:

@@ -17,9 +17,10 @@ from __future__ import annotations
 import errno
 import os
 import secrets
-import stat
 from pathlib import Path
 from typing import Iterable, Mapping
+
+from sim.inputs import file_kind
 
 from ..errors import InputError, ToolFailure
 
@@ -63,18 +64,6 @@ def os_error(e: OSError, path: PathLike, flag: str | None = None,
     return OutputError(msg) if theirs else WriteError(msg)
 
 
-def _special(mode: int) -> str | None:
-    if stat.S_ISREG(mode):
-        return None
-    if stat.S_ISDIR(mode):
-        return "a folder"
-    if stat.S_ISFIFO(mode):
-        return "a FIFO (named pipe)"
-    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
-        return "a device"
-    return "not a regular file"
-
-
 def write_target(path: PathLike) -> Path:
     """Where writing `path` lands: a symbolic link is written through (the file it points to is
     replaced, the link kept), like a shell's redirection."""
@@ -89,7 +78,7 @@ def refuse_special(path: PathLike, flag: str | None = None) -> None:
         st = os.stat(path)
     except OSError:
         return
-    kind = _special(st.st_mode)
+    kind = file_kind(st.st_mode)
     if kind is not None:
         who = f"{flag} {path}" if flag else str(path)
         hint = "; give a file name inside it" if kind == "a folder" else "; the tool writes only regular files"

@@ -27,7 +27,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from sim.inputs import checked_size, decode_text, shorten
+from sim.inputs import checked_size, decode_text, line_breaks, shorten
 
 from ..errors import InputError
 from ..options import MAX_ROWS
@@ -174,13 +174,11 @@ def read_run(path: str | os.PathLike[str], max_rows: int = MAX_ROWS) -> Run:
             where += f", column '{shorten(column)}'"
         return RunFormatError(f"{where}: {msg}")
 
-    _regular_size(path, max_rows)
+    size = _regular_size(path, max_rows)
     with open(path, "rb") as f:
-        upper = _count_lines(f, path, max_rows, fail)
-        f.seek(0)
         text_columns: frozenset[str] = frozenset()
         while True:
-            reader = _RunReader(path, f, upper, fail, text_columns)
+            reader = _RunReader(path, f, size, max_rows, fail, text_columns)
             try:
                 reader.read()
                 return reader.run(f)
@@ -197,40 +195,49 @@ def _regular_size(path: Path, max_rows: int) -> int:
     return size
 
 
-def _count_lines(f, path: Path, max_rows: int, fail: _Fail) -> int:
-    """An upper bound of the rows (line breaks + 1), after refusing more than max_rows lines."""
-    n = r = 0
-    while block := f.read(_BLOCK):
-        n += block.count(b"\n")
-        if b"\r" in block:
-            r += block.count(b"\r")
-    lines = max(n, r)
-    if lines > max_rows:
-        raise fail(f"{lines} lines, more than the {max_rows} a run file may have (--max-rows raises the limit).")
-    return n + r + 1
+def _lines_through(line0: int, block: bytes, breaks: int) -> int:
+    """The lines of the file up to the end of this block (the last one may lack its break)."""
+    return line0 - 1 + breaks + (not block.endswith((b"\n", b"\r")))
 
 
-def _line_breaks(data: bytes) -> int:
-    n = data.count(b"\n")
-    return n + data.count(b"\r") - data.count(b"\r\n") if b"\r" in data else n
+def _too_many(lines: int, max_rows: int, fail: _Fail) -> RunFormatError:
+    return fail(f"{lines} lines, more than the {max_rows} a run file may have (--max-rows raises the limit).")
 
 
-def _blocks(f, fail: _Fail):
+def _count_to_end(blocks, lines: int) -> int:
+    """`lines` so far and those of the blocks still to come (read, not parsed)."""
+    for _, line0, block, breaks in blocks:
+        lines = _lines_through(line0, block, breaks)
+    return lines
+
+
+def _count_lines(f) -> int:
+    """The lines of the file from its start, read piece by piece and not kept."""
+    f.seek(0)
+    breaks, last, after_cr = 0, b"", False
+    while data := f.read(_BLOCK):
+        breaks += line_breaks(data) - (after_cr and data.startswith(b"\n"))  # \r\n across two pieces
+        after_cr, last = data.endswith(b"\r"), data[-1:]
+    return breaks + (last not in (b"", b"\n", b"\r"))
+
+
+def _blocks(f, fail: _Fail, first: bytes | None = None):
     """(byte offset, first line, bytes, line breaks) of whole lines, about _BLOCK bytes at a
-    time; a line longer than MAX_LINE is refused. A block ends after a line break, or at the
-    end of the file."""
+    time (`first`: the file's first bytes, already read); a line longer than MAX_LINE is
+    refused. A block ends after a line break, or at the end of the file."""
     offset, line, rest = 0, 1, b""
     while True:
-        chunk = f.read(_BLOCK)
+        chunk = f.read(_BLOCK) if first is None else first
+        first = None
         data = rest + chunk
         if not chunk:
             if data:
-                yield offset, line, data, _line_breaks(data)
+                yield offset, line, data, line_breaks(data)
             return
         end = len(data) - 1 if data.endswith(b"\r") else len(data)  # \r\n must stay together
         cut = max(data.rfind(b"\n", 0, end), data.rfind(b"\r", 0, end))
         block, rest = data[:cut + 1], data[cut + 1:]
-        breaks = _line_breaks(block)
+        breaks = line_breaks(block)
         if len(rest) > MAX_LINE:
             raise fail(f"longer than {MAX_LINE} bytes: not a line of a run CSV.", line + breaks)
         if block:
@@ -273,27 +280,77 @@ class _Block:
     linenos: np.ndarray | None  # the line of each row; None: every line of the block is a row
 
 
-class _RunReader:
-    """One pass over a run file: the header, then the rows block by block into columns
-    allocated once (upper: a bound of the row count), a block of plain numbers parsed at C
-    speed, anything else line by line with the exact line and column of a problem."""
+class _Column:
+    """A column filled block by block: sized at first from an estimate of the rows, grown in
+    place when the estimate falls short (ndarray.resize: realloc, which moves a large array's
+    pages without copying them), cut to its rows at the end. Rows not yet written cost no
+    memory."""
 
-    def __init__(self, path: Path, f, upper: int, fail: _Fail, text_columns: frozenset[str] = frozenset()):
-        self.path, self.f, self.upper, self.fail = path, f, upper, fail
+    def __init__(self, capacity: int, dtype=np.float64):
+        self.a = np.zeros(capacity, dtype) if dtype is bool else np.empty(capacity, dtype)
+
+    def put(self, at: int, values: np.ndarray) -> None:
+        end = at + len(values)
+        if end > self.a.size:
+            self.a.resize(max(end, self.a.size + self.a.size // 2), refcheck=False)  # no view of it is held
+        self.a[at:end] = values
+
+    def cut(self, n: int) -> np.ndarray:
+        self.a.resize(n, refcheck=False)
+        return self.a
+
+
+class _RunReader:
+    """One pass over a run file: the header, then the rows block by block into columns sized
+    from the first block (the rows its size foretells), a block of plain numbers parsed at C
+    speed, anything else line by line with the exact line and column of a problem. More than
+    max_rows lines are refused: unparsed when the first block foretells it (the lines counted
+    first), else as soon as a block passes the limit (the rest counted, not parsed)."""
+
+    def __init__(self, path: Path, f, size: int, max_rows: int, fail: _Fail,
+                 text_columns: frozenset[str] = frozenset()):
+        self.path, self.f, self.size, self.max_rows, self.fail = path, f, size, max_rows, fail
         self.text_columns = text_columns
+        self.capacity = 0
         self.names: list[str] | None = None
         self.header_line = 0
         self.comments: list[str] = []
         self.n = 0
         self.blank: int | None = None  # a blank line after the header, refused if anything follows it
         self.blocks: list[_Block] = []
-        self.numeric: dict[str, np.ndarray] = {}
+        self.numeric: dict[str, _Column] = {}
         self.text: dict[str, list[np.ndarray]] = {}
-        self.empty: dict[str, np.ndarray] = {}
+        self.empty: dict[str, _Column] = {}
         self.last_line = 0
 
+    def _first(self) -> bytes:
+        """The first block, and from it the columns' size; a file that it foretells to be longer
+        than max_rows lines has its lines counted before any is parsed (refused if so)."""
+        head = self.f.read(_BLOCK)
+        lines = line_breaks(head) + 1
+        if len(head) < _BLOCK:
+            self.capacity = lines
+            return head
+        foretold = math.ceil(self.size * lines / len(head))
+        if foretold > self.max_rows:
+            del head  # the count reads the file again from its start, holding one piece at a time
+            total = _count_lines(self.f)
+            if total > self.max_rows:
+                raise _too_many(total, self.max_rows, self.fail)
+            self.f.seek(0)
+            head = self.f.read(_BLOCK)
+            foretold = total
+        self.capacity = min(self.max_rows, foretold + foretold // 20) + 1
+        return head
+
     def read(self) -> None:
-        for offset, line0, block, breaks in _blocks(self.f, self.fail):
+        blocks = _blocks(self.f, self.fail, self._first())
+        for offset, line0, block, breaks in blocks:
+            lines = _lines_through(line0, block, breaks)
+            if lines > self.max_rows:
+                self.numeric.clear()
+                self.empty.clear()
+                raise _too_many(_count_to_end(blocks, lines), self.max_rows, self.fail)
             if self.names is None or not self._plain(offset, line0, block, breaks):
                 self._lines(offset, line0, block)
         if self.names is None:
@@ -313,7 +370,7 @@ class _RunReader:
             if name in self.text_columns:
                 self.text[name] = []
             else:
-                self.numeric[name] = np.empty(self.upper)
+                self.numeric[name] = _Column(self.capacity)
 
     def _plain(self, offset: int, line0: int, block: bytes, breaks: int) -> bool:
         """Parse a block of nothing but rows of plain numbers at C speed; False if it is not one
@@ -394,17 +451,15 @@ class _RunReader:
     def _mark_empty(self, name: str, mask: np.ndarray, at: int) -> None:
         if mask.any():
             if name not in self.empty:
-                self.empty[name] = np.zeros(self.upper, bool)
-            self.empty[name][at:at + mask.size] = mask
+                self.empty[name] = _Column(self.capacity, bool)
+            self.empty[name].put(at, mask)
 
     def _store(self, columns: dict[str, np.ndarray], k: int) -> None:
-        if self.n + k > self.upper:  # more lines than counted a moment ago
-            raise self.fail("the file grew while it was read; read it when its writer has finished.")
         for name, col in columns.items():
             if name in self.text:
                 self.text[name].append(col)
             else:
-                self.numeric[name][self.n:self.n + k] = col
+                self.numeric[name].put(self.n, col)
         self.n += k
 
     def row(self, f, i: int) -> tuple[int, str]:
@@ -417,9 +472,9 @@ class _RunReader:
 
     def run(self, f) -> Run:
         names, n, fail = self.names, self.n, self.fail
-        columns = {name: (np.concatenate(self.text[name]) if name in self.text else self.numeric[name][:n])
+        columns = {name: (np.concatenate(self.text[name]) if name in self.text else self.numeric[name].cut(n))
                    for name in names}
-        empty = {name: mask[:n] for name, mask in self.empty.items()}
+        empty = {name: mask.cut(n) for name, mask in self.empty.items()}
 
         def cell(i: int, name: str) -> tuple[int, str]:
             lineno, text = self.row(f, i)
@@ -703,8 +758,12 @@ def _comment_lines(comments: Iterable[str]) -> str:
 def _cell(name: str, value: float | None) -> str:
     """A measured value as a cell: empty when it was not measured (None), is not finite or is
     beyond what a reading can be (files.plausibility.measured_value)."""
-    v = measured_value(name, value)
-    return "" if v != v else repr(v)
+    return _checked_cell(name, measured_value(name, value))
+
+
+def _checked_cell(name: str, value: float | None) -> str:
+    """A value measured_value has judged already: empty when not measured (NaN or None)."""
+    return "" if value is None or value != value else repr(float(value))
 
 
 class RunRecorder:
@@ -737,7 +796,10 @@ class RunRecorder:
         self._write((_comment_lines(comments or ()) + _join(names) + "\n").encode("utf-8"))
 
     def append(self, t: float, u: float, x: float | None, p1: float | None, p2: float | None,
-               ps: float | None = None) -> None:
+               ps: float | None = None, *, checked: bool = False) -> None:
+        """One sample as one line. `checked`: x, p1, p2 (and ps) have been through
+        files.plausibility.measured_value already (NaN: not measured), so they are written as
+        they are, without judging them again (a live session's samples)."""
         if self._error is not None:
             raise self._error
         if self._f.closed:
@@ -748,9 +810,10 @@ class RunRecorder:
         if not (math.isfinite(t) and math.isfinite(u)):
             raise ValueError(f"RunRecorder for {self.path}: the time and the command of a sample must be finite "
                              f"(got t={t!r}, u={u!r}).")
-        cells = [repr(t), repr(u), _cell("x", x), _cell("p1", p1), _cell("p2", p2)]
+        cell = _checked_cell if checked else _cell
+        cells = [repr(t), repr(u), cell("x", x), cell("p1", p1), cell("p2", p2)]
         if self.with_ps:
-            cells.append(_cell("ps", ps))
+            cells.append(cell("ps", ps))
         self._write((",".join(cells) + "\n").encode("ascii"))
         self.n += 1
 

@@ -150,14 +150,16 @@ class Preflight:
     figures: tuple[dict, ...] = field(default=(), repr=False)
 
 
-def preflight(cyl: Cylinder, runs: Sequence[Run], estimate: Sequence[str] = ()) -> Preflight:
-    """Check that every run can belong to `cyl` (files.checks: channels, header, stroke, gauge
-    chambers; the motion's directions; then the supply, which needs the directions right)
-    and, with `estimate`, that the runs can determine those parameters (check_determinable).
+def preflight(cyl: Cylinder, runs: Sequence[Run], estimate: Sequence[str] = (),
+              held_out: Sequence[Run] = ()) -> Preflight:
+    """Check that every run (those fitted, then those `held_out` of the fit, e.g. a validation
+    run) can belong to `cyl` (files.checks: channels, header, stroke, gauge chambers; the
+    motion's directions; then the supply, which needs the directions right) and, with
+    `estimate`, that the fitted runs can determine those parameters (check_determinable).
     Raises RunFormatError / ConfigError on what it is sure of; returns the notes."""
     notes: list[str] = []
     figures = []
-    for run in runs:
+    for run in (*runs, *held_out):
         notes += check_run_shape(run, cyl)
         fig = direction_figures(run, cyl)
         figures.append(fig)

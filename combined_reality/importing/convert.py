@@ -16,7 +16,6 @@ from sim.inputs import checked_size, shorten
 
 from ..files import Run, first_implausible, time_unit_problem
 from ..options import MAX_ROWS
-from .delimited import HEADER_SEARCH_LINES as _HEADER_LINES
 from .mapping import PRESSURES, ImportMapping, MappingError, format_of
 from .raw import RawTable
 from .sampling import SamplingReport, resample, sampling_report
@@ -60,7 +59,7 @@ def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate
     path = Path(raw_path)
     fmt = format_of(path, mapping.source)
     _check_recording(path, mapping, fmt, max_rows)
-    raw = reader(fmt)(path, mapping)
+    raw = reader(fmt)(path, mapping, *((max_rows,) if fmt == "csv" else ()))  # text: its lines bounded as read
     n = max((len(v) for v in raw.columns.values()), default=0)
     if n > max_rows:
         raise MappingError(f"{path}: {n} samples, more than the {max_rows} a run may have (--max-rows raises the "
@@ -108,8 +107,9 @@ def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate
 
 def _check_recording(path: Path, mapping: ImportMapping, fmt: str, max_rows: int) -> None:
     """A regular file (a device or FIFO refused before it is opened: /dev/zero would never end,
-    a FIFO without a writer never start), and for text at most `max_rows` lines; a CAN log's
-    database likewise."""
+    a FIFO without a writer never start) of at most `max_rows` rows of 1 kB, and a CAN log's
+    database a regular file too. Delimited text has its lines bounded by its reader, which
+    reads it once."""
     files = [(path, "a recording")]
     if fmt == "can" and mapping.source.dbc is not None:
         files.append((mapping.source.dbc, "a DBC file"))
@@ -119,14 +119,6 @@ def _check_recording(path: Path, mapping: ImportMapping, fmt: str, max_rows: int
             raise MappingError(f"{p}: {size / 2**20:.4g} MiB, more than {max_rows} rows (--max-rows) of "
                                f"{_RECORDING_MAX_BYTES_PER_ROW} bytes would fill; raise --max-rows for a longer "
                                "recording.")
-    if fmt == "csv":
-        lines = 0
-        with open(path, "rb") as f:
-            while block := f.read(8 << 20):
-                lines += block.count(b"\n")
-        if lines > max_rows + _HEADER_LINES:
-            raise MappingError(f"{path}: {lines} lines, more than the {max_rows} rows a run may have (--max-rows "
-                               "raises the limit).")
 
 
 def _warnings(mapping: ImportMapping, columns: dict[str, np.ndarray]) -> list[str]:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.inputs import decode_text, read_checked, shorten
+from sim.inputs import decode_text, line_breaks, read_checked, shorten
 
 from .mapping import ImportMapping, MappingError
 from .raw import RawTable, require_column_time
@@ -22,10 +22,12 @@ HEADER_SEARCH_LINES = 500  # the column names must be within the first lines
 _COMMA_DECIMAL = re.compile(r"^\s*[-+]?\d*,\d+([eE][-+]?\d+)?\s*$")
 
 
-def read_delimited(path: Path, mapping: ImportMapping) -> RawTable:
+def read_delimited(path: Path, mapping: ImportMapping, max_rows: int | None = None) -> RawTable:
+    """The mapped columns of delimited text; with `max_rows`, a file of more lines than that
+    (and the header's search) is refused before its text is split."""
     opts = mapping.source
     require_column_time(mapping, "column")
-    lines, encoding = _lines(path, opts.encoding)
+    lines, encoding = _lines(path, opts.encoding, max_rows)
     wanted = mapping.source_names()
     header_index, delimiter = _find_header(path, lines, wanted, opts.header_line, opts.delimiter)
     names = _split(lines[header_index], delimiter)
@@ -59,8 +61,12 @@ def read_delimited(path: Path, mapping: ImportMapping) -> RawTable:
                              f"decimal {decimal!r}, encoding {encoding}")
 
 
-def _lines(path: Path, encoding: str | None) -> tuple[list[str], str]:
+def _lines(path: Path, encoding: str | None, max_rows: int | None) -> tuple[list[str], str]:
     data = read_checked(path, "a recording", MappingError, None)  # its size bounded by import_recording
+    lines = line_breaks(data) + (not data.endswith((b"\n", b"\r")))
+    if max_rows is not None and lines > max_rows + HEADER_SEARCH_LINES:
+        raise MappingError(f"{path}: {lines} lines, more than the {max_rows} rows a run may have (--max-rows "
+                           "raises the limit).")
     if encoding is None:  # UTF-8, else what Windows DAQ programs write (the header must still match exactly)
         try:
             return _text_lines(path, decode_text(data)), "utf-8"

@@ -14,7 +14,7 @@ import numpy as np
 
 from sim.cylinder import Cylinder
 from sim.flow import R_AIR, RHO0, T0
-from sim.inputs import read_checked, shorten
+from sim.inputs import decode_text, read_checked, shorten
 
 from ..files.plausibility import COMMAND_LIMIT
 from .catalogue import PROGRAMS
@@ -149,11 +149,11 @@ def pulse_program(cyl: Cylinder, duration: float, seed: int = 0,
 def command_file_program(path, cyl: Cylinder, options: ProgramOptions = ProgramOptions()) -> HeldCommandProgram:
     """Commands from a CSV file with columns t and u (u within [-1, 1]: a command beyond is
     refused, never bounded silently; the program's own bound still applies)."""
-    try:
-        text = read_checked(path, "a command file", ValueError, COMMAND_FILE_MAX_BYTES).decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not UTF-8 text (a command file is a CSV with columns t and u).") from None
-    rows = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
+    text = decode_text(read_checked(path, "a command file", ValueError, COMMAND_FILE_MAX_BYTES),
+                       lambda line, _: ValueError(f"{path}, line {line}: not UTF-8 text (a command file is a CSV "
+                                                  "with columns t and u)."), cr_ends_lines=True)
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")  # the lines decode_text counts
+    rows = [(n, ln) for n, ln in enumerate(lines, 1) if ln.strip() and not ln.lstrip().startswith("#")]
     if not rows:
         raise ValueError(f"{path}: holds no commands (a command file is a CSV with columns t and u).")
     names = [c.strip() for c in rows[0][1].split(",")]

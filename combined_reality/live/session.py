@@ -625,7 +625,7 @@ class _Recording:
                 self._ps_unrecorded = True
                 self.event(f"the rig reports supply pressure from t = {t:.3f} s (rig clock) on; the recording "
                            "began without it and leaves it out")
-            self.recorder.append(t, u, x, p1, p2, ps if self.recorder.with_ps else None)
+            self.recorder.append(t, u, x, p1, p2, ps if self.recorder.with_ps else None, checked=True)
         for c, v in zip(self.cols, (t, u, x, p1, p2, math.nan if ps is None else ps)):
             c.append(v)
 
