@@ -25,9 +25,9 @@ caps the durations it is run for). --replay and --calibrate measure `replay --sp
 
 The targets: peak memory of identify at 3600 s <= 1 GB, time growing no worse than linearly
 (CPU time / duration relative to the shortest case <= 1, allowing for load), and the estimates of
-the longest run within their std of the truth: that std owns the identifier's discretisation error
-(identify.discretisation), printed beside it with the statistical std alone. It is a report: it exits 0 whatever the figures
-are (non-zero only on a crash).
+the longest run within their std of the truth (the estimates corrected for the identifier's own
+discretisation error, identify.discretisation; the error without that correction is printed too).
+It is a report: it exits 0 whatever the figures are (non-zero only on a crash).
 """
 from __future__ import annotations
 

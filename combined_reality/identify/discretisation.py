@@ -3,8 +3,8 @@
 The identifier integrates each 1 ms sample with one Rosenbrock step (refined only where its
 error estimate asks for it, IntegratorOptions); a rig is continuous. That difference is a model
 error: it shifts the estimates by an amount that does not shrink with the length of the run,
-while the statistical standard deviation does (as one over its square root). Within the std in
-a 20 s run, it was 3-4 statistical std in an hour at 1 kHz.
+while the statistical standard deviation does (as one over its square root): 0.01-0.9 of the
+statistical std in runs of 10-30 s, 3.3-4.0 of it in an hour at 1 kHz.
 
 The shift is measured deterministically, without a second fit: at the solution, the same
 intervals are simulated once more by a much finer integration (FINE_FACTOR times every
@@ -18,9 +18,9 @@ error (FINE_FACTOR times the shift: the error scales with the tolerance) and, wh
 was measured on stretches of the data only, their spread.
 
 Its cost is one linearisation and one fine simulation of the data (about 6 s of CPU per 600 s
-at 1 kHz: ~12 % of a fit, measured on runs of 600 s and an hour). Runs of more than SPAN_S are measured on SPAN_S of them in stretches
-of STRETCH_S spread evenly over the data, so the cost stays bounded; the stretches' spread then
-enters the std. Not sooner: the shift of one 60 s piece of the position program scatters by about
+at 1 kHz: ~12 % of a fit, measured on runs of 600 s and an hour). Runs of more than SPAN_S are
+measured on SPAN_S of them in stretches of STRETCH_S spread evenly over the data, so the cost
+stays bounded; the stretches' spread then enters the std. Not sooner: the shift of one 60 s piece of the position program scatters by about
 its own size, and ten such pieces of an hour (600 s) put Fc's shift at a third of the hour's
 (which left the corrected Fc 1.45 std off the truth; measured on the whole hour, the corrected
 estimates were within 0.43 std of it, from 3.3-4.0 statistical std without the correction).
