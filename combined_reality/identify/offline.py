@@ -280,7 +280,7 @@ def _identify_once(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions,
     p, theta_init = _start_values(cyl, runs, plant, options, initial, progress)
     fit = _shooting_fit(cyl, runs, plant, options, nodes, prior, progress)
     ended = _iterate(fit, fit.S0, theta_init.copy(), p, options, progress, t_start)
-    return _result(fit, ended, options, effects, theta_init, t_start)
+    return _result(fit, ended, options, effects, theta_init, t_start, progress)
 
 
 def _gap_free_pieces(runs: Sequence[Run], drive: str, progress: Callable[[str], None] | None) -> Sequence[Run]:
@@ -651,7 +651,7 @@ class _FitEnd:
 
 
 def _result(fit: _Fit, ended: _Ended, options: IdentifyOptions, effects: Sequence[Effect],
-            theta_init: np.ndarray, t_start: float) -> IdentifyResult:
+            theta_init: np.ndarray, t_start: float, progress: Callable[[str], None] | None = None) -> IdentifyResult:
     """The estimates with their standard deviations and correlation at the solution, the fit
     of every run simulated from its identified initial state in one piece, the solver's figures."""
     S, theta, p, ev, plant = ended.S, ended.theta, ended.p, ended.ev, fit.plant
@@ -660,8 +660,8 @@ def _result(fit: _Fit, ended: _Ended, options: IdentifyOptions, effects: Sequenc
     cov = reported_covariance(Nfinal, ev.clusters, fit.n_state, cost, fit.nres)
     wanted = (fit.nth and cov is not None and not options.start_only and not at_bounds(theta, fit.lower, fit.upper).any()
               and sum(l.run.duration for l in fit.layouts) >= options.discretisation_min_s)
-    term = (discretisation(fit.problem, fit.sf, options.integrator, fit.layouts, S, p, min(options.threads, fit.K))
-            if wanted else None)
+    term = (discretisation(fit.problem, fit.sf, options.integrator, fit.layouts, S, p, min(options.threads, fit.K),
+                           progress) if wanted else None)
     theta, cov = corrected(theta, cov, term, fit.lower, fit.upper)
     at_bound = at_bounds(theta, fit.lower, fit.upper)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.full(fit.nth, np.nan)
