@@ -1,10 +1,10 @@
 """Linear starts for calibration, from the measured signals alone (equation error).
 
-The piston's force balance with the measured pressures is linear in the friction, the
-moving mass and a constant force; so least squares on it gives their start without any
-simulation (the Newton's-law least-squares friction fit of Trentini et al., seed 000, with the mass and a constant force added). Its constant
-force also absorbs the pressure sensors' offsets (o1 A1 - o2 A2), which the force balance
-alone cannot tell from an external force."""
+The piston's force balance with the measured pressures is linear in the friction, the moving
+mass and a constant force; so least squares on it gives their start without any simulation (the
+Newton's-law least-squares friction fit of Trentini et al., seed 000, with the mass and a
+constant force added). Its constant force also absorbs the pressure sensors' offsets (o1 A1 - o2
+A2), which the force balance alone cannot tell from an external force."""
 from __future__ import annotations
 
 from typing import Sequence

@@ -4,8 +4,8 @@ multiple shooting, and the comparison of the family on a validation run.
 A friction model replaces the nominal friction (Fc + Fv v + kp |dp|) of the plant; it is
 identified as an effect of the one plant, on the cylinder with the nominal friction zeroed.
 Its start comes from a static map of the run itself: the friction Newton's law implies at
-every sample (seed 000's method), averaged in velocity bins per direction and fitted with
-the map's least squares (friction_map.fit_model). Gauss-Newton then only polishes. The map's
+every sample (Trentini et al.'s Karnopp/least-squares fit, seed 000), averaged in velocity bins
+per direction and fitted with the map's least squares (friction_map.fit_model). Gauss-Newton then only polishes. The map's
 slow end is biased (filtering smears reversals and breakaways), so its fit can put a model's
 velocity scale (vs, ve, dv) far above the speeds where it could act, or Belforte's pressure
 terms on their bound; from there Gauss-Newton stalls in a local minimum. Such a start is

@@ -1,7 +1,8 @@
-"""Friction from Newton's law with the measured pressures (seed 000's method): the piston
-equation of the plant, driven by the measured pressures with the friction set to zero,
-against the acceleration of the measured position. The equation-error fit of Fc, Fv, kp
-on it is the identifier's start and a regressor of the diagnosis."""
+"""Friction from Newton's law with the measured pressures (the Karnopp/least-squares friction fit
+of Trentini et al., seed 000): the piston equation of the plant, driven by the measured
+pressures with the friction set to zero, against the acceleration of the measured position. The
+equation-error fit of Fc, Fv, kp on it is the identifier's start and a regressor of the
+diagnosis."""
 from __future__ import annotations
 
 from typing import Sequence

@@ -123,7 +123,7 @@ class IdentifyOptions:
     give_up_above: float = math.inf
     give_up_after: int = 6
     # start Fc, Fv, kp from a linear equation-error fit (friction from Newton's law with the
-    # measured pressures, seed 000's method) unless a start is given explicitly
+    # measured pressures: Trentini et al.'s Karnopp/least-squares fit, seed 000) unless a start is given explicitly
     prefit: bool = True
     integrator: IntegratorOptions = IntegratorOptions()
     threads: int = max(1, os.cpu_count() or 1)
@@ -658,8 +658,8 @@ def _result(fit: _Fit, ended: _Ended, options: IdentifyOptions, effects: Sequenc
     cost = 0.5 * ev.cost2
     Nfinal, _ = fit.with_prior(ev.N, ev.g, theta)
     cov = reported_covariance(Nfinal, ev.clusters, fit.n_state, cost, fit.nres)
-    wanted = (fit.nth and cov is not None and not options.start_only and not at_bounds(theta, fit.lower, fit.upper).any()
-              and sum(l.run.duration for l in fit.layouts) >= options.discretisation_min_s)
+    wanted = (fit.nth and cov is not None and not options.start_only
+              and not at_bounds(theta, fit.lower, fit.upper).any() and sum(l.run.duration for l in fit.layouts) >= options.discretisation_min_s)
     term = (discretisation(fit.problem, fit.sf, options.integrator, fit.layouts, S, p, min(options.threads, fit.K),
                            progress) if wanted else None)
     theta, cov = corrected(theta, cov, term, fit.lower, fit.upper)
