@@ -659,7 +659,8 @@ def _result(fit: _Fit, ended: _Ended, options: IdentifyOptions, effects: Sequenc
     Nfinal, _ = fit.with_prior(ev.N, ev.g, theta)
     cov = reported_covariance(Nfinal, ev.clusters, fit.n_state, cost, fit.nres)
     wanted = (fit.nth and cov is not None and not options.start_only
-              and not at_bounds(theta, fit.lower, fit.upper).any() and sum(l.run.duration for l in fit.layouts) >= options.discretisation_min_s)
+              and not at_bounds(theta, fit.lower, fit.upper).any()
+              and sum(l.run.duration for l in fit.layouts) >= options.discretisation_min_s)
     term = (discretisation(fit.problem, fit.sf, options.integrator, fit.layouts, S, p, min(options.threads, fit.K),
                            progress) if wanted else None)
     theta, cov = corrected(theta, cov, term, fit.lower, fit.upper)
