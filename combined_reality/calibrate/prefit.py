@@ -128,11 +128,34 @@ def chamber_prefit(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float]
     file's critical ratio). Linear in the rises and V0 for a given overlap; the overlap of each
     direction is searched on a grid. Rows are weighted by kappa / V (pressure units). Empty if
     the runs do not open the valve."""
+    rows = _chamber_rows(cyl, runs, offsets, block)
+    if rows is None:
+        return {}
+    K = len(OPENING_GRID)
+    fit = _ChamberFit(*(rows[k] for k in ("ch", "u", "q", "v0", "rhs", "w")))
+    overlaps = _search_overlaps(fit)
+    _, sol = fit.solve((overlaps[0], overlaps[1]))
+    out = {"overlap_extend": overlaps[0], "overlap_retract": overlaps[1],
+           "dead_volume_cap": float(sol[2 * K]), "dead_volume_rod": float(sol[2 * K + 1])}
+    for d, name in enumerate(("extend", "retract")):
+        for k in range(K):
+            out[f"flow_{name}_{k + 1}"] = float(sol[d * K + k])
+    return out
+
+
+def _blocksum(y: np.ndarray, nb: int, block: int) -> np.ndarray:
+    return y.reshape(nb, block).sum(axis=1)
+
+
+def _chamber_rows(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float] | None,
+                  block: int) -> dict[str, np.ndarray] | None:
+    """The mass balance's rows of both chambers of every run, one per block of samples: the chamber,
+    each sample's command and unit flow, the dead volume's column, the right-hand side and the
+    row weight. None if no run holds a whole block."""
     off = {"offset_p1": cyl.sensors.offset_p1, "offset_p2": cyl.sensors.offset_p2, **(offsets or {})}
     g, T, b = cyl.geometry, cyl.supply.temperature, cyl.valve.critical_ratio
     ps, pa, L = cyl.supply.pressure, cyl.supply.atmosphere, g.stroke
     C = cyl.valve.sonic_conductance
-    K = len(OPENING_GRID)
     parts: list[dict[str, np.ndarray]] = []
     for r in runs:
         nb = (r.n - 1) // block
@@ -151,45 +174,48 @@ def chamber_prefit(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float]
             vol = (g.dead_volume_cap + area * x[:-1]) if ch == 0 else (g.dead_volume_rod + area * (L - x[:-1]))
             v0 = g.dead_volume_cap if ch == 0 else g.dead_volume_rod
             dp = np.diff(p)
-
-            def blocksum(y):
-                return y.reshape(nb, block).sum(axis=1)
-
             parts.append({"ch": np.full(nb, ch), "u": u.reshape(nb, block), "q": q.reshape(nb, block),
-                          "v0": blocksum(dp) / KAPPA,
-                          "rhs": blocksum((vol - v0) * dp) / KAPPA + blocksum(pmid * sign * area * dx),
+                          "v0": _blocksum(dp, nb, block) / KAPPA,
+                          "rhs": _blocksum((vol - v0) * dp, nb, block) / KAPPA
+                          + _blocksum(pmid * sign * area * dx, nb, block),
                           "w": KAPPA / vol.reshape(nb, block).mean(axis=1)})
     if not parts:
-        return {}
-    cat = {k: np.concatenate([part[k] for part in parts]) for k in parts[0]}
-    chamber, ub, qb, v0col, rhs, w = (cat[k] for k in ("ch", "u", "q", "v0", "rhs", "w"))
-    K = len(OPENING_GRID)
+        return None
+    return {k: np.concatenate([part[k] for part in parts]) for k in parts[0]}
 
-    # the rises of neighbouring segments are tied weakly by slope continuity (a smooth valve), so
-    # that segments the runs hardly open still get a value: rows SMOOTH * (rise_k/w_k - rise_k-1/w_k-1)
-    widths = np.diff(np.r_[0.0, OPENING_GRID])
-    weight = np.sqrt(np.mean((rhs * w) ** 2))  # the data rows' typical size
 
-    opens = (ub > 0, ub < 0)  # per direction, the samples that open it
-    columns: dict[tuple[int, float], np.ndarray] = {}
+class _ChamberFit:
+    """The bounded least squares of the chambers' rows for given overlaps: the rises of both
+    directions (tied weakly by slope continuity, so that segments the runs hardly open still get
+    a value: rows SMOOTH * (rise_k/w_k - rise_k-1/w_k-1)) and both dead volumes."""
 
-    def rises(d: int, overlap: float) -> np.ndarray:
+    def __init__(self, chamber: np.ndarray, ub: np.ndarray, qb: np.ndarray, v0col: np.ndarray, rhs: np.ndarray,
+                 w: np.ndarray):
+        self.chamber, self.ub, self.qb, self.v0col, self.rhs, self.w = chamber, ub, qb, v0col, rhs, w
+        self.widths = np.diff(np.r_[0.0, OPENING_GRID])
+        self.weight = np.sqrt(np.mean((rhs * w) ** 2))  # the data rows' typical size
+        self.opens = (ub > 0, ub < 0)  # per direction, the samples that open it
+        self.columns: dict[tuple[int, float], np.ndarray] = {}
+
+    def rises(self, d: int, overlap: float) -> np.ndarray:
         """Each sample's rises of direction d summed in its block's row, (rows, K); the overlap
         search asks for each value several times."""
-        if (d, overlap) not in columns:
-            sel = opens[d]
-            per_sample = np.zeros(ub.shape + (K,))
-            per_sample[sel] = opening_basis(np.abs(ub[sel]), overlap) * qb[sel][:, None]
-            columns[(d, overlap)] = per_sample.sum(axis=1)
-        return columns[(d, overlap)]
+        if (d, overlap) not in self.columns:
+            sel = self.opens[d]
+            per_sample = np.zeros(self.ub.shape + (len(OPENING_GRID),))
+            per_sample[sel] = opening_basis(np.abs(self.ub[sel]), overlap) * self.qb[sel][:, None]
+            self.columns[(d, overlap)] = per_sample.sum(axis=1)
+        return self.columns[(d, overlap)]
 
-    def solve(overlaps: tuple[float, float]):
-        A = np.zeros((len(rhs), 2 * K + 2))
+    def solve(self, overlaps: tuple[float, float]) -> tuple[float, np.ndarray]:
+        """(the residual cost, the rises of both directions and the two dead volumes)."""
+        K, chamber, widths = len(OPENING_GRID), self.chamber, self.widths
+        A = np.zeros((len(self.rhs), 2 * K + 2))
         for d in (0, 1):
-            A[:, d * K:(d + 1) * K] = rises(d, overlaps[d])
-        A[chamber == 0, 2 * K] = -v0col[chamber == 0]
-        A[chamber == 1, 2 * K + 1] = -v0col[chamber == 1]
-        Aw, bw = A * w[:, None], rhs * w
+            A[:, d * K:(d + 1) * K] = self.rises(d, overlaps[d])
+        A[chamber == 0, 2 * K] = -self.v0col[chamber == 0]
+        A[chamber == 1, 2 * K + 1] = -self.v0col[chamber == 1]
+        Aw, bw = A * self.w[:, None], self.rhs * self.w
         smooth = np.zeros((2 * (K - 1), 2 * K + 2))
         for d in (0, 1):
             for k in range(1, K):
@@ -199,7 +225,7 @@ def chamber_prefit(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float]
         # columns): as small as the number of unknowns, whatever the number of samples
         norms = np.sqrt(np.sum(Aw**2, axis=0))
         scale = np.maximum(norms, 1e-6 * norms.max())  # a segment no sample opens: its prior decides
-        As, Ss = Aw / scale, SMOOTH * weight * smooth / scale
+        As, Ss = Aw / scale, SMOOTH * self.weight * smooth / scale
         normal = As.T @ As + Ss.T @ Ss
         R = np.linalg.cholesky(normal + 1e-12 * np.eye(len(normal))).T
         target = np.linalg.solve(R.T, As.T @ bw)
@@ -209,18 +235,20 @@ def chamber_prefit(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float]
         residual = float(np.sum(bw**2) - np.sum(target**2)) + 2 * fit.cost
         return residual, fit.x / scale
 
-    # the two directions' overlaps share only the dead volumes: search each in turn. Closed up to
-    # an overlap and flat segments from zero fit the data alike, but a curve flat at zero leaves
-    # the overlap without a gradient for the fits that follow: of the overlaps that fit about as
-    # well as the best, the largest is taken. Searched on a coarse grid, then at the fine step
-    # around the coarse choice (the calibration's critical path: 18 solves instead of 41)
+
+def _search_overlaps(fit: _ChamberFit) -> list[float]:
+    """Both directions' overlaps. They share only the dead volumes: each is searched in turn. Closed
+    up to an overlap and flat segments from zero fit the data alike, but a curve flat at zero leaves
+    the overlap without a gradient for the fits that follow: of the overlaps that fit about as well
+    as the best, the largest is taken. Searched on a coarse grid, then at the fine step around the
+    coarse choice (18 solves instead of 41)."""
     overlaps = [0.0, 0.0]
     coarse = np.linspace(0.0, OVERLAP_MAX, 11)
     step = OVERLAP_MAX / 40
     for _ in range(2):
         for d in (0, 1):
             def cost(c: float) -> float:
-                return solve(tuple(c if i == d else overlaps[i] for i in (0, 1)))[0]
+                return fit.solve(tuple(c if i == d else overlaps[i] for i in (0, 1)))[0]
 
             costs = np.array([cost(c) for c in coarse])
             tie = OVERLAP_TIE * (costs.max() - costs.min())
@@ -229,10 +257,4 @@ def chamber_prefit(cyl: Cylinder, runs: Sequence[Run], offsets: dict[str, float]
             fine_costs = np.array([cost(c) for c in fine])
             best = min(costs.min(), fine_costs.min())
             overlaps[d] = float(fine[np.flatnonzero(fine_costs <= best + tie)[-1]])
-    _, sol = solve((overlaps[0], overlaps[1]))
-    out = {"overlap_extend": overlaps[0], "overlap_retract": overlaps[1],
-           "dead_volume_cap": float(sol[2 * K]), "dead_volume_rod": float(sol[2 * K + 1])}
-    for d, name in enumerate(("extend", "retract")):
-        for k in range(K):
-            out[f"flow_{name}_{k + 1}"] = float(sol[d * K + k])
-    return out
+    return overlaps

@@ -56,11 +56,11 @@ import numpy as np
 from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect
 
-from ..calibrate import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, finish,
+from ..calibrate import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, finish,
                          first_stages, force_balance_in_model, misfit_note, model_start, run_stage, separability,
                          stage_summaries, whole_model)
 from ..files import Run
-from ..identify import IdentificationError, IdentifyResult, validate, validation_segments
+from ..identify import IdentificationError, IdentifyResult, Validation, validate, validation_segments
 from ..parallel import run_jobs, workers_here
 from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, closes_gap, gain_over, has_nested_start,
                          neutral_start, score_candidate)
@@ -427,43 +427,102 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     t_start = time.perf_counter()
     say = progress or (lambda _m: None)
     found = calibrated_candidates(cyl, runs, opts.candidates, opts.workers, say)
-    (mech, pneu), base_fit = found["stages"], found["base"]
     screens = {s.effect: s for s in found["screens"]}
     chosen = choose(found["screens"], opts.screen_min, opts.screen_share, opts.leaders)
     segments = validation_segments(valid, opts.horizon_s)
     fits: dict[str, WholeFit] = {}
     t3 = time.perf_counter()
-
-    # step 3: the best screened candidate calibrated as a whole first; the calibration without an
-    # effect then needs to go on only while it might still come near it on TRAIN
     first = chosen[0] if chosen else None
+    give_up = _calibrate_first(cyl, runs, first, found["base"], fits, opts, say)
+    say("calibrating the whole model without an effect ...")
+    t4 = time.perf_counter()
+    joint, stages = _nominal_joint(cyl, runs, found, first, fits, give_up, opts.workers, say)
+    t5 = time.perf_counter()
+    nom = _nominal_validated(cyl, runs, valid, found, joint, stages, first, segments, opts, say)
+    scored, closer, why = _score_chosen(cyl, runs, valid, chosen, found["base"], fits, nom, segments, opts, say)
+    t6 = time.perf_counter()
+    cands = _every_candidate(opts, found, screens, chosen, scored, closer, why, nom.base, nom.val, nom.rmse)
+    ranking, best = ranked(cands, say)
+
+    pair = None
+    if opts.pair and best is not None:
+        pair = _calibrated_pair(cyl, runs, valid, ranking, nom.fitting, nom.val, nom.rmse, segments, opts, say, fits)
+    verdict, verdict_note = _calibrated_verdict(nom, best, pair, fits, opts)
+    if verdict_note:
+        say(f"  verdict {verdict}: {verdict_note}")
+    shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None
+    found["wall_s"].update({"first_candidate": round(t4 - t3, 3), "nominal_whole": round(t5 - t4, 3),
+                            "candidates_and_validation": round(t6 - t5, 3)})
+    calibration = _calibration_section(cyl, runs, nom.nominal, found, fits, verdict, opts, say)
+    base_val, nominal = nom.val, nom.nominal
+    x_idx = base_val.outputs.index("x")
+    t7 = time.perf_counter()
+    subsystems = subsystem_split(nominal.cylinder, nominal.cylinder, runs[0], valid, base_val, opts, segments)
+    found["wall_s"]["pair_and_subsystems"] = round(time.perf_counter() - t6, 3)
+    found["wall_s"]["subsystems"] = round(time.perf_counter() - t7, 3)
+    return Diagnosis(
+        cylinder=nominal.cylinder, train=runs[0], valid=valid, options=opts, baseline=_baseline_doc(cyl, nom, opts),
+        verdict=verdict, verdict_note=verdict_note, calibration=calibration, ranking=ranking, pair=pair,
+        regions=regions(nominal.cylinder, valid, base_val, shown.validation if shown is not None else None),
+        subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
+        correlations=regressor_correlations(nominal.cylinder, valid), base_validation=base_val,
+        wall_s=time.perf_counter() - t_start)
+
+
+@dataclass(frozen=True)
+class _Nominal:
+    """The calibration without an effect and its score on VALID: what every candidate is measured
+    against."""
+    nominal: Calibration
+    base: IdentifyResult  # nominal.result
+    val: Validation
+    rmse: float  # val's position RMSE
+    sigma: float  # base's residual on TRAIN, in noise units
+    fitting: NominalFit
+
+
+def _calibrate_first(cyl: Cylinder, runs: Sequence[Run], first: Screen | None, base_fit: IdentifyResult,
+                     fits: dict[str, WholeFit], opts: DiagnoseOptions, say: Callable[[str], None]) -> float:
+    """Step 3: the best screened candidate calibrated as a whole first (into `fits`); the calibration
+    without an effect then needs to go on only while it might still come near it on TRAIN: the
+    TRAIN cost above which it is given up."""
     if first is not None:
         say(f"calibrating the whole model with {first.effect} (the best screen) ...")
         fits[first.effect] = calibrate_staged(cyl, runs, staged_start(first, base_fit), opts.workers)
     reach = fits[first.effect].result.solver["cost"] if first is not None and fits[first.effect].result else math.nan
-    give_up = opts.nominal_give_up * reach if math.isfinite(reach) else math.inf
-    say("calibrating the whole model without an effect ...")
-    t4 = time.perf_counter()
-    joint, stages = nominal_whole(cyl, runs, *model_start(cyl, mech, pneu, base_fit)[:2], opts.workers, give_up)
+    return opts.nominal_give_up * reach if math.isfinite(reach) else math.inf
+
+
+def _nominal_joint(cyl: Cylinder, runs: Sequence[Run], found: dict, first: Screen | None,
+                   fits: dict[str, WholeFit], give_up: float, workers: int,
+                   say: Callable[[str], None]) -> tuple[IdentifyResult, list[dict]]:
+    """The whole model calibrated without an effect, from the stages' start and, where the first
+    candidate's calibration fits TRAIN better, once more from the quantities it calibrated."""
+    mech, pneu = found["stages"]
+    joint, stages = nominal_whole(cyl, runs, *model_start(cyl, mech, pneu, found["base"])[:2], workers, give_up)
     first_fit = fits[first.effect].result if first is not None else None
     if first_fit is not None and first_fit.solver["cost"] < joint.solver["cost"]:
         # the first candidate may have calibrated the file's quantities better than the nominal fit
         # found them (from its own start), also where that fit was given up: the nominal model from
         # those quantities, the effect left out, so that what the candidate gains is its effect's
-        # (a supply droop of 1.6e-5, which moves the supply by 10 Pa, had fitted an effect-free
-        # rig's TRAIN 5 % better; a nominal fit given up at 11.3 x lost to a supply droop at 1.06 x
-        # where calibrate alone reached 1.06 x)
         given_up = joint.solver["status"] == "above_reference"
-        again, more = nominal_whole(cyl, runs, first_fit.cylinder, first_fit.nodes, opts.workers,
+        again, more = nominal_whole(cyl, runs, first_fit.cylinder, first_fit.nodes, workers,
                                     give_up if given_up else joint.solver["cost"])
         stages += [{**st, "start": f"the quantities calibrated with {first.effect}"} for st in more]
         if again.solver["cost"] < joint.solver["cost"]:
             say(f"  the calibration without an effect, from the quantities calibrated with {first.effect}: cost "
                 f"{again.solver['cost'] / joint.solver['cost'] - 1:+.1%}")
             joint = again
-    t5 = time.perf_counter()
+    return joint, stages
+
+
+def _nominal_validated(cyl: Cylinder, runs: Sequence[Run], valid: Run, found: dict, joint: IdentifyResult,
+                       stages: list[dict], first: Screen | None, segments, opts: DiagnoseOptions,
+                       say: Callable[[str], None]) -> _Nominal:
+    """The calibration without an effect finished (the friction's std, the stages) and scored on VALID."""
+    mech, pneu = found["stages"]
     nominal = finish(cyl, runs, CalibrateOptions(threads=opts.workers), joint, mech, pneu,
-                     stage_summaries(mech, pneu, base_fit) + stages, found["t0"])
+                     stage_summaries(mech, pneu, found["base"]) + stages, found["t0"])
     base = nominal.result
     given_up = base.solver["status"] == "above_reference"
     say(f"  the calibration without an effect: {base.solver['status']} after {base.solver['iterations']} iterations, "
@@ -478,11 +537,18 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     sigma = base.solver["residual_sigma"]
     fitting = NominalFit(cyl, nominal.cylinder, base.nodes, base.solver["cost"], base_val,
                          noise_cost=base.solver["cost"] / sigma ** 2 if sigma > 0 else math.nan)
+    return _Nominal(nominal, base, base_val, base_rmse, sigma, fitting)
 
-    # each candidate scored on VALID once calibrated, the best screen first; the first that closes
-    # the gap ends them
+
+def _score_chosen(cyl: Cylinder, runs: Sequence[Run], valid: Run, chosen: list[Screen], base_fit: IdentifyResult,
+                  fits: dict[str, WholeFit], nom: _Nominal, segments, opts: DiagnoseOptions,
+                  say: Callable[[str], None]) -> tuple[dict[str, Candidate], Candidate | None, str]:
+    """Each chosen candidate calibrated as a whole and scored on VALID, the best screen first; the
+    first that closes the gap, or that explains nearly all the calibration without an effect leaves
+    on TRAIN and improves VALID significantly, ends them: (the scored candidates, that one or None,
+    why)."""
+    base, base_val, base_rmse = nom.base, nom.val, nom.rmse
     scored: dict[str, Candidate] = {}
-    closer, why = None, ""
     for s in chosen:
         if s.effect not in fits:
             say(f"calibrating the whole model with {s.effect} ...")
@@ -501,17 +567,22 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
                 f"calibrated with it, TRAIN is fitted no better than without it ({-c.calibration['train_gain']:+.2%} "
                 "of the cost): not validated")
         else:
-            c = validate_candidate((c, fitting, valid, opts, segments))
+            c = validate_candidate((c, nom.fitting, valid, opts, segments))
         scored[s.effect] = c
         if c.validation is not None and closes_gap(c, base_val, base_rmse, opts):
-            closer, why = c, "closed the gap on VALID to near the noise first"
-            break
+            return scored, c, "closed the gap on VALID to near the noise first"
         share = train_share(base, w.result)
         if c.validation is not None and _significant(c, base_val, base_rmse, opts) and share >= opts.train_dominant:
-            closer, why = c, (f"explains {share:.0%} of what the calibration without an effect leaves on TRAIN "
-                              "above the noise, and significantly improves VALID")
-            break
-    t6 = time.perf_counter()
+            return scored, c, (f"explains {share:.0%} of what the calibration without an effect leaves on TRAIN "
+                               "above the noise, and significantly improves VALID")
+    return scored, None, ""
+
+
+def _every_candidate(opts: DiagnoseOptions, found: dict, screens: dict[str, Screen], chosen: list[Screen],
+                     scored: dict[str, Candidate], closer: Candidate | None, why: str, base: IdentifyResult,
+                     base_val: Validation, base_rmse: float) -> list[Candidate]:
+    """Every candidate of the options, in their order, with its status and score: absorbed, scored,
+    not validated (a higher screen ended the scoring) or screened out."""
     top = max((s.share for s in screens.values() if s.result is not None), default=0.0)
     cands: list[Candidate] = []
     for name in opts.candidates:
@@ -529,11 +600,15 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
         if by_train(c, base, opts):
             c.significant = True
         cands.append(c)
-    ranking, best = ranked(cands, say)
+    return cands
 
-    pair = None
-    if opts.pair and best is not None:
-        pair = _calibrated_pair(cyl, runs, valid, ranking, fitting, base_val, base_rmse, segments, opts, say, fits)
+
+def _calibrated_verdict(nom: _Nominal, best: Candidate | None, pair: Candidate | None, fits: dict[str, WholeFit],
+                        opts: DiagnoseOptions) -> tuple[str, str]:
+    """The verdict by the diagnosis' rules (verdict.decide), then by TRAIN: an effect that explains
+    nearly all the calibration without it leaves on TRAIN, or none where that calibration fits TRAIN
+    to the noise and no candidate improves VALID."""
+    base, base_val, sigma = nom.base, nom.val, nom.sigma
     verdict, verdict_note = decide(base_val, best, pair, opts)
     if verdict == "unexplained" and best is not None and by_train(best, base, opts, shrink=True):
         share = train_share(base, fits[best.effect].result)
@@ -549,11 +624,14 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
             f"the calibration without an effect fits TRAIN to {sigma:.2f} x the sensor noise and no candidate improves "
             f"VALID significantly; VALID keeps {base_val.normalized_rms():.2f} x where it leaves what TRAIN covers "
             "(see where the gap lies)")
-    if verdict_note:
-        say(f"  verdict {verdict}: {verdict_note}")
-    shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None
-    found["wall_s"].update({"first_candidate": round(t4 - t3, 3), "nominal_whole": round(t5 - t4, 3),
-                            "candidates_and_validation": round(t6 - t5, 3)})
+    return verdict, verdict_note
+
+
+def _calibration_section(cyl: Cylinder, runs: Sequence[Run], nominal: Calibration, found: dict,
+                         fits: dict[str, WholeFit], verdict: str, opts: DiagnoseOptions,
+                         say: Callable[[str], None]) -> dict:
+    """The document's calibration: the calibrated models, what the runs cannot separate; the mis-set
+    quantities and the trade-offs said."""
     calibration = _calibration_doc(cyl, nominal, found, fits, [n for n in fits if "+" not in n], verdict)
     calibration["not_separated"] = separability(nominal.cylinder, runs,
                                                 [n for n in opts.candidates if n not in ABSORBED])
@@ -562,25 +640,19 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
             + (f" ({m['change']:+.1%})" if math.isfinite(m["change"]) else ""))
     for c in calibration["confounded"]:
         say(f"  on these runs {c['effect']}.{c['parameter']} trades off against {c['quantity']} (r = {c['r']:+.3f})")
-    x_idx = base_val.outputs.index("x")
-    t7 = time.perf_counter()
-    subsystems = subsystem_split(nominal.cylinder, nominal.cylinder, runs[0], valid, base_val, opts, segments)
-    found["wall_s"]["pair_and_subsystems"] = round(time.perf_counter() - t6, 3)
-    found["wall_s"]["subsystems"] = round(time.perf_counter() - t7, 3)
-    return Diagnosis(
-        cylinder=nominal.cylinder, train=runs[0], valid=valid, options=opts,
-        baseline={"rmse_x_validation": base_rmse, "rmse_p1_validation": base_val.rmse("p1"),
-                  "rmse_p2_validation": base_val.rmse("p2"), "normalized_rms": base_val.normalized_rms(),
-                  "friction": {n: base.params[n].value for n in ("Fc", "Fv", "kp")},
-                  "friction_std": {n: base.params[n].std for n in ("Fc", "Fv", "kp")},
-                  "rmse_x_train": base.fit["rmse_x"], "train_cost": base.solver["cost"],
-                  "residual_sigma_train": sigma, "horizon_s": opts.horizon_s,
-                  "noise": {"x": float(base_val.noise[0]), "p": float(cyl.sensors.pressure_noise)}},
-        verdict=verdict, verdict_note=verdict_note, calibration=calibration, ranking=ranking, pair=pair,
-        regions=regions(nominal.cylinder, valid, base_val, shown.validation if shown is not None else None),
-        subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),
-        correlations=regressor_correlations(nominal.cylinder, valid), base_validation=base_val,
-        wall_s=time.perf_counter() - t_start)
+    return calibration
+
+
+def _baseline_doc(cyl: Cylinder, nom: _Nominal, opts: DiagnoseOptions) -> dict:
+    """The document's baseline: the calibration without an effect on VALID and TRAIN."""
+    base, base_val = nom.base, nom.val
+    return {"rmse_x_validation": nom.rmse, "rmse_p1_validation": base_val.rmse("p1"),
+            "rmse_p2_validation": base_val.rmse("p2"), "normalized_rms": base_val.normalized_rms(),
+            "friction": {n: base.params[n].value for n in ("Fc", "Fv", "kp")},
+            "friction_std": {n: base.params[n].std for n in ("Fc", "Fv", "kp")},
+            "rmse_x_train": base.fit["rmse_x"], "train_cost": base.solver["cost"],
+            "residual_sigma_train": nom.sigma, "horizon_s": opts.horizon_s,
+            "noise": {"x": float(base_val.noise[0]), "p": float(cyl.sensors.pressure_noise)}}
 
 
 def _calibrated_pair(cyl, runs, valid, ranking, fitting: NominalFit, base_val, base_rmse, segments, opts, say,

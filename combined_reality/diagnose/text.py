@@ -86,68 +86,87 @@ def _verdict_sentences(d, strong, esc) -> list[str]:
     noise_x = b["noise"]["x"]
     before = b.get("rmse_x_validation", math.nan)
     nrms = b.get("normalized_rms", math.nan)
+    if d.best is not None:
+        return _explained(d, before, nrms, strong, esc)
+    if d.verdict == "unexplained":
+        return _unexplained(d, before, nrms, strong, esc)
+    return _no_effect(d, noise_x, before, nrms, strong, esc)
+
+
+def _explained(d, before: float, nrms: float, strong, esc) -> list[str]:
+    """The verdict's effect: what it shrinks, its parameters, what remains, the other helpers, the pair."""
     best = d.best
-    out = []
-    if best is not None:
-        after = best.rmse_x_validation
-        params = params_text(best)
-        out.append(esc("The gap is best explained by ") + strong(best.effect)
-                   + esc(f" ({effect_description(best.effect)}): with it, the validation position error shrinks by "
-                         f"{pct(best.shrink)} ({um(before)} → {um(after)})" + (f"; {params}." if params else ".")))
-        meaning = [f"{n} is the {info.description}" for n in best.params if (info := param_info(best.effect, n))]
-        if meaning:  # a_coulomb or share mean nothing to a reader without it
-            out.append(esc("Its parameters: " + "; ".join(meaning) + "."))
-        rest = best.validation.normalized_rms()  # the verdict is significant, hence validated
-        if rest < WITHIN_NOISE:
-            out.append(esc(f"What remains is at the sensor noise ({sig(rest)} × the noise over all outputs; "
-                           f"it was {sig(nrms)} ×)."))
-        else:
-            out.append(esc(f"Part of the gap remains: {sig(rest)} × the sensor noise over all outputs "
-                           f"(it was {sig(nrms)} ×; 1 would be a perfect model)."))
-        if d.verdict_note:
-            out.append(esc("Why the pair: " + d.verdict_note + "."))
-        others = [c.effect for c in d.ranking if c.significant and c.effect != best.effect]
-        if others:
-            out.append(esc("Other candidates that also help significantly (usually by imitating part of the same "
-                           "error): " + ", ".join(others) + "."))
-        p = d.pair
-        if p is not None and p is not best:
-            if p.significant:
-                out.append(esc("Together with the runner-up, ") + strong(p.effect)
-                           + esc(f" shrinks the position error by {pct(p.shrink)} (to {um(p.rmse_x_validation)}), "
-                                 "significantly better than the verdict alone: both effects are likely present."))
-            elif p.status == "failed":
-                out.append(esc("The pair ") + strong(p.effect) + esc(" could not be fitted."))
-            elif not finite(p.shrink):  # screened out on TRAIN, or its simulation of VALID diverged
-                out.append(esc("The pair ") + strong(p.effect)
-                           + esc(f" was not scored on VALID: {p.error or p.status}."))
-            else:
-                out.append(esc("The pair ") + strong(p.effect) + esc(
-                    " is not significantly better than the verdict alone "
-                    f"(position error {um(p.rmse_x_validation)})."))
-        return out
+    after = best.rmse_x_validation
+    params = params_text(best)
+    out = [esc("The gap is best explained by ") + strong(best.effect)
+           + esc(f" ({effect_description(best.effect)}): with it, the validation position error shrinks by "
+                 f"{pct(best.shrink)} ({um(before)} → {um(after)})" + (f"; {params}." if params else "."))]
+    meaning = [f"{n} is the {info.description}" for n in best.params if (info := param_info(best.effect, n))]
+    if meaning:  # a_coulomb or share mean nothing to a reader without it
+        out.append(esc("Its parameters: " + "; ".join(meaning) + "."))
+    rest = best.validation.normalized_rms()  # the verdict is significant, hence validated
+    if rest < WITHIN_NOISE:
+        out.append(esc(f"What remains is at the sensor noise ({sig(rest)} × the noise over all outputs; "
+                       f"it was {sig(nrms)} ×)."))
+    else:
+        out.append(esc(f"Part of the gap remains: {sig(rest)} × the sensor noise over all outputs "
+                       f"(it was {sig(nrms)} ×; 1 would be a perfect model)."))
+    if d.verdict_note:
+        out.append(esc("Why the pair: " + d.verdict_note + "."))
+    others = [c.effect for c in d.ranking if c.significant and c.effect != best.effect]
+    if others:
+        out.append(esc("Other candidates that also help significantly (usually by imitating part of the same "
+                       "error): " + ", ".join(others) + "."))
+    p = d.pair
+    if p is not None and p is not best:
+        out.append(_pair_sentence(p, strong, esc))
+    return out
+
+
+def _pair_sentence(p, strong, esc) -> str:
+    """The verdict's effect with the runner-up: likely both present, not fitted, not scored, or no better."""
+    if p.significant:
+        return (esc("Together with the runner-up, ") + strong(p.effect)
+                + esc(f" shrinks the position error by {pct(p.shrink)} (to {um(p.rmse_x_validation)}), "
+                      "significantly better than the verdict alone: both effects are likely present."))
+    if p.status == "failed":
+        return esc("The pair ") + strong(p.effect) + esc(" could not be fitted.")
+    if not finite(p.shrink):  # screened out on TRAIN, or its simulation of VALID diverged
+        return esc("The pair ") + strong(p.effect) + esc(f" was not scored on VALID: {p.error or p.status}.")
+    return esc("The pair ") + strong(p.effect) + esc(
+        " is not significantly better than the verdict alone "
+        f"(position error {um(p.rmse_x_validation)}).")
+
+
+def _unexplained(d, before: float, nrms: float, strong, esc) -> list[str]:
+    """No candidate removes a significant part of the gap, or the best one only part of it."""
     tried = [c.effect for c in d.ranking]
     runner = d.runner
-    if d.verdict == "unexplained" and runner is None:
-        out.append(esc("The gap is ") + strong("unexplained") + esc(
+    if runner is None:
+        return [esc("The gap is ") + strong("unexplained") + esc(
             f": the nominal model misses VALID by {um(before)} in position ({sig(nrms)} × the sensor noise over all "
             f"outputs), and none of the {len(tried)} candidates tried removes a significant part of it. The cause "
             "is likely outside the vocabulary (a sensor error, another physical effect). See where the error lies "
-            "below."))
-        out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
-        return out
-    if d.verdict == "unexplained" and runner is not None:
-        left = sig(runner.validation.normalized_rms())
-        out.append(esc("The gap is ") + strong("unexplained") + esc(
-            f": the nominal model misses VALID by {um(before)} in position ({sig(nrms)} × the sensor noise over all "
-            f"outputs), and the best candidate, {runner.effect}, removes only part of it (position error "
-            f"{pct(runner.shrink)} smaller, {um(runner.rmse_x_validation)}; all outputs {left} × the noise). "
-            "A weak winner is no diagnosis: the cause is likely outside the vocabulary (a sensor "
-            "error, another physical effect) or several effects combine. See where the error lies below."))
-        if d.verdict_note:
-            out.append(esc("Why: " + d.verdict_note + "."))
-        out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
-        return out
+            "below."),
+            esc("Candidates tried: " + ", ".join(tried) + ".")]
+    left = sig(runner.validation.normalized_rms())
+    out = [esc("The gap is ") + strong("unexplained") + esc(
+        f": the nominal model misses VALID by {um(before)} in position ({sig(nrms)} × the sensor noise over all "
+        f"outputs), and the best candidate, {runner.effect}, removes only part of it (position error "
+        f"{pct(runner.shrink)} smaller, {um(runner.rmse_x_validation)}; all outputs {left} × the noise). "
+        "A weak winner is no diagnosis: the cause is likely outside the vocabulary (a sensor "
+        "error, another physical effect) or several effects combine. See where the error lies below.")]
+    if d.verdict_note:
+        out.append(esc("Why: " + d.verdict_note + "."))
+    out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
+    return out
+
+
+def _no_effect(d, noise_x: float, before: float, nrms: float, strong, esc) -> list[str]:
+    """Verdict none: within the noise already, or a gap none of the candidates tried explains; which
+    candidates the screens kept from validation."""
+    tried = [c.effect for c in d.ranking]
+    out = []
     if finite(nrms) and nrms < WITHIN_NOISE:
         out.append(esc(f"The nominal model already fits VALID to within the sensor noise (position error {um(before)}"
                        f" with {um(noise_x)} sensor noise; all outputs {sig(nrms)} × the noise): ") + strong("none")
