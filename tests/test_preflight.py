@@ -209,7 +209,7 @@ def test_without_config_the_cylinder_file_the_header_names_is_used(files, tmp_pa
     assert_refused(code, err, "r40.csv was recorded on a cylinder of another bore",
                    "bore 40 mm, rod 16 mm, stroke 250 mm in its header",
                    "bore 32 mm, rod 12 mm, stroke 100 mm in", "cyl_a_32x100.toml")
-    from combined_reality.cli.common import cylinder_for_runs
+    from combined_reality.files import cylinder_for_runs
 
     cyl, which = cylinder_for_runs(None, [read_run(run)])
     assert cyl.geometry.bore == 0.032

@@ -14,8 +14,6 @@ import re
 import sys
 import threading
 import time
-from importlib import resources
-from pathlib import Path
 from typing import Callable, Sequence
 
 from sim.cylinder import Cylinder, load_cylinder
@@ -23,7 +21,7 @@ from sim.cylinder import Cylinder, load_cylinder
 from ..errors import InputError
 
 __all__ = ["UsageError", "OneLineParser", "typed", "check_paths", "add_max_rows", "read_runs", "eprint",
-           "progress_printer", "ProgressView", "default_config_path", "load_config", "BUILT_IN", "cylinder_for_runs",
+           "progress_printer", "ProgressView", "load_config",
            "preflight_runs", "parse_effects", "estimate_list", "rerun_mode", "open_rig",
            "EFFECT_HELP"]
 
@@ -142,36 +140,11 @@ class ProgressView:
             self._close_bars()
 
 
-def default_config_path() -> Path:
-    """The built-in cylinder A (32 mm x 100 mm) of the combined-reality paper."""
-    return Path(str(resources.files("combined_reality") / "data" / "cyl_a_32x100.toml"))
-
-
 def load_config(path: str | None) -> Cylinder:
-    """The cylinder file given with --config, else the built-in one (BUILT_IN says so)."""
+    """The cylinder file given with --config, else the built-in one (files.BUILT_IN says so)."""
+    from ..files.cylinder_choice import default_config_path
+
     return load_cylinder(path if path else default_config_path())
-
-
-BUILT_IN = "no --config: the built-in cylinder A (32 mm x 100 mm) is used"
-
-
-def cylinder_for_runs(path: str | None, runs: Sequence) -> tuple[Cylinder, str | None]:
-    """The cylinder file given with --config; else the one the first run's header names, where
-    it exists; else the built-in one. With the line that says which, when --config is left
-    out (to print once the input is accepted: a refusal stays the only line)."""
-    if path:
-        return load_cylinder(path), None
-    from ..files import recorded_file, run_name
-    from ..files.checks import header_cylinder_file
-
-    for run in runs:
-        named = header_cylinder_file(run)
-        if named is not None:
-            return load_cylinder(named), f"no --config: the cylinder file {named} that {run_name(run)} names is used"
-    missing = next((recorded_file(r) for r in runs if recorded_file(r)), None)
-    return load_cylinder(default_config_path()), BUILT_IN + (
-        f" (the run's header names {missing}, which is not here)" if missing else
-        " (the run's header names no cylinder file)")
 
 
 def preflight_runs(cyl: Cylinder, runs: Sequence, estimate: Sequence[str] = (), held_out: Sequence = ()):

@@ -5,7 +5,7 @@ import math
 import os
 
 from .. import options
-from .common import (UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint, preflight_runs,
+from .common import (UsageError, add_max_rows, check_paths, eprint, preflight_runs,
                      progress_printer, rerun_mode, typed)
 
 
@@ -48,7 +48,7 @@ def run(args) -> int:
     from sim.effects import EFFECTS
 
     from ..diagnose import DiagnoseOptions, diagnose
-    from ..files import check_train_and_valid, clean_json, read_run, write_json_atomic
+    from ..files import check_train_and_valid, clean_json, cylinder_for_runs, read_run, write_json_atomic
 
     if len(args.train) > 1 and not args.calibrate:
         raise UsageError("several TRAIN runs are calibrated together with --calibrate; without it, give one.")

@@ -14,7 +14,7 @@ import os
 
 from .. import options
 from ..friction.specs import FIT_SPECS, PARSIMONY, PLOT_FORMATS, FrictionMapError, SegmentOptions
-from .common import (UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint, preflight_runs,
+from .common import (UsageError, add_max_rows, check_paths, eprint, preflight_runs,
                      progress_printer, typed)
 
 
@@ -64,7 +64,7 @@ def _model_names(args) -> tuple[list[str] | None, bool]:
 
 
 def run(args) -> int:
-    from ..files import OutputError, WriteError, clean_json, read_run, write_json_atomic
+    from ..files import OutputError, WriteError, clean_json, cylinder_for_runs, read_run, write_json_atomic
     from ..friction import build_map, is_points_table, plot_map, points_from_run, read_points
 
     models, explicit = _model_names(args)

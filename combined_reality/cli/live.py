@@ -9,7 +9,7 @@ from pathlib import Path
 
 from .. import options
 from ..live.catalogue import DESCRIPTIONS
-from .common import (BUILT_IN, EFFECT_HELP, UsageError, add_max_rows, check_paths, cylinder_for_runs, eprint,
+from .common import (EFFECT_HELP, UsageError, add_max_rows, check_paths, eprint,
                      estimate_list, load_config, open_rig, parse_effects, preflight_runs, rerun_mode,
                      typed)
 
@@ -99,13 +99,15 @@ def run_live(args) -> int:
 
     rig = open_rig(args, cyl, effects, rate=args.rate, paced=True, on_event=link_event)
     if not args.config:
+        from ..files import BUILT_IN
+
         console.warn(BUILT_IN)
     return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, pipelined=False,
                         console=console, link_events=link_events)
 
 
 def run_replay(args) -> int:
-    from ..files import read_run
+    from ..files import cylinder_for_runs, read_run
     from ..live import Console, ReplayRig
 
     speed = args.speed

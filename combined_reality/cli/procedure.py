@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from .. import options
-from .common import BUILT_IN, UsageError, check_paths, eprint, load_config, open_rig, parse_effects, typed
+from .common import UsageError, check_paths, eprint, load_config, open_rig, parse_effects, typed
 
 KINDS = ("breakaway", "sweep")
 _DIRECTIONS = {"both": (1, -1), "extension": (1,), "retraction": (-1,)}
@@ -91,6 +91,8 @@ def run(args) -> int:
     _check_paths(args)
     rig = open_rig(args, cyl, effects, paced=args.realtime)
     if not args.config:
+        from ..files import BUILT_IN
+
         eprint(BUILT_IN)
     where = f"serial {args.serial}" if args.serial else f"CAN {args.can} ({args.interface})" if args.can \
         else "virtual rig" + (f" with {', '.join(args.effect)}" if args.effect else "")

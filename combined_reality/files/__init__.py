@@ -4,6 +4,7 @@ before the work (outputs) and atomic writing of every output.
 
 Cylinder files themselves are parsed where their parameters live (sim.cylinder)."""
 from .atomic import atomic_write, atomic_writer, clean_json, write_json_atomic, write_text_atomic
+from .cylinder_choice import BUILT_IN, cylinder_for_runs, default_config_path
 from .checks import (check_distinct_runs, check_run_against_cylinder, check_train_and_valid, run_name,
                      same_data)
 from .outputs import OutputError, WriteError, check_outputs, os_error, refuse_special
@@ -12,7 +13,7 @@ from .runs import (MAX_ROWS, MEASURED_CHANNELS, REQUIRED_COLUMNS, Run, RunFormat
                    cylinder_tag, read_run, recorded_cylinder, recorded_elsewhere, recorded_file, recorded_geometry,
                    split_at_gaps, write_run)
 
-__all__ = ["atomic_write", "atomic_writer", "clean_json", "write_json_atomic", "write_text_atomic",
+__all__ = ["BUILT_IN", "cylinder_for_runs", "default_config_path", "atomic_write", "atomic_writer", "clean_json", "write_json_atomic", "write_text_atomic",
            "check_distinct_runs", "check_run_against_cylinder", "check_train_and_valid", "run_name",
            "same_data", "OutputError", "WriteError", "check_outputs", "os_error", "refuse_special", "first_implausible",
            "measured_value", "time_unit_problem", "MAX_ROWS", "MEASURED_CHANNELS", "REQUIRED_COLUMNS", "Run",
