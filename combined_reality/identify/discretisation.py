@@ -17,13 +17,10 @@ by it; the reported covariance owns what that leaves uncertain: the fine integra
 error (FINE_FACTOR times the shift: the error scales with the tolerance) and, where the shift
 was measured on stretches of the data only, their spread.
 
-Its cost is one linearisation and one fine simulation of the data (about 6 s of CPU per 600 s
-at 1 kHz: ~12 % of a fit, measured on runs of 600 s and an hour). Runs of more than SPAN_S are
-measured on SPAN_S of them in stretches of STRETCH_S spread evenly over the data, so the cost
-stays bounded; the stretches' spread then enters the std. Not sooner: the shift of one 60 s piece of the position program scatters by about
-its own size, and ten such pieces of an hour (600 s) put Fc's shift at a third of the hour's
-(which left the corrected Fc 1.45 std off the truth; measured on the whole hour, the corrected
-estimates were within 0.43 std of it, from 3.3-4.0 statistical std without the correction).
+Its cost is one linearisation and one fine simulation of the data (~12 % of a fit). Runs of
+more than SPAN_S are measured on SPAN_S of them, in stretches of STRETCH_S spread evenly over
+the data, so the cost stays bounded; the stretches' spread then enters the std. Shorter runs
+are measured whole: the shift of a single 60 s stretch scatters by about its own size.
 """
 from __future__ import annotations
 
