@@ -82,7 +82,7 @@ def run_live(args) -> int:
     if record.exists() and not args.overwrite:
         raise UsageError(f"--record {record} exists; a recording is never overwritten unless you pass --overwrite.")
     cyl = load_config(args.config)
-    _online_options(args, cyl)  # the options before the rig is opened
+    options = _online_options(args, cyl)  # refused before the rig is opened
     try:
         program = make_program(args.program, cyl, args.duration, seed=args.seed)
     except (ValueError, OSError) as e:
@@ -102,8 +102,8 @@ def run_live(args) -> int:
         from ..files import BUILT_IN
 
         console.warn(BUILT_IN)
-    return _run_session(args, cyl, rig, program, args.duration, args.record, 1.0 / args.rate, pipelined=False,
-                        console=console, link_events=link_events)
+    return _run_session(args, cyl, options, rig, program, args.duration, args.record, 1.0 / args.rate,
+                        pipelined=False, console=console, link_events=link_events)
 
 
 def run_replay(args) -> int:
@@ -116,11 +116,11 @@ def run_replay(args) -> int:
     cyl, which = cylinder_for_runs(args.config, [run])
     if run.n < 3:
         raise UsageError(f"{args.run}: a run needs at least 3 samples.")
-    _online_options(args, cyl)  # the options refused before anything is said
+    options = _online_options(args, cyl)  # refused before anything is said
     preflight_runs(cyl, [run])
     if which and not args.quiet:
         eprint(which)
-    return _run_session(args, cyl, ReplayRig(run, speed), None, None, None, run.sample_period,
+    return _run_session(args, cyl, options, ReplayRig(run, speed), None, None, None, run.sample_period,
                         pipelined=speed == math.inf, console=Console(status=not args.quiet))
 
 
@@ -180,12 +180,11 @@ class _Signals:
             signal.signal(sig, handler)
 
 
-def _run_session(args, cyl, rig, program, duration, record: str | None, sample_period: float, pipelined: bool,
-                 console, link_events: list[str] | None = None) -> int:
+def _run_session(args, cyl, options, rig, program, duration, record: str | None, sample_period: float,
+                 pipelined: bool, console, link_events: list[str] | None = None) -> int:
     from ..files import clean_json, cylinder_tag, write_json_atomic
     from ..live import ConsoleSink, SessionMonitor, assemble_session, conclude_session, run_session
 
-    options = _online_options(args, cyl)
     rr_sink = None
 
     def hurry() -> None:  # a stopped session gives its view a fraction of a second, not a minute

@@ -21,26 +21,16 @@ import numpy as np
 from ..errors import CombinedRealityError
 from ..files import Run, RunFormatError
 from ..identify import IdentifyOptions, OnlineEstimate, check_determinable, identify, not_determined
-from .monitor import WHAT_TO_DO, SessionMonitor, change_message, drift_message
+from .monitor import WHAT_TO_DO, RunSigma, SessionMonitor, change_message, drift_message
 from .session import SessionResult
 
-__all__ = ["RUN_SIGMA_S", "SessionEnd", "RunSigma", "conclude_session", "final_run_sigma", "session_verdict"]
+__all__ = ["RUN_SIGMA_S", "SessionEnd", "conclude_session", "final_run_sigma", "session_verdict"]
 
 RUN_SIGMA_S = 60.0  # s of recording, at most, that the final estimate's run residual is taken over
 
 # samples of a recording that the end of a session looks at, at most (its motion, for the
 # determinability rules: 0.1 s on a 2-core machine; an hour at 1 kHz whole took 20 s)
 _CHECKED_SAMPLES = 20_000
-
-
-@dataclass(frozen=True)
-class RunSigma:
-    """`identify`'s residual sigma (x the sensor noise) of an estimate over a stretch of the
-    recording (session times, s)."""
-
-    sigma: float
-    t_start: float
-    t_end: float
 
 
 @dataclass(frozen=True)

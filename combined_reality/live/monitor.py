@@ -19,10 +19,20 @@ from dataclasses import dataclass, field
 
 from ..identify import MISMATCH, OnlineEstimate
 
-__all__ = ["MonitorOptions", "SessionMonitor", "change_message", "drift_message", "WHAT_TO_DO"]
+__all__ = ["MonitorOptions", "RunSigma", "SessionMonitor", "change_message", "drift_message", "WHAT_TO_DO"]
 
 WHAT_TO_DO = ("calibrate the cylinder file's valve, volumes and mass from a calibration run (combined-reality "
               "calibrate), or find the effect the model lacks (combined-reality diagnose)")
+
+
+@dataclass(frozen=True)
+class RunSigma:
+    """`identify`'s residual sigma (x the sensor noise) of an estimate over a stretch of the
+    recording (session times, s)."""
+
+    sigma: float
+    t_start: float
+    t_end: float
 
 
 @dataclass(frozen=True)
@@ -61,8 +71,8 @@ class SessionMonitor:
     _drift_on: bool = False
     _seen_explained: bool = False  # some window so far was explained
     # identify's residual of the final estimate over the end of the recording, where the model
-    # did not explain the rig at the end (live.ending; a RunSigma)
-    run_sigma: object = None
+    # did not explain the rig at the end (live.ending)
+    run_sigma: RunSigma | None = None
 
     def take(self, e: OnlineEstimate) -> list[str]:
         out = []
