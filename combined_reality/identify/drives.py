@@ -7,14 +7,16 @@ from typing import Iterable
 from sim.cylinder import FLOW_CHARACTERISTIC
 from sim.errors import InputError
 
-__all__ = ["DriveError", "PNEUMATIC", "MECHANICAL", "NOT_ESTIMABLE", "check_drive"]
+__all__ = ["DriveError", "MAKE_PRESSURES", "MAKE_MOTION", "NOT_ESTIMABLE", "check_drive"]
 
-# what makes the pressures (the valve and the chambers) and what makes the motion
-PNEUMATIC = frozenset({"conductance", "critical_ratio", "dead_volume_cap", "dead_volume_rod", *FLOW_CHARACTERISTIC})
-MECHANICAL = frozenset({"Fc", "Fv", "kp", "mass", "angle", "external_force"})
+# what makes the pressures (the valve and the chambers) and what makes the motion (not the
+# calibration's stages, calibrate.PNEUMATIC / MECHANICAL, which also hold the sensors' offsets)
+MAKE_PRESSURES = frozenset({"conductance", "critical_ratio", "dead_volume_cap", "dead_volume_rod", *FLOW_CHARACTERISTIC})
+MAKE_MOTION = frozenset({"Fc", "Fv", "kp", "mass", "angle", "external_force"})
 
 # per drive: the measured signals it is driven by, and the parameters it therefore cannot estimate
-NOT_ESTIMABLE = {"pressure": ("the measured pressures", PNEUMATIC), "chambers": ("the measured motion", MECHANICAL)}
+NOT_ESTIMABLE = {"pressure": ("the measured pressures", MAKE_PRESSURES),
+                 "chambers": ("the measured motion", MAKE_MOTION)}
 
 
 class DriveError(InputError):
