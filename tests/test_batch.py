@@ -465,6 +465,26 @@ def _seed_papers_job(name: str, duration: float | None = None):
     return job if duration is None else replace(job, simulate=replace(job.simulate, duration=duration))
 
 
+def test_a_row_reports_the_status_identify_reports(monkeypatch):
+    """A fit that converged with an estimate the data do not determine is `not_determined` in
+    the row, as in identify's JSON, with the parameters named in the row's warning."""
+    from combined_reality.identify import Estimate, IdentifyResult
+
+    def undetermined(cyl, runs, model, options):
+        est = lambda n, v, s: Estimate(n, v, s, "N/Pa", v)  # noqa: E731
+        return IdentifyResult(params={"Fc": est("Fc", 24.8, 0.1), "Fv": est("Fv", 13.0, 0.2),
+                                      "kp": est("kp", 2e-7, 3e-7)},
+                              fit={"rmse_x": 5e-6, "r2_x": 0.99}, fit_per_run=[], cylinder=cyl, effects=(),
+                              drive="command", solver={"status": "converged", "iterations": 8, "wall_s": 1.0,
+                                                       "n_samples": 100, "residual_sigma": 1.0})
+
+    monkeypatch.setattr(batch_execution, "identify_model", undetermined)
+    row = batch.run_job(_seed_papers_job("seed004_4", duration=1.0))
+    assert row["status"] == "ok", row
+    assert row["solver_status"] == "not_determined"
+    assert "the data do not determine kp" in row["warning"]
+
+
 def _assert_cvs_recovered(row: dict) -> None:
     """seed 004's per-direction model: Fs, Fc, B within 5 %; the truth of the Stribeck velocity
     inside four standard deviations of the estimate, and that interval informative."""

@@ -141,6 +141,7 @@ def test_a_parameter_whose_std_is_as_large_as_its_value_is_not_determined_and_no
     doc = result.document(inputs=["run.csv"])
     assert {n: e["determined"] for n, e in doc["params"].items()} == {"Fc": True, "kp": False, "Fv": False}
     assert doc["solver"]["status"] == "not_determined" and result.to_json()["solver"]["status"] == "converged"
+    assert result.status == "not_determined"
     assert doc["config"] == str(cyl_a.source) and doc["inputs"] == ["run.csv"]
     table = format_table(result)
     assert "not determined" in table and "solver: converged" not in table

@@ -180,6 +180,13 @@ class IdentifyResult:
         return undetermined_among({n: e.value for n, e in p.items()}, {n: e.std for n, e in p.items()},
                                   {n for n, e in p.items() if e.at_bound})
 
+    @property
+    def status(self) -> str:
+        """The status identify reports: the solver's, `not_determined` where it converged with
+        an estimate the data do not determine."""
+        st = self.solver["status"]
+        return "not_determined" if st == "converged" and self.not_determined else st
+
     def to_json(self) -> dict:
         """The fit as the solver ended it (calibrate and demo write it); `document` is identify's."""
         return {
@@ -201,8 +208,7 @@ class IdentifyResult:
         unknown = self.not_determined
         for n, entry in out["params"].items():
             entry["determined"] = n not in unknown
-        if unknown and out["solver"]["status"] == "converged":
-            out["solver"]["status"] = "not_determined"
+        out["solver"]["status"] = self.status
         source = config if config is not None else self.cylinder.source
         out["config"] = None if source is None else str(source)
         out["inputs"] = [str(p) for p in inputs]
