@@ -65,6 +65,10 @@ from .shooting import (ShootingProblem, free_parameters, line_search, linearize,
 from .smoothing import fill_missing, velocity_estimate
 from .tracking import Blocks, Change, Drift, Regime, analyse, pinv, regime_variance, trend_fit
 
+# node states and gap offsets profiled out of a window: directions with less than this of the
+# largest information (on the unit-diagonal scale) are left undetermined
+_NUISANCE_RCOND = 1e-10
+
 
 @dataclass(frozen=True)
 class OnlineOptions:
@@ -1133,7 +1137,7 @@ class MovingHorizonEstimator:
         nx, nth = self.plant.nx, len(self.free)
         th = np.zeros(Nm.shape[0], bool)
         th[R * nx:R * nx + nth] = True
-        proj = _pinv_scaled(Nm[~th][:, ~th]) @ Nm[~th][:, th]
+        proj = pinv(Nm[~th][:, ~th], rcond=_NUISANCE_RCOND)[0] @ Nm[~th][:, th]
         try:
             Hinv = scaled_inverse(Nm[th][:, th] - Nm[th][:, ~th] @ proj)
         except np.linalg.LinAlgError:
@@ -1287,7 +1291,7 @@ class _ReducedWindow:
         Gf, Jth = self.Gf[ks], self.Jth[ks].reshape(k, -1, nth)
         F = Gf.transpose(0, 2, 1) @ Jth
         NtCN = np.einsum("kai,kab,kbj->ij", Nk, Gf.transpose(0, 2, 1) @ Gf, Nk)
-        proj = _pinv_scaled(NtCN) @ np.einsum("kai,kaj->ij", Nk, F)
+        proj = pinv(NtCN, rcond=_NUISANCE_RCOND)[0] @ np.einsum("kai,kaj->ij", Nk, F)
         par = Jth - Gf @ (Nk @ proj)
         rr = r[ks].reshape(k, -1)
         return (par.transpose(0, 2, 1) @ rr[:, :, None])[..., 0], par.transpose(0, 2, 1) @ par, rr
@@ -1325,17 +1329,10 @@ class _ReducedWindow:
             NtCN = np.einsum("kai,kab,kbj->ij", Nk, Gt @ Gf, Nk)
             NtF = np.einsum("kai,kaj->ij", Nk, Gt @ Jth)
             Ntr = np.einsum("kai,ka->i", Nk, (Gt @ rr[:, :, None])[..., 0])
-            proj = _pinv_scaled(NtCN) @ NtF
+            proj = pinv(NtCN, rcond=_NUISANCE_RCOND)[0] @ NtF
             A[i] = np.einsum("kma,kmb->ab", Jth, Jth) - NtF.T @ proj
             S[i] = np.einsum("kma,km->a", Jth, rr) - proj.T @ Ntr
         return S, A
-
-
-def _pinv_scaled(N: np.ndarray) -> np.ndarray:
-    """Pseudo-inverse of a symmetric N on its unit-diagonal scaling (states and parameters
-    differ by many decades; directions without information get none)."""
-    s = np.sqrt(np.maximum(np.diag(N), 1e-300))
-    return np.linalg.pinv(N / np.outer(s, s), rcond=1e-10, hermitian=True) / np.outer(s, s)
 
 
 def _solve_scaled(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:

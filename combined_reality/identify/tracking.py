@@ -43,12 +43,13 @@ def _scaled(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return A / (d[..., :, None] * d[..., None, :]), d
 
 
-def pinv(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pinv(A: np.ndarray, rcond: float = _RCOND) -> tuple[np.ndarray, np.ndarray]:
     """(pseudo-inverse, rank) of a stack of symmetric information matrices, on their
-    unit-diagonal scaling (parameters differ by ten decades)."""
+    unit-diagonal scaling (parameters differ by ten decades): directions with less than
+    `rcond` of the largest eigenvalue there get none."""
     As, d = _scaled(A)
     w, V = np.linalg.eigh(As)
-    keep = w > _RCOND * np.maximum(w[..., -1:], 1e-300)
+    keep = w > rcond * np.maximum(w[..., -1:], 1e-300)
     inv_w = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
     P = (V * inv_w[..., None, :]) @ np.swapaxes(V, -1, -2)
     return P / (d[..., :, None] * d[..., None, :]), keep.sum(axis=-1)
