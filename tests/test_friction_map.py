@@ -19,7 +19,8 @@ from combined_reality.errors import InputError
 from combined_reality.friction.fits import fit_model, linear_fit
 from combined_reality.friction.map import build_map
 from combined_reality.friction.points import MapPoint, points_from_run
-from combined_reality.friction.specs import FIT_SPECS, PARSIMONY, PointsFormatError, SegmentOptions, TooFewPointsError
+from combined_reality.friction.specs import (FIT_SPECS, PARSIMONY, FrictionMapError, PointsFormatError, SegmentOptions,
+                                            TooFewPointsError)
 from combined_reality.friction.tables import read_points
 from combined_reality.files import Run, write_run
 from sim.friction_models import (CV, CVS, DIRECTIONS, Belforte, CVLoad, CVPressure, CVSLoad, Efficiency, Karnopp,
@@ -376,6 +377,7 @@ def test_segment_and_load_options_are_refused_as_parsed(tmp_path, capsys, option
     (["{small}", "--model", "cvs"], ["small.csv", "3 points, too few to fit cvs with 4 parameters"]),
     (["{bad}"], ["bad.csv", "line 3", "column 'F'"]),
     (["{tmp}/nope.csv"], ["nope.csv", "not found"]),
+    (["{breakaways}"], ["breakaways.csv: only breakaway rows, no sliding points"]),
 ])
 def test_command_refuses_bad_input_in_one_sentence(tmp_path, argv, fragments):
     pts = _points(CVS(**TABLE3_N2), np.geomspace(1e-3, 0.3, 8))
@@ -383,6 +385,8 @@ def test_command_refuses_bad_input_in_one_sentence(tmp_path, argv, fragments):
              "tmp": tmp_path}
     (tmp_path / "bad.csv").write_text("v,F\n0.1,3\n0.2,x\n")
     paths["bad"] = tmp_path / "bad.csv"
+    (tmp_path / "breakaways.csv").write_text("v,F,breakaway\n0.002,30,1\n-0.002,-31,1\n")
+    paths["breakaways"] = tmp_path / "breakaways.csv"
     out = tmp_path / "o.json"
     with pytest.raises(InputError) as e:  # bad input: main() says it in one line, exit 2
         _cli([a.format(**paths) for a in argv] + ["--json", out])
@@ -390,6 +394,29 @@ def test_command_refuses_bad_input_in_one_sentence(tmp_path, argv, fragments):
     assert "\n" not in msg and msg.endswith(".")
     for f in fragments:
         assert f in msg
+    assert not out.exists()
+
+
+def test_a_run_without_constant_velocity_stretches_gives_no_map_in_the_library_as_in_the_command(tmp_path, run_a,
+                                                                                                 cyl_a, capsys):
+    """The rules of what a map cannot be made from live in the library (friction.inputs): a
+    script gets the sentence the command prints."""
+    from combined_reality.friction import gather_map_inputs, map_of_inputs
+    from combined_reality.friction.specs import SegmentOptions
+
+    from combined_reality import cli
+
+    path = tmp_path / "run.csv"
+    write_run(path, run_a)
+    strict = SegmentOptions(min_duration=5.0)  # no stretch of the virtual-rig run is that long
+    got = gather_map_inputs([path], str(cyl_a.source), strict)
+    assert got.cyl is not None and len(got.runs) == 1 and not got.points
+    with pytest.raises(FrictionMapError, match=r"no constant-velocity stretch found \(at least 5 s above") as e:
+        map_of_inputs(got)
+    out = tmp_path / "o.json"
+    assert cli.main(["friction-map", str(path), "--config", str(cyl_a.source), "--min-duration", "5", "--json",
+                     str(out), "-q"]) == 2
+    assert capsys.readouterr().err.strip() == f"combined-reality friction-map: {e.value}"
     assert not out.exists()
 
 

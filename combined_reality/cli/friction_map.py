@@ -14,8 +14,7 @@ import os
 
 from .. import options
 from ..friction.specs import FIT_SPECS, PARSIMONY, PLOT_FORMATS, FrictionMapError, SegmentOptions
-from .common import (UsageError, add_max_rows, check_paths, eprint, preflight_runs,
-                     progress_printer, typed)
+from .common import UsageError, add_max_rows, check_paths, eprint, progress_printer, typed
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -64,8 +63,8 @@ def _model_names(args) -> tuple[list[str] | None, bool]:
 
 
 def run(args) -> int:
-    from ..files import OutputError, WriteError, clean_json, cylinder_for_runs, read_run, write_json_atomic
-    from ..friction import build_map, is_points_table, plot_map, points_from_run, read_points
+    from ..files import OutputError, WriteError, clean_json, write_json_atomic
+    from ..friction import gather_map_inputs, map_of_inputs, plot_map
 
     models, explicit = _model_names(args)
     if args.plot and os.path.splitext(args.plot)[1].lstrip(".").lower() not in PLOT_FORMATS:
@@ -74,69 +73,15 @@ def run(args) -> int:
     check_paths({"--json": args.json, "--plot": args.plot}, inputs=[args.config, *args.inputs])
     segments = SegmentOptions(min_duration=args.min_duration, min_speed=args.min_speed, spread=args.spread)
     say = (lambda msg: None) if args.quiet else eprint
-
-    cyl, which = None, None
-    points, breakaways, runs_json = [], [], []
-    stuck_time = None
-    stuck_speeds = []
-    for path in args.inputs:
-        if is_points_table(path):
-            pts = read_points(path)
-            points.extend(pts)
-            nb = sum(p.breakaway for p in pts)
-            say(f"{path}: points table, {len(pts) - nb} sliding points" + (f", {nb} breakaway rows" if nb else ""))
-            continue
-        run_ = read_run(path, args.max_rows)
-        if cyl is None:
-            cyl, which = cylinder_for_runs(args.config, [run_])
-        preflight_runs(cyl, [run_])
-        if which:  # once the run is accepted: a refusal stays the only line
-            say(which)
-            which = None
-        rp = points_from_run(cyl, run_, segments, load=args.load)
-        points.extend(rp.points)
-        breakaways.extend(rp.breakaways)
-        stuck_time = (stuck_time or 0.0) + rp.stuck_time
-        stuck_speeds.append(rp.stuck_speed)
-        runs_json.append({"source": str(path), "duration_s": rp.duration, "points": len(rp.points),
-                          "breakaways": len(rp.breakaways), "stuck_time_s": rp.stuck_time,
-                          "moving_time_s": rp.moving_time})
-        say(f"{path}: run of {rp.duration:.1f} s, {len(rp.points)} constant-velocity points "
-            f"({sum(p.v > 0 for p in rp.points)} extending, {sum(p.v < 0 for p in rp.points)} retracting), "
-            f"{len(rp.breakaways)} breakaways")
-    inputs = ", ".join(str(p) for p in args.inputs)
-    if points and all(p.breakaway for p in points):
-        raise UsageError(f"{inputs}: only breakaway rows, no sliding points; give the map a sweep's points table "
-                         f"or a recorded run beside the breakaway table.")
-    if not points:
-        raise UsageError(f"{inputs}: no constant-velocity stretch found (at least {segments.min_duration:g} s above "
-                         f"{segments.min_speed:g} m/s within {segments.spread:.0%} velocity spread); record moves at "
-                         f"constant speed or relax --min-duration / --spread.")
-    try:
-        fmap = build_map(points, models, breakaways, stuck_speed=max(stuck_speeds) if stuck_speeds else None,
-                         stuck_time=stuck_time, min_speed=segments.min_speed if runs_json else None, strict=explicit,
-                         progress=progress_printer(args.quiet))
-    except FrictionMapError as e:
-        raise UsageError(f"{inputs}: {e}") from None
-    if not any(d.fits for d in fmap.directions.values()):
-        # one reason per direction (they differ only in the model's name)
-        reasons = "; ".join(next(iter(d.skipped.values())).rstrip(".") for d in fmap.directions.values() if d.skipped)
-        raise UsageError(f"{inputs}: no model could be fitted ({reasons}).")
-
+    got = gather_map_inputs(args.inputs, args.config, segments, load=args.load, max_rows=args.max_rows, say=say,
+                            note=eprint)
+    fmap = map_of_inputs(got, models, strict=explicit, progress=progress_printer(args.quiet))
     print(format_table(fmap))
-    out = fmap.to_json()
-    out["inputs"] = [str(p) for p in args.inputs]
-    if cyl is not None:
-        out["config"] = str(cyl.source) if cyl.source else None
-        out["runs"] = runs_json
-        out["segment_options"] = {"min_duration": segments.min_duration, "min_speed": segments.min_speed,
-                                  "spread": segments.spread, "stuck_speed": max(stuck_speeds),
-                                  "stuck_duration": segments.stuck_duration}
-    write_json_atomic(args.json, clean_json(out))
+    write_json_atomic(args.json, clean_json(got.document(fmap)))
     say(f"wrote {args.json}")
     if args.plot:
         try:
-            plot_map(fmap, args.plot, title=f"friction map: {inputs}")
+            plot_map(fmap, args.plot, title=f"friction map: {got.names}")
         except FrictionMapError as e:
             eprint(f"combined-reality friction-map: {e}")
             return 1

@@ -1,5 +1,5 @@
 """Friction beyond the nominal law: static friction-velocity maps (their points from runs:
-points; points tables: tables; the models fitted to the points: fits; the map: map; its plot:
+points; points tables: tables; the models fitted to the points: fits; the map: map; the map of runs and tables as friction-map makes it: inputs; its plot:
 plot; what the map offers as plain data: specs), the seed papers' breakaway and constant-speed
 test procedures on a rig (procedures), and the friction-model family identified dynamically
 on runs and compared on a validation run (dynamic). Names are imported from their modules on
@@ -14,6 +14,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
     "tables": ["is_points_table", "read_points"],
     "fits": ["fit_model"],
     "map": ["FrictionMap", "build_map"],
+    "inputs": ["MapInputs", "gather_map_inputs", "map_of_inputs"],
     "plot": ["plot_map"],
     "procedures": ["BreakawayOptions", "ProcedureError", "SafetyOptions", "SweepOptions", "breakaway_test",
                    "speed_sweep", "steady_speed", "target_speeds", "write_points"],
