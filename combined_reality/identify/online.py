@@ -63,7 +63,7 @@ from .shooting import (ShootingProblem, free_parameters, line_search, linearize,
                        normal_equations, parameter_bounds, parameter_unit, residual_scales, scaled_inverse,
                        shooting_residuals)
 from .smoothing import fill_missing, velocity_estimate
-from .tracking import Blocks, Change, Drift, Regime, analyse, pinv, regime_variance, trend_fit
+from .tracking import Blocks, Change, Drift, Regime, analyse, pinv, regime_variances, trend_fit
 
 # node states and gap offsets profiled out of a window: directions with less than this of the
 # largest information (on the unit-diagonal scale) are left undetermined
@@ -947,13 +947,13 @@ class MovingHorizonEstimator:
         return float(np.median(past[-10:])) if past else None
 
     def _update_regime(self, t_last: float, slide: float) -> None:
-        """The rig's regime variance (identify/tracking.regime_variance) from the history but its
+        """The rig's regime variance (identify/tracking.regime_variances) from the history but its
         last regime_s (where a change may be under way), averaged over the session with a
         time constant of regime_memory_s of data; a step does not reset it (the model lacks
         what it lacked before)."""
         opts = self.options
         old = self._history.select(self._history.t1 < t_last - opts.regime_s)
-        est = [regime_variance(old, self.theta, sc) for sc in self._scales]
+        est = regime_variances(old, self.theta, self._scales)
         for i in range(1, len(est)):  # a scale the history is too short for: that of the one below
             if est[i] is None:
                 est[i] = est[i - 1]
@@ -982,7 +982,7 @@ class MovingHorizonEstimator:
             level = sum(abs(self.theta[names.index(n)]) * x for n, x in terms.items() if n in names)
             floor[names.index("kp")] = max(floor[names.index("kp")], f * level / 2e5)
         var = np.tile(floor ** 2, (len(self._scales), 1))
-        for v in (self._regime, self._regime_recent):  # (diagonal: regime_variance's)
+        for v in (self._regime, self._regime_recent):  # (diagonal: regime_variances')
             if v is not None:
                 var = np.maximum(var, np.diagonal(v, axis1=1, axis2=2))
         return Regime(self._scales, var[:, :, None] * np.eye(len(floor)))

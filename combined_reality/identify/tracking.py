@@ -21,7 +21,7 @@ hold), by amounts that more data of the same regime do not reduce, and some regi
 than most. The tests therefore add a regime covariance to every estimate's noise covariance,
 measured on the stream itself: how far stretches of 0.5, 1, 2 and 4 s (sliding by a block)
 stray from the blocks' common trend beyond what their noise explains, the largest such
-excursion divided by ENVELOPE (`regime_variance`, `Regime`). A model that explains the rig
+excursion divided by ENVELOPE (`regime_variances`, `Regime`). A model that explains the rig
 leaves about none (a floor of 0.5 % of each value is kept), one that explains it less well
 asks for correspondingly more evidence. A step is then judged by the Wald statistic of the
 difference of the estimates before and after it (where it lies: the noise's likelihood
@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -199,47 +200,53 @@ def _clusters(blocks: Blocks, G: np.ndarray, cluster_s: float):
 ENVELOPE = 4.0
 
 
-def regime_variance(blocks: Blocks, theta_r: np.ndarray, cluster_s: float = 1.0) -> np.ndarray | None:
-    """The covariance (diagonal) by which stretches of about cluster_s scatter around the
-    blocks' common trend beyond what their noise explains, from the largest excursion of each
-    parameter among the stretches that determine every parameter (ENVELOPE), or None with
-    fewer than 4 such stretches. A model that explains the rig leaves about 0; an effect it
-    lacks moves the locally best parameters with the operating regime (a ramp, a sine, a
-    hold), which no amount of data averages out, and some regimes far more than most."""
+def regime_variances(blocks: Blocks, theta_r: np.ndarray, scales: Sequence[float]) -> list[np.ndarray | None]:
+    """Per scale (s): the covariance (diagonal) by which stretches of about that long scatter
+    around the blocks' common trend beyond what their noise explains, from the largest
+    excursion of each parameter among the stretches that determine every parameter
+    (ENVELOPE), or None with fewer than 4 such stretches. A model that explains the rig leaves
+    about 0; an effect it lacks moves the locally best parameters with the operating regime (a
+    ramp, a sine, a hold), which no amount of data averages out, and some regimes far more
+    than most."""
     if not len(blocks):
-        return None
+        return [None] * len(scales)
     G, _ = blocks.at(theta_r)
-    # every stretch of about cluster_s (sliding by a block): a regime is not aligned to a grid
-    n = max(1, int(round(cluster_s / max(float(np.median(blocks.t1 - blocks.t0)), 1e-9))))
-    if len(blocks) < n:
-        return None
     Gs = np.concatenate([np.zeros((1,) + G.shape[1:]), G.cumsum(axis=0)])
     As = np.concatenate([np.zeros((1,) + blocks.A.shape[1:]), blocks.A.cumsum(axis=0)])
-    Gc, Ac = Gs[n:] - Gs[:-n], As[n:] - As[:-n]
-    _, step, rank, P = gain(Gc, Ac)
-    full = rank == blocks.nth
-    if full.sum() < 4:
-        return None
-    # around the blocks' trend (a rig that drifts has no more regime than one that does not)
     mid = 0.5 * (blocks.t0 + blocks.t1)
-    t_w = 0.5 * (mid[n - 1:] + mid[:len(mid) - n + 1])
-    fit, _ = _trend(blocks, G, theta_r, float(mid[-1]))
-    line = fit.value - theta_r + np.outer(t_w - mid[-1], fit.rate)
-    dev = step[full] - line[full]
-    var = np.diagonal(P[full], axis1=1, axis2=2)
-    # beyond what noise alone would put at the top of that many stretches (the largest of m
-    # chi-square(1) lies near 2 ln m); a stretch that determines a parameter to no better
-    # than half its value tells nothing of its regime
-    noise = 2 * math.log(max(int(full.sum()), 2)) + 4
-    told = np.isfinite(dev) & (var <= (0.5 * np.abs(fit.value)) ** 2)
-    beyond = np.where(told, dev ** 2 - noise * var, 0.0)
-    return np.diag(np.maximum(beyond.max(axis=0), 0.0) / ENVELOPE)
+    trend = None  # around the blocks' trend (a rig that drifts has no more regime than one that does not)
+    out: list[np.ndarray | None] = []
+    for cluster_s in scales:
+        # every stretch of about cluster_s (sliding by a block): a regime is not aligned to a grid
+        n = max(1, int(round(cluster_s / max(float(np.median(blocks.t1 - blocks.t0)), 1e-9))))
+        if len(blocks) < n:
+            out.append(None)
+            continue
+        _, step, rank, P = gain(Gs[n:] - Gs[:-n], As[n:] - As[:-n])
+        full = rank == blocks.nth
+        if full.sum() < 4:
+            out.append(None)
+            continue
+        if trend is None:
+            trend, _ = _trend(blocks, G, theta_r, float(mid[-1]))
+        t_w = 0.5 * (mid[n - 1:] + mid[:len(mid) - n + 1])
+        line = trend.value - theta_r + np.outer(t_w - mid[-1], trend.rate)
+        dev = step[full] - line[full]
+        var = np.diagonal(P[full], axis1=1, axis2=2)
+        # beyond what noise alone would put at the top of that many stretches (the largest of m
+        # chi-square(1) lies near 2 ln m); a stretch that determines a parameter to no better
+        # than half its value tells nothing of its regime
+        noise = 2 * math.log(max(int(full.sum()), 2)) + 4
+        told = np.isfinite(dev) & (var <= (0.5 * np.abs(trend.value)) ** 2)
+        beyond = np.where(told, dev ** 2 - noise * var, 0.0)
+        out.append(np.diag(np.maximum(beyond.max(axis=0), 0.0) / ENVELOPE))
+    return out
 
 
 @dataclass(frozen=True)
 class Regime:
     """The rig's regime covariance at a few time scales: `cov[i]` is what stretches of about
-    `scales[i]` seconds scatter by beyond their noise (regime_variance). A stretch of length
+    `scales[i]` seconds scatter by beyond their noise (regime_variances). A stretch of length
     L counts that of the largest scale not above L (the smallest for shorter ones); beyond
     the largest, it falls as scales[-1] / L."""
 
