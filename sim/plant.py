@@ -12,7 +12,7 @@ import functools
 import hashlib
 import math
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from typing import Callable, Sequence
 
 import casadi as ca
 import numpy as np
@@ -201,40 +201,10 @@ def _symbolic_plant(structure: _Structure) -> Plant:
     pneumatic = drive != "pressure"
     mechanical = drive != "chambers"
     if pneumatic:
-        sig.u = ca.fmin(ca.fmax(known["u"], -1.0), 1.0)
-        stage("on_command")
-        stage("on_supply")
-        openings = (ca.fmax(sig.u, 0.0), ca.fmax(-sig.u, 0.0))
-        if valve_curve:
-            c_pos, c_neg = (valve_conductance(sig.C, a, par[f"overlap_{d}"],
-                                              [par[f"flow_{d}_{k + 1}"] for k in range(len(OPENING_GRID))])
-                            for d, a in zip(VALVE_DIRECTIONS, openings))
-        else:
-            c_pos, c_neg = (sig.C * a for a in openings)
-        # supply -> chamber paths (drawn from the supply) and chamber <- exhaust paths
-        sig.mdot_s1 = mass_flow(c_pos, sig.ps, p1, sig.b, sig.T)
-        sig.mdot_s2 = mass_flow(c_neg, sig.ps, p2, sig.b, sig.T)
-        sig.mdot1 = sig.mdot_s1 + mass_flow(c_neg, sig.pa, p1, sig.b, sig.T)
-        sig.mdot2 = sig.mdot_s2 + mass_flow(c_pos, sig.pa, p2, sig.b, sig.T)
-        sig.mdot_supply = sig.mdot_s1 + sig.mdot_s2  # net mass flow drawn from the supply
-        stage("on_flows")
-
+        _valve_flows(sig, known["u"], valve_curve, stage)
     sig.Ff = 0.0
     if mechanical:
-        # friction: every term opposes motion. Ff = Fseal * sgn + Fvisc, with the seal (Coulomb
-        # plus pressure) level Fseal >= 0, the direction function sgn in [-1, 1] and the viscous
-        # term Fvisc; on_friction_terms hooks reshape these before they are combined.
-        sig.sgn = ca.tanh(v / par["v_smooth"])
-        sig.Fseal = par["Fc"] + par["kp"] * ca.fabs(p1 - p2)
-        sig.Fvisc = par["Fv"] * v
-        stage("on_friction_terms")
-        sig.Ff = sig.Fseal * sig.sgn + sig.Fvisc
-        stage("on_friction")
-        sig.F_ext = par["external_force"]
-        sig.F_end = end_stop_force(x, v, L, par["end_stiffness"], par["end_damping"])
-        stage("on_piston")
-        sig.dv = (p1 * A1 - p2 * A2 - sig.pa * (A1 - A2) - sig.Ff - sig.M * G * ca.sin(par["angle"])
-                  + sig.F_ext + sig.F_end) / sig.M
+        _piston_acceleration(sig, L, stage)
 
     derivs = {"x": v}
     if mechanical:
@@ -257,3 +227,47 @@ def _symbolic_plant(structure: _Structure) -> Plant:
         friction=ca.Function("friction", [X, U, P], [ca.SX(sig.Ff)], ["x", "u", "p"], ["Ff"]),
         valve_curve=valve_curve,
     )
+
+
+def _valve_flows(sig: Signals, u, valve_curve: bool, stage: Callable[[str], None]) -> None:
+    """The valve's mass flows into the chambers (sig.mdot1, mdot2) and from the supply, from
+    the command bounded to [-1, 1]; effects act on the command, the supply and the flows."""
+    par, p1, p2 = sig.par, sig.p1, sig.p2
+    sig.u = ca.fmin(ca.fmax(u, -1.0), 1.0)
+    stage("on_command")
+    stage("on_supply")
+    openings = (ca.fmax(sig.u, 0.0), ca.fmax(-sig.u, 0.0))
+    if valve_curve:
+        c_pos, c_neg = (valve_conductance(sig.C, a, par[f"overlap_{d}"],
+                                          [par[f"flow_{d}_{k + 1}"] for k in range(len(OPENING_GRID))])
+                        for d, a in zip(VALVE_DIRECTIONS, openings))
+    else:
+        c_pos, c_neg = (sig.C * a for a in openings)
+    # supply -> chamber paths (drawn from the supply) and chamber <- exhaust paths
+    sig.mdot_s1 = mass_flow(c_pos, sig.ps, p1, sig.b, sig.T)
+    sig.mdot_s2 = mass_flow(c_neg, sig.ps, p2, sig.b, sig.T)
+    sig.mdot1 = sig.mdot_s1 + mass_flow(c_neg, sig.pa, p1, sig.b, sig.T)
+    sig.mdot2 = sig.mdot_s2 + mass_flow(c_pos, sig.pa, p2, sig.b, sig.T)
+    sig.mdot_supply = sig.mdot_s1 + sig.mdot_s2  # net mass flow drawn from the supply
+    stage("on_flows")
+
+
+def _piston_acceleration(sig: Signals, stroke, stage: Callable[[str], None]) -> None:
+    """The friction (sig.Ff) and the piston's acceleration (sig.dv); effects act on the
+    friction's terms, the friction and the piston's forces.
+
+    Every friction term opposes motion: Ff = Fseal * sgn + Fvisc, with the seal (Coulomb plus
+    pressure) level Fseal >= 0, the direction function sgn in [-1, 1] and the viscous term
+    Fvisc; on_friction_terms hooks reshape these before they are combined."""
+    par, x, v, p1, p2, A1, A2 = sig.par, sig.x, sig.v, sig.p1, sig.p2, sig.A1, sig.A2
+    sig.sgn = ca.tanh(v / par["v_smooth"])
+    sig.Fseal = par["Fc"] + par["kp"] * ca.fabs(p1 - p2)
+    sig.Fvisc = par["Fv"] * v
+    stage("on_friction_terms")
+    sig.Ff = sig.Fseal * sig.sgn + sig.Fvisc
+    stage("on_friction")
+    sig.F_ext = par["external_force"]
+    sig.F_end = end_stop_force(x, v, stroke, par["end_stiffness"], par["end_damping"])
+    stage("on_piston")
+    sig.dv = (p1 * A1 - p2 * A2 - sig.pa * (A1 - A2) - sig.Ff - sig.M * G * ca.sin(par["angle"])
+              + sig.F_ext + sig.F_end) / sig.M
