@@ -1009,10 +1009,8 @@ class MovingHorizonEstimator:
         if not len(blocks):
             return
         G, A = blocks.at(self.theta)[0].sum(axis=0), blocks.A.sum(axis=0)
-        info = A + self._weak
-        self.prior_mean = np.clip(_solve_scaled(info, A @ self.theta - G + self._weak @ self.theta),
-                                  self.lower, self.upper)
-        self.info = info
+        self.info, mean = _merged_prior(self._weak, self.theta, A, self.theta, G)
+        self.prior_mean = np.clip(mean, self.lower, self.upper)
 
     def _restart(self, an, data: Blocks, k0: int, t_last: float) -> None:
         """After a step at the located boundary: the data before it lose their weight. The
@@ -1032,10 +1030,8 @@ class MovingHorizonEstimator:
         self.theta = np.clip(after.value, self.lower, self.upper)
         if len(self._history):  # the history after the step (it lies before the window) is information
             G, A = self._history.at(self.theta)[0].sum(axis=0), self._history.A.sum(axis=0)
-            info = self.info + A
-            self.prior_mean = np.clip(_solve_scaled(info, self.info @ self.prior_mean + A @ self.theta - G),
-                                      self.lower, self.upper)
-            self.info = info
+            self.info, mean = _merged_prior(self.info, self.prior_mean, A, self.theta, G)
+            self.prior_mean = np.clip(mean, self.lower, self.upper)
         self.p[self.free] = self.theta
         self._prev, self._w, self._restarting = None, max(int(data.k[b]), k0), True
         self._ssr = self._nres = self._nstates = 0.0
@@ -1125,9 +1121,8 @@ class MovingHorizonEstimator:
                 self._history = self._history.extend(prev["blocks"].select(slice(0, n)))
             if n < len(ranges):
                 self._history = self._history.extend(self._blocks(prev, ranges[n:]))
-        self.info = info_old + A
         # the leaving data's cost around theta, 0.5 d'A d + b'd, merged with the prior
-        self.prior_mean = _solve_scaled(self.info, info_old @ self.prior_mean + A @ theta - b)
+        self.info, self.prior_mean = _merged_prior(info_old, self.prior_mean, A, theta, b)
 
     def _std(self, Nm, R, piece_of, red: _ReducedWindow, r, mask, t0, theta) -> np.ndarray:
         """Standard deviations of the whole-session estimate: the larger of the Gauss-Newton one
@@ -1333,6 +1328,13 @@ class _ReducedWindow:
             A[i] = np.einsum("kma,kmb->ab", Jth, Jth) - NtF.T @ proj
             S[i] = np.einsum("kma,km->a", Jth, rr) - proj.T @ Ntr
         return S, A
+
+
+def _merged_prior(info: np.ndarray, mean: np.ndarray, A: np.ndarray, theta: np.ndarray, G: np.ndarray):
+    """(information, mean) of the prior 0.5 (x - mean)' info (x - mean) plus data whose cost
+    around theta is 0.5 d'A d + G'd (d = x - theta)."""
+    merged = info + A
+    return merged, _solve_scaled(merged, info @ mean + A @ theta - G)
 
 
 def _solve_scaled(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
