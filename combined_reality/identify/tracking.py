@@ -277,7 +277,7 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
     then judged by the Wald statistic of the difference before and after it, a drift by that
     of its rate (whose regime part is that of a regression slope over the stretch with
     errors correlated over the largest scale R: 12 R / length^3)."""
-    J, nth = len(blocks), blocks.nth
+    nth = blocks.nth
     if regime is None:
         regime = Regime(np.array([1.0]), np.zeros((1, nth, nth)))
     drift_regime = regime if drift_regime is None else drift_regime
@@ -292,51 +292,12 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
     g_all, step_all, rank_all, P_all = gain(Gc[-1], Ac[-1])
     constant = Fit(theta_r + step_all, noise * P_all + regime_cov(total))
 
-    # a step at boundary b: the blocks before it and those from it on fitted apart
-    z_step, b_best, t_c, t_std, before, after, pending = 0.0, -1, math.nan, math.nan, None, None, 0.0
-    chi2_step = math.inf
-    # data before and after each block's start (a block's last sample holds for a period too)
-    period = float(np.median(blocks.t0[1:] - blocks.t1[:-1])) if J > 1 else 0.0
-    span_before = np.r_[0.0, np.cumsum(dur + period)[:-1]]
-    span_after = total + J * period - span_before
-    cand = np.flatnonzero((span_before >= min_before_s) & (np.arange(J) >= 1) & (blocks.t0 >= t_ref - recent_s))
-    if len(cand):
-        Gb, Ab = Gc[cand - 1], Ac[cand - 1]
-        n = len(cand)  # before and after each boundary, in one stack
-        g2, step2, rank2, P2 = gain(np.concatenate([Gb, Gc[-1] - Gb]), np.concatenate([Ab, Ac[-1] - Ab]))
-        # a step is judged only where the data on each side determine what all of them do (a
-        # hold at an end stop does not determine the friction: its pseudo-inverse would claim
-        # the undetermined directions known exactly)
-        judged = (rank2[:n] >= rank_all) & (rank2[n:] >= rank_all)
-        cand, n = cand[judged], int(judged.sum())
-        keep = np.concatenate([judged, judged])
-        g2, step2, P2 = g2[keep], step2[keep], P2[keep]
-    if len(cand):
-        cov_b = noise * P2[:n] + regime_cov(span_before[cand])
-        cov_a = noise * P2[n:] + regime_cov(span_after[cand])
-        # where: the likelihood ratio of the noise alone (a regime's part depends on the
-        # stretches' lengths, and would draw the boundary to where they are long)
-        glr = 2 * (g2[:n] + g2[n:] - g_all)
-        i = int(np.argmax(glr))
-        d = step2[n + i] - step2[i]
-        W, _ = pinv(cov_a[i] + cov_b[i])
-        b_best, z_step = int(cand[i]), math.sqrt(max(float(d @ W @ d), 0.0))
-        if span_after[b_best] < min_after_s:  # found where too little has come after it yet: wait
-            pending, z_step = z_step, 0.0
-        # the change's time: the boundaries weighted by their likelihood ratios
-        w = np.exp(0.5 * (glr - glr[i]) / max(1.0, noise))
-        w /= w.sum()
-        tb = blocks.t0[cand]
-        t_c = float(w @ tb)
-        width = float(dur[b_best])  # the change lies somewhere in a block
-        t_std = math.sqrt(float(w @ (tb - t_c) ** 2) + width ** 2 / 12)
-        before = Fit(theta_r + step2[i], cov_b[i])
-        after = Fit(theta_r + step2[n + i], cov_a[i])
+    step = _step_test(blocks, theta_r, Gc, Ac, g_all, rank_all, regime_cov, noise, min_before_s, min_after_s,
+                      t_ref - recent_s)
     # what clusters of 2 cluster_s would gain on their own: the residual chi-square each
     # alternative leaves is that less what it gains (the better one explains the blocks)
     g_own = float(gain(*_clusters(blocks, G, 2 * cluster_s))[0].sum())
-    if len(cand):
-        chi2_step = 2 * (g_own - float(g2[i] + g2[n + i]))
+    chi2_step = math.inf if step is None else 2 * (g_own - step.gain)
 
     # a drift: theta_now + beta (t - t_ref)
     trend, g_tr = _trend(blocks, G, theta_r, t_ref, noise)
@@ -344,8 +305,75 @@ def analyse(blocks: Blocks, theta_r: np.ndarray, t_ref: float, regime: Regime | 
                 trend.rate_cov + reg * 12 * R / max(total, R) ** 3)
     W, _ = pinv(trend.rate_cov)
     z_drift = math.sqrt(max(float(trend.rate @ W @ trend.rate), 0.0))
-    return Analysis(z_step, z_drift, b_best, t_c, t_std, before, after, trend, constant,
-                    {"step_chi2": chi2_step, "drift_chi2": 2 * (g_own - g_tr)}, pending)
+    dispersion = {"step_chi2": chi2_step, "drift_chi2": 2 * (g_own - g_tr)}
+    if step is None:
+        return Analysis(0.0, z_drift, -1, math.nan, math.nan, None, None, trend, constant, dispersion)
+    return Analysis(step.z, z_drift, step.boundary, step.t, step.t_std, step.before, step.after, trend, constant,
+                    dispersion, step.pending)
+
+
+@dataclass(frozen=True)
+class _Step:
+    """The most likely step: its Wald statistic (0 while pending), the first block after it,
+    its located time, the fits before and after it, their summed gain, and the statistic of
+    a step found where too little has come after it yet."""
+
+    z: float
+    boundary: int
+    t: float
+    t_std: float
+    before: Fit
+    after: Fit
+    gain: float
+    pending: float
+
+
+def _step_test(blocks: Blocks, theta_r: np.ndarray, Gc, Ac, g_all: float, rank_all, regime_cov, noise: float,
+               min_before_s: float, min_after_s: float, t_from: float) -> _Step | None:
+    """The step most likely at a block boundary from t_from on with min_before_s of data before
+    it (the blocks before it and those from it on fitted apart, re-centred at theta_r; Gc, Ac
+    the blocks' running sums), or None where no boundary is judged."""
+    J, dur = len(blocks), blocks.t1 - blocks.t0
+    total = float(dur.sum())
+    # data before and after each block's start (a block's last sample holds for a period too)
+    period = float(np.median(blocks.t0[1:] - blocks.t1[:-1])) if J > 1 else 0.0
+    span_before = np.r_[0.0, np.cumsum(dur + period)[:-1]]
+    span_after = total + J * period - span_before
+    cand = np.flatnonzero((span_before >= min_before_s) & (np.arange(J) >= 1) & (blocks.t0 >= t_from))
+    if not len(cand):
+        return None
+    Gb, Ab = Gc[cand - 1], Ac[cand - 1]
+    n = len(cand)  # before and after each boundary, in one stack
+    g2, step2, rank2, P2 = gain(np.concatenate([Gb, Gc[-1] - Gb]), np.concatenate([Ab, Ac[-1] - Ab]))
+    # a step is judged only where the data on each side determine what all of them do (a
+    # hold at an end stop does not determine the friction: its pseudo-inverse would claim
+    # the undetermined directions known exactly)
+    judged = (rank2[:n] >= rank_all) & (rank2[n:] >= rank_all)
+    cand, n = cand[judged], int(judged.sum())
+    if not n:
+        return None
+    keep = np.concatenate([judged, judged])
+    g2, step2, P2 = g2[keep], step2[keep], P2[keep]
+    cov_b = noise * P2[:n] + regime_cov(span_before[cand])
+    cov_a = noise * P2[n:] + regime_cov(span_after[cand])
+    # where: the likelihood ratio of the noise alone (a regime's part depends on the
+    # stretches' lengths, and would draw the boundary to where they are long)
+    glr = 2 * (g2[:n] + g2[n:] - g_all)
+    i = int(np.argmax(glr))
+    d = step2[n + i] - step2[i]
+    W, _ = pinv(cov_a[i] + cov_b[i])
+    b_best, z_step, pending = int(cand[i]), math.sqrt(max(float(d @ W @ d), 0.0)), 0.0
+    if span_after[b_best] < min_after_s:  # found where too little has come after it yet: wait
+        pending, z_step = z_step, 0.0
+    # the change's time: the boundaries weighted by their likelihood ratios
+    w = np.exp(0.5 * (glr - glr[i]) / max(1.0, noise))
+    w /= w.sum()
+    tb = blocks.t0[cand]
+    t_c = float(w @ tb)
+    width = float(dur[b_best])  # the change lies somewhere in a block
+    t_std = math.sqrt(float(w @ (tb - t_c) ** 2) + width ** 2 / 12)
+    return _Step(z_step, b_best, t_c, t_std, Fit(theta_r + step2[i], cov_b[i]), Fit(theta_r + step2[n + i], cov_a[i]),
+                 float(g2[i] + g2[n + i]), pending)
 
 
 def _trend(blocks: Blocks, G: np.ndarray, theta_r: np.ndarray, t_ref: float, noise: float = 1.0):
