@@ -310,3 +310,48 @@ def test_identify_refuses_the_raw_lab_file_and_points_to_import(tmp_path, capsys
     raw = write_lab_csv(tmp_path / "messung.csv", short_run, preamble="", encoding="utf-8")
     code, _, err = call(["identify", "--config", CONFIGS / "cyl_a_32x100.toml", raw], capsys)
     assert_refused(code, err, "messung.csv, line 1", "missing required columns", "'combined-reality import'")
+
+
+def _long_lab_csv(path: Path, rows: int, line_end: str = "\n", bad_row: int | None = None) -> Path:
+    """A lab CSV of `rows` samples (EXAMPLE_MAP's layout), over a MiB: read in several blocks."""
+    i = np.arange(rows)
+    lines = [f"{k},000;{5 + 0.5 * np.sin(k / 50):.7f};{50 + 40 * np.sin(k / 70):.6f};{2 + np.sin(k / 50):.7f};"
+             f"{2 - np.sin(k / 50):.7f}".replace(".", ",") for k in i]
+    if bad_row is not None:
+        lines[bad_row] = lines[bad_row].replace(";", ";x", 1)
+    path.write_bytes((HEADER + line_end + line_end.join(lines) + line_end).encode("cp1252"))
+    return path
+
+
+@pytest.mark.parametrize("line_end", ["\n", "\r\n", "\r"])
+def test_a_long_recording_is_read_once_as_a_stream_whatever_ends_its_lines(tmp_path, capsys, line_end):
+    """Every sample of a recording read block by block (line ends split across blocks
+    included), the run header's sha256 that of the recording's bytes as they were read."""
+    import hashlib
+
+    raw = _long_lab_csv(tmp_path / "messung.csv", 30_000, line_end)
+    assert raw.stat().st_size > 1 << 20  # more than one block
+    code, err, out = do_import(tmp_path, capsys, raw, EXAMPLE_MAP)
+    assert code == 0, err
+    run = read_run(out)
+    assert run.n == 30_000
+    np.testing.assert_allclose(run.t, np.arange(30_000) * 1e-3)
+    digest = hashlib.sha256(raw.read_bytes()).hexdigest()[:16]
+    assert f"(sha256 {digest})" in out.read_text().splitlines()[0]
+
+
+def test_a_bad_cell_deep_in_a_long_recording_names_its_physical_line(tmp_path, capsys):
+    raw = _long_lab_csv(tmp_path / "messung.csv", 30_000, "\r\n", bad_row=25_000)
+    code, err, out = do_import(tmp_path, capsys, raw, EXAMPLE_MAP)
+    assert_refused(code, err, "messung.csv, line 25002, column 'Ventil [V]'", "is not a number")
+    assert not out.exists()
+
+
+def test_a_line_longer_than_a_line_of_delimited_text_is_refused(tmp_path, capsys):
+    from combined_reality.importing.delimited import MAX_LINE
+
+    raw = tmp_path / "messung.csv"
+    raw.write_text(HEADER + "\n1,0;5,0;50,0;2,0;2,0\n" + "9" * (MAX_LINE + 10) + "\n", encoding="cp1252")
+    code, err, out = do_import(tmp_path, capsys, raw, EXAMPLE_MAP)
+    assert_refused(code, err, "messung.csv, line 3: longer than", "not a line of delimited text")
+    assert not out.exists()

@@ -55,7 +55,8 @@ _RECORDING_MAX_BYTES_PER_ROW = 1024  # a recording larger than max_rows rows of 
 def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate: float | None = None,
                      max_rows: int = MAX_ROWS) -> ImportResult:
     """The recording as a run (refused with a MappingError naming the place when it cannot be
-    one); the recording is read whole, so it may have at most `max_rows` rows (lines of text)."""
+    one); it may have at most `max_rows` rows (data lines of text: refused as soon as a text
+    recording has more, read as a stream)."""
     path = Path(raw_path)
     fmt = format_of(path, mapping.source)
     _check_recording(path, mapping, fmt, max_rows)
@@ -82,7 +83,8 @@ def import_recording(raw_path: str | Path, mapping: ImportMapping, resample_rate
     if report.irregular:
         notes.append(f"irregular sampling: {report.describe()}" + ("" if resample_rate else
                                                                    "; --resample RATE puts it on a regular grid"))
-    comments = [f"imported by combined-reality import from {path.name} (sha256 {_digest(path)}), {raw.describe}",
+    digest = (raw.digest or _digest(path))[:16]  # a library's reader reads the file itself: hashed apart
+    comments = [f"imported by combined-reality import from {path.name} (sha256 {digest}), {raw.describe}",
                 f"mapping: {mapping.path.name if mapping.path else '-'}", *how,
                 f"sampling as recorded: {report.describe()}", *raw.notes]
     if resample_rate is not None:
@@ -162,7 +164,7 @@ def _digest(path: Path) -> str:
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
-    return h.hexdigest()[:16]
+    return h.hexdigest()
 
 
 def _check(path: Path, mapping: ImportMapping, raw: RawTable, columns: dict[str, np.ndarray]) -> None:

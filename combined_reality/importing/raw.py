@@ -23,6 +23,7 @@ class RawTable:
     locate: Callable[[int], str]  # row index -> where it is in the recording ("line 17", "row 16", ...)
     describe: str  # the format and how it was read, for the run's header
     notes: tuple[str, ...] = ()  # what reading did that the user should know (rows dropped by alignment)
+    digest: str | None = None  # the recording's sha256 (hex), where the reader took it as it read the bytes
 
 
 @dataclass(frozen=True)
