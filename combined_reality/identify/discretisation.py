@@ -118,12 +118,11 @@ def _stretch_steps(problem: ShootingProblem, sf: ShootingFunctions, fine: Shooti
         eqs[0].add(lin, E, D * coarse.sscale[:, None], D, has_next)
         eqs[1].add(lin, Ef, Df * coarse.sscale[:, None], Df, has_next)
     try:
-        inv = scaled_inverse(eqs[0].N)
-        F = scaled_inverse(inv[nx:, nx:])
+        F = scaled_inverse(eqs[0].N.parameter_inverse())
+        # a Gauss-Newton step is -N^-1 g: the two steps differ by -N^-1 (g_fine - g_fit)
+        return F, -eqs[0].N.parameter_solution(eqs[1].g - eqs[0].g)
     except np.linalg.LinAlgError:
         return None
-    # a Gauss-Newton step is -N^-1 g: the two steps differ by -N^-1 (g_fine - g_fit)
-    return F, -(inv @ (eqs[1].g - eqs[0].g))[nx:]
 
 
 def discretisation(problem: ShootingProblem, sf: ShootingFunctions, opts: IntegratorOptions,

@@ -18,7 +18,7 @@ from typing import Callable, NamedTuple, Protocol
 
 import numpy as np
 
-from .shooting import solve_bounded
+from .shooting import ReducedNormal, solve_bounded
 
 __all__ = ["Exit", "Damping", "Prediction", "StepModel", "StepOutcome", "damped_step"]
 
@@ -94,14 +94,14 @@ class StepOutcome:
         return self.prediction.decrease if self.prediction is not None else float("inf")
 
 
-def damped_step(N: np.ndarray, g: np.ndarray, theta: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                n_state: int, node_scale: np.ndarray, lam: float, mu: float, model: StepModel, damping: Damping,
+def damped_step(N: ReducedNormal, g: np.ndarray, theta: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                node_scale: np.ndarray, lam: float, mu: float, model: StepModel, damping: Damping,
                 out_of_time: Callable[[], bool] | None = None) -> StepOutcome:
-    """One Gauss-Newton iteration on the normal equations N d = -g of (n_state node states,
+    """One Gauss-Newton iteration on the normal equations N d = -g of (the free node states,
     theta): steps of growing damping until one is accepted, nothing is left to gain, or
     `damping.attempts` have failed (or `out_of_time()`, asked before each retry)."""
     out = StepOutcome(lam=lam, mu=mu)
-    scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    scale = np.sqrt(np.maximum(N.diagonal(), 1e-300))
     failed = None
     for attempt in range(damping.attempts):
         if attempt and out_of_time is not None and out_of_time():
@@ -109,8 +109,7 @@ def damped_step(N: np.ndarray, g: np.ndarray, theta: np.ndarray, lower: np.ndarr
         # once a step has failed, the damping bounds the free node states too: a state the data
         # cannot see (the velocity of a piston stuck where a piece starts) may have taken it all
         bound_states = failed is not None or (damping.bound_states_on_retry and attempt > 0)
-        step = out.step = solve_bounded(N, g, theta, lower, upper, n_state, out.lam,
-                                        node_scale if bound_states else None)
+        step = out.step = solve_bounded(N, g, theta, lower, upper, out.lam, node_scale if bound_states else None)
         if out.first_step is None:
             out.first_step = step
         if step is None or (damping.same_step and failed is not None and (

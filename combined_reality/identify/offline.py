@@ -16,6 +16,7 @@ residual variance gives the standard deviations.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -39,11 +40,11 @@ from .drives import check_drive
 from .gauss_newton import Damping, Exit, Prediction, StepOutcome, damped_step
 from .newton import equation_error_friction
 from .preflight import check_determinable
-from .shooting import (IdentificationError, NormalEquations, PriorRow, RunLayout, ShootingProblem, at_bounds,
-                       concatenated_layouts, correlation, drives_with_measured_inputs, fit_metrics, free_parameters,
-                       interval_residual_sigma, line_search, parameter_bounds, parameter_unit, pooled_fit,
-                       prior_matrix, reported_covariance, residual_scales, run_layout, simulate_layout,
-                       standard_deviations, warm_nodes, with_effect_values)
+from .shooting import (Clusters, IdentificationError, NormalEquations, PriorRow, ReducedNormal, RunLayout,
+                       ShootingProblem, at_bounds, concatenated_layouts, correlation, drives_with_measured_inputs,
+                       fit_metrics, free_parameters, interval_residual_sigma, line_search, parameter_bounds,
+                       parameter_unit, pooled_fit, prior_matrix, reported_covariance, residual_scales, run_layout,
+                       simulate_layout, standard_deviations, warm_nodes, with_effect_values)
 
 
 # a model whose residual is this many times the sensor noise does not explain the run: its
@@ -368,6 +369,11 @@ class _Fit:
     def n_state(self) -> int:  # free node states: the first of each piece
         return len(self.layouts) * self.nx
 
+    @functools.cached_property
+    def piece_of(self) -> np.ndarray:
+        """The piece of every interval."""
+        return np.repeat(np.arange(len(self.layouts)), [l.K for l in self.layouts])
+
     def closed(self, viol: float) -> bool:
         """Whether defects summing to `viol` (scaled) are closed."""
         return viol < 1e-2 * max(1, self.K)
@@ -395,14 +401,12 @@ class _Fit:
         with np.errstate(over="ignore"):
             return 0.5 * float(np.sum(E * E)) + mu * float(np.sum(np.abs(D)))
 
-    def with_prior(self, Nmat: np.ndarray, g: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def with_prior(self, Nmat: ReducedNormal, g: np.ndarray, th: np.ndarray) -> tuple[ReducedNormal, np.ndarray]:
         if not len(self.tp):
             return Nmat, g
-        Nmat, g = Nmat.copy(), g.copy()
-        n0 = Nmat.shape[0] - self.nth
-        Nmat[n0:, n0:] += self.Gp.T @ self.Gp
-        g[n0:] += self.Gp.T @ (self.Gp @ th - self.tp)
-        return Nmat, g
+        g = g.copy()
+        g[self.n_state:] += self.Gp.T @ (self.Gp @ th - self.tp)
+        return Nmat.with_parameters(self.Gp.T @ self.Gp), g
 
     def residual_sigma(self, S: np.ndarray, p: np.ndarray, ev: NormalEquations) -> tuple[float, float]:
         """(residual sigma, noise floor) of a drive by measured inputs (interval_residual_sigma)."""
@@ -484,10 +488,7 @@ class _OfflineStep:
     def search(self, step: np.ndarray, pred: Prediction, mu: float):
         fit, ev = self.fit, self.ev
         ds0, dth = step[: fit.n_state].reshape(len(fit.layouts), fit.nx), step[fit.n_state:]
-        dS = np.empty((fit.K, fit.nx))
-        for ri, l in enumerate(fit.layouts):
-            sl = slice(l.node0, l.node0 + l.K)
-            dS[sl] = ev.P[sl] @ ds0[ri] + ev.Q[sl] @ dth + ev.q[sl]
+        dS = (ev.P @ ds0[fit.piece_of][:, :, None])[..., 0] + ev.Q @ dth + ev.q
         # a fit that creeps (only short steps accepted, NONMONOTONE times in a row) is in a curved
         # valley: then a step may rise above the current merit as long as it stays below the
         # worst of the last few (Grippo-Lampariello-Lucidi), so it takes full steps along it
@@ -536,7 +537,7 @@ def _iterate(fit: _Fit, S: np.ndarray, theta: np.ndarray, p: np.ndarray, options
         viol = float(np.sum(np.abs(ev.D)))
         recent = history[-NONMONOTONE:] if creeping >= NONMONOTONE else []
         model = _OfflineStep(fit, ev, S, theta, p, cost, viol, recent)
-        out = damped_step(Nmat, g, theta, fit.lower, fit.upper, fit.n_state, fit.node_scale, lam, mu, model,
+        out = damped_step(Nmat, g, theta, fit.lower, fit.upper, fit.node_scale, lam, mu, model,
                           OFFLINE_DAMPING, end.out_of_time)
         lam, mu = out.lam, out.mu
         if out.converged:
@@ -578,12 +579,12 @@ class _FitEnd:
     def out_of_time(self) -> bool:
         return time.perf_counter() - self.t_start > self.options.time_limit_s
 
-    def after_step(self, Nmat: np.ndarray, scores: np.ndarray, ev: NormalEquations, theta: np.ndarray,
+    def after_step(self, Nmat: ReducedNormal, scores: Clusters, ev: NormalEquations, theta: np.ndarray,
                    alpha: float, moved: np.ndarray, cost: float, history: list[dict]) -> Exit | None:
         """The exit after an accepted step of length `alpha` that moved the parameters by `moved` to `theta`
         (Nmat, scores: of the iteration's start; ev: linearised after the step)."""
         fit, options, nres = self.fit, self.options, self.fit.nres
-        std = standard_deviations(Nmat, fit.n_state, cost, nres)
+        std = standard_deviations(Nmat, cost, nres)
         # a step small against what the data determine; an undetermined parameter (std not
         # finite) must itself stop moving
         yardstick = np.where(np.isfinite(std), std, 1e-6 * (fit.upper - fit.lower))
@@ -596,7 +597,7 @@ class _FitEnd:
         if not fit.nth and states_settled(history):
             return Exit.STATES_SETTLED
         if options.start_only and fit.nth and len(history) >= 2 * NONMONOTONE:
-            cov_rep = reported_covariance(Nmat, scores, fit.n_state, cost, nres)
+            cov_rep = reported_covariance(Nmat, scores, cost, nres)
             if cov_rep is not None and start_settled(history, theta, np.sqrt(np.maximum(np.diag(cov_rep), 0.0))):
                 return Exit.START_SETTLED
         if abs(cost - 0.5 * ev.cost2 - fit.prior_cost(theta)) < 1e-12 * cost and closed:
@@ -607,7 +608,7 @@ class _FitEnd:
             return Exit.ABOVE_REFERENCE
         return None
 
-    def after_failed_step(self, out: StepOutcome, Nmat: np.ndarray, ev: NormalEquations, S: np.ndarray,
+    def after_failed_step(self, out: StepOutcome, Nmat: ReducedNormal, ev: NormalEquations, S: np.ndarray,
                           theta: np.ndarray, p: np.ndarray, cost: float, viol: float, history: list[dict]) -> Exit:
         """The exit when no step was accepted: AT_NOISE_FLOOR where nothing can be gained any
         more, else TIME_LIMIT or LINE_SEARCH_FAILED."""
@@ -615,7 +616,7 @@ class _FitEnd:
             return Exit.AT_NOISE_FLOOR
         return Exit.TIME_LIMIT if self.out_of_time() else Exit.LINE_SEARCH_FAILED
 
-    def at_noise_floor(self, out: StepOutcome, Nmat: np.ndarray, ev: NormalEquations, S: np.ndarray,
+    def at_noise_floor(self, out: StepOutcome, Nmat: ReducedNormal, ev: NormalEquations, S: np.ndarray,
                        theta: np.ndarray, p: np.ndarray, cost: float, viol: float, history: list[dict]) -> bool:
         """Whether a step the line search could not take leaves nothing to gain: at the numerical
         noise floor of the cost; or it moves no parameter by a tenth of what the data determine
@@ -627,7 +628,7 @@ class _FitEnd:
             return True
         if out.first_step is None or not fit.nth:
             return False
-        std_here = standard_deviations(Nmat, fit.n_state, cost, nres)
+        std_here = standard_deviations(Nmat, cost, nres)
         ok = np.isfinite(std_here) & (std_here > 0)
         if not ok.all():
             return False
@@ -644,7 +645,7 @@ class _FitEnd:
         # cluster-robust one, here ~30 times larger)
         by_floor = not settled and self.options.noise_floor and drives_with_measured_inputs(fit.plant)
         at_noise = 2 * cost <= SETTLED_SIGMA ** 2 * nres
-        cov_rep = reported_covariance(Nmat, ev.clusters, fit.n_state, cost, nres) if by_floor or at_noise else None
+        cov_rep = reported_covariance(Nmat, ev.clusters, cost, nres) if by_floor or at_noise else None
         std_rep = None if cov_rep is None else np.sqrt(np.maximum(np.diag(cov_rep), 0.0))
         if by_floor and std_rep is not None:
             settled = parameters_settled(history, theta, std_rep, cost, nres,
@@ -663,7 +664,7 @@ def _result(fit: _Fit, ended: _Ended, options: IdentifyOptions, effects: Sequenc
     S, theta, p, ev, plant = ended.S, ended.theta, ended.p, ended.ev, fit.plant
     cost = 0.5 * ev.cost2
     Nfinal, _ = fit.with_prior(ev.N, ev.g, theta)
-    cov = reported_covariance(Nfinal, ev.clusters, fit.n_state, cost, fit.nres)
+    cov = reported_covariance(Nfinal, ev.clusters, cost, fit.nres)
     wanted = (fit.nth and cov is not None and not options.start_only
               and not at_bounds(theta, fit.lower, fit.upper).any()
               and sum(l.run.duration for l in fit.layouts) >= options.discretisation_min_s)

@@ -59,7 +59,7 @@ from ..files import Run
 from .gauss_newton import Damping, Exit, Prediction, StepOutcome, damped_step
 from .newton import equation_error_friction
 from .offline import MISMATCH
-from .shooting import (ShootingProblem, free_parameters, line_search, linearize, node_transitions,
+from .shooting import (ReducedNormal, ShootingProblem, free_parameters, line_search, linearize, node_transitions,
                        normal_equations, parameter_bounds, parameter_unit, residual_scales, scaled_inverse,
                        shooting_residuals)
 from .smoothing import fill_missing, velocity_estimate
@@ -296,7 +296,7 @@ class _Solved:
     theta: np.ndarray
     p: np.ndarray
     red: "_ReducedWindow"
-    Nm: np.ndarray
+    Nm: ReducedNormal
     sens: np.ndarray | None
     step_taken: tuple | None
 
@@ -310,7 +310,7 @@ ONLINE_DAMPING = Damping(attempts=2, floor=1e-2, bound_states_on_retry=True)
 class _OnlineStep:
     """The step model of one update's iteration (gauss_newton.StepModel)."""
 
-    def __init__(self, w: _Window, u: _Unknowns, red: "_ReducedWindow", Nm: np.ndarray, g: np.ndarray,
+    def __init__(self, w: _Window, u: _Unknowns, red: "_ReducedWindow", Nm: ReducedNormal, g: np.ndarray,
                  S: np.ndarray, theta: np.ndarray, p: np.ndarray, dev: np.ndarray, cost: float, viol: float, nu: int):
         self.w, self.u, self.red, self.Nm, self.g = w, u, red, Nm, g
         self.S, self.theta, self.p, self.dev = S, theta, p, dev
@@ -754,7 +754,7 @@ class MovingHorizonEstimator:
                                    "is not finite; check the cylinder file against the rig")
             E, X = ev[0], ev[2]
             model = self._step_model(w, u, ev, S, theta, p)
-            out = damped_step(model.Nm, model.g, theta, u.lower, u.upper, R * nx, node_scale, lam, mu, model,
+            out = damped_step(model.Nm, model.g, theta, u.lower, u.upper, node_scale, lam, mu, model,
                               ONLINE_DAMPING)
             lam, mu, step_taken = out.lam, out.mu, None
             why = _update_end(out, it, self.options.iterations, model.cost)
@@ -778,10 +778,9 @@ class MovingHorizonEstimator:
             lin = self._with_gap_offsets(lin, S, X, p, w.commands(p), lay, w.k0)
         red = _ReducedWindow(lin, E, D * self.sscale[:, None], lay["has_next"], nx, nth)
         Nm, g = red.normal_equations(w.pieces)
-        th_sl = slice(w.R * nx, w.R * nx + nth + w.G)
         dev = theta - u.mean
-        Nm[th_sl, th_sl] += u.info
-        g[th_sl] += u.info @ dev
+        Nm = Nm.with_parameters(u.info)
+        g[w.R * nx:] += u.info @ dev
         cost = 0.5 * float(np.sum(E * E)) + 0.5 * float(dev @ u.info @ dev)
         return _OnlineStep(w, u, red, Nm, g, S, theta, p, dev, cost, float(np.sum(np.abs(D))), nth + w.G)
 
@@ -1128,8 +1127,9 @@ class MovingHorizonEstimator:
         """Standard deviations of the whole-session estimate: the larger of the Gauss-Newton one
         (scaled by the session's residual variance) and the cluster-robust one. Nm holds the
         window's normal equations with the arrival cost; its node states and gap offsets are
-        profiled out."""
+        profiled out (the window's few pieces: as one matrix)."""
         nx, nth = self.plant.nx, len(self.free)
+        Nm = Nm.dense()
         th = np.zeros(Nm.shape[0], bool)
         th[R * nx:R * nx + nth] = True
         proj = pinv(Nm[~th][:, ~th], rcond=_NUISANCE_RCOND)[0] @ Nm[~th][:, th]
@@ -1242,24 +1242,22 @@ class _ReducedWindow:
 
     def normal_equations(self, pieces: Sequence[_Piece]):
         """(N, g) in (the pieces' start states, the parameters, the offsets) at r0."""
-        nx, nth, nu, R = self.nx, self.nth, self.nu, len(pieces)
+        nx, nth, nu = self.nx, self.nth, self.nu
         Nt, gt, _ = normal_equations(self.Js, self.Jth, self.r0, pieces, nx, nth)
         if nu == nth:
             return Nt, gt
-        n0 = R * nx + nth
-        N = np.zeros((n0 + nu - nth,) * 2)
-        g = np.zeros(n0 + nu - nth)
-        N[:n0, :n0], g[:n0] = Nt, gt
         K, ng = self.Qg.shape[0], nu - nth
         Qg = self.Qg.reshape(K * nx, ng)  # the sums over intervals and states as one product each
         CQ = (self.Gf.transpose(0, 2, 1) @ self.Gf) @ self.Qg
         starts = [pc.node0 for pc in pieces]
-        N[:R * nx, n0:] = np.add.reduceat(self.P.transpose(0, 2, 1) @ CQ, starts, axis=0).reshape(R * nx, ng)
-        N[R * nx:n0, n0:] = self._Gt(self.Jth).transpose(2, 0, 1).reshape(nth, K * nx) @ Qg
-        N[n0:, :n0] = N[:n0, n0:].T
-        N[n0:, n0:] = Qg.T @ CQ.reshape(K * nx, ng)
-        g[n0:] = Qg.T @ self._Gt(self.r0).reshape(K * nx)
-        return N, g
+        C = np.concatenate([Nt.C, np.add.reduceat(self.P.transpose(0, 2, 1) @ CQ, starts, axis=0)], axis=2)
+        T = np.zeros((nu, nu))
+        T[:nth, :nth] = Nt.T
+        T[:nth, nth:] = self._Gt(self.Jth).transpose(2, 0, 1).reshape(nth, K * nx) @ Qg
+        T[nth:, :nth] = T[:nth, nth:].T
+        T[nth:, nth:] = Qg.T @ CQ.reshape(K * nx, ng)
+        g = np.concatenate([gt, Qg.T @ self._Gt(self.r0).reshape(K * nx)])
+        return ReducedNormal(Nt.S, C, T), g
 
     def apply(self, ds0_k, dth):
         """The change of the residuals for node increments ds0_k (per interval) and dth."""

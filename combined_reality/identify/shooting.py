@@ -402,6 +402,105 @@ def line_search(evaluate, merit, S, dS, theta, dth, p, free, lower, upper, m0: f
     return None
 
 
+@dataclass(frozen=True)
+class ReducedNormal:
+    """The reduced normal matrix in (the start state of each of R runs or gap-free pieces, the
+    parameters): a piece's start state couples with the parameters only (an arrowhead), so the
+    matrix is held as its blocks, per piece S (R, nx, nx) and C (R, nx, nth), and T (nth, nth);
+    solves and covariances eliminate the start states piece by piece (a Schur complement), in
+    time and memory linear in the pieces (an hour with one lost sample a second: 3600 pieces,
+    whose dense matrix took 1.7 GB). Accumulated in place (NormalEquations), used as a value."""
+
+    S: np.ndarray
+    C: np.ndarray
+    T: np.ndarray
+
+    @classmethod
+    def zeros(cls, R: int, nx: int, nth: int) -> "ReducedNormal":
+        return cls(np.zeros((R, nx, nx)), np.zeros((R, nx, nth)), np.zeros((nth, nth)))
+
+    @classmethod
+    def from_dense(cls, N: np.ndarray, R: int, nx: int) -> "ReducedNormal":
+        """The blocks of a dense arrowhead matrix (its state-by-state blocks off the diagonal are left out)."""
+        n = R * nx
+        S = np.stack([N[i * nx:(i + 1) * nx, i * nx:(i + 1) * nx] for i in range(R)]) if R else np.zeros((0, nx, nx))
+        return cls(S, N[:n, n:].reshape(R, nx, -1).copy(), N[n:, n:].copy())
+
+    @property
+    def n_state(self) -> int:
+        return self.S.shape[0] * self.S.shape[1]
+
+    def dense(self) -> np.ndarray:
+        """The whole matrix: for a problem of a few pieces only (the online window's profile)."""
+        R, nx, n = self.S.shape[0], self.S.shape[1], self.n_state
+        N = np.zeros((n + len(self.T),) * 2)
+        for i in range(R):
+            N[i * nx:(i + 1) * nx, i * nx:(i + 1) * nx] = self.S[i]
+        N[:n, n:] = self.C.reshape(n, -1)
+        N[n:, :n] = N[:n, n:].T
+        N[n:, n:] = self.T
+        return N
+
+    def diagonal(self) -> np.ndarray:
+        return np.concatenate([np.diagonal(self.S, axis1=1, axis2=2).ravel(), np.diag(self.T)])
+
+    def finite(self) -> bool:
+        return bool(np.all(np.isfinite(self.S)) and np.all(np.isfinite(self.C)) and np.all(np.isfinite(self.T)))
+
+    def with_parameters(self, A: np.ndarray) -> "ReducedNormal":
+        """The matrix with A added to its parameter block (a prior, an arrival cost)."""
+        return replace(self, T=self.T + A)
+
+    def with_states(self, diag: np.ndarray) -> "ReducedNormal":
+        """The matrix with `diag` (one per start state, in order) added to its diagonal."""
+        S = self.S.copy()
+        idx = np.arange(S.shape[1])
+        S[:, idx, idx] += np.reshape(diag, S.shape[:2])
+        return replace(self, S=S)
+
+    def quadratic(self, z: np.ndarray) -> float:
+        """z'Nz."""
+        zs, zt = z[:self.n_state].reshape(self.S.shape[:2]), z[self.n_state:]
+        return float(np.sum(zs * ((self.S @ zs[:, :, None])[..., 0] + 2.0 * (self.C @ zt)))) + float(zt @ self.T @ zt)
+
+    def scaled(self) -> tuple["ReducedNormal", np.ndarray, np.ndarray]:
+        """(the matrix on its unit-diagonal scaling, the state scales (R, nx), the parameter
+        scales): parameters differ by 10 decades."""
+        scale = np.sqrt(np.maximum(self.diagonal(), 1e-300))
+        ss, st = scale[:self.n_state].reshape(self.S.shape[:2]), scale[self.n_state:]
+        return (ReducedNormal(self.S / (ss[:, :, None] * ss[:, None, :]), self.C / (ss[:, :, None] * st),
+                              self.T / np.outer(st, st)), ss, st)
+
+    def _eliminated(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(ss, st, W, Z) on the unit-diagonal scaling: W = S^-1 C per piece, Z the inverse of the
+        parameters' Schur complement T - sum C'W (the parameter block of the scaled inverse).
+        LinAlgError where the matrix is singular."""
+        Ns, ss, st = self.scaled()
+        W = np.linalg.solve(Ns.S, Ns.C)
+        Z = np.linalg.inv(Ns.T - np.sum(Ns.C.transpose(0, 2, 1) @ W, axis=0))
+        return ss, st, W, Z
+
+    def parameter_inverse(self) -> np.ndarray:
+        """The parameter block of N^-1 (on the unit-diagonal scaling); LinAlgError where N is singular."""
+        _, st, _, Z = self._eliminated()
+        return Z / np.outer(st, st)
+
+    def parameter_rows(self, vs: np.ndarray, piece: np.ndarray, vt: np.ndarray) -> np.ndarray:
+        """The parameter part of N^-1 v for vectors v (m of them), each with its start-state part
+        vs (m, nx) in one piece (piece, m) and its parameter part vt (m, nth): (m, nth).
+        LinAlgError where N is singular."""
+        ss, st, W, Z = self._eliminated()
+        w = vt / st - np.einsum("mif,mi->mf", W[piece], vs / ss[piece])
+        return (w @ Z) / st  # Z symmetric
+
+    def parameter_solution(self, v: np.ndarray) -> np.ndarray:
+        """The parameter part of N^-1 v (a vector of all unknowns)."""
+        R = self.S.shape[0]
+        vt = np.zeros((R, len(self.T)))
+        vt[0] = v[self.n_state:]
+        return self.parameter_rows(v[:self.n_state].reshape(R, -1), np.arange(R), vt).sum(axis=0)
+
+
 def scaled_inverse(N: np.ndarray) -> np.ndarray:
     """N^-1 computed on the unit-diagonal scaling of N (parameters differ by 10 decades)."""
     scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
@@ -416,38 +515,62 @@ def scaled_inverse(N: np.ndarray) -> np.ndarray:
 NODE_PROXIMAL = 1e-2
 
 
-def solve_bounded(N: np.ndarray, g: np.ndarray, theta, lower, upper, n_state: int, lam: float,
+def _arrow_solve(Ns: ReducedNormal, rs: np.ndarray, rt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of [[blockdiag(S), C], [C', T]] (x, y) = (rs, rt) by eliminating x piece by piece;
+    where the system is singular, its least-squares solution (pseudo-inverses: a start state no
+    residual sees has no row or column in a positive semidefinite N, so it is left alone)."""
+    B = np.concatenate([Ns.C, rs[:, :, None]], axis=2)
+    try:
+        W = np.linalg.solve(Ns.S, B)
+    except np.linalg.LinAlgError:
+        W = np.linalg.pinv(Ns.S, rcond=1e-12, hermitian=True) @ B
+    CtW = np.sum(Ns.C.transpose(0, 2, 1) @ W, axis=0)  # (nf, nf + 1)
+    Sc, rhs = Ns.T - CtW[:, :-1], rt - CtW[:, -1]
+    if not len(rhs):
+        y = rhs
+    else:
+        try:
+            y = np.linalg.solve(Sc, rhs)
+        except np.linalg.LinAlgError:
+            y = np.linalg.lstsq(Sc, rhs, rcond=1e-12)[0]
+    return W[..., -1] - W[..., :-1] @ y, y
+
+
+@np.errstate(over="ignore", invalid="ignore")  # see node_transitions
+def solve_bounded(N: ReducedNormal, g: np.ndarray, theta, lower, upper, lam: float,
                   state_scale: np.ndarray | None = None):
-    """min 0.5 d'Nd + g'd with theta + d_theta kept in bounds (active set on the parameters);
-    with `state_scale` (the defect scale of each of the n_state node states) a proximal term
-    NODE_PROXIMAL * |ds / state_scale|^2 / 2 keeps the steps of unobservable node states bounded."""
-    n = len(g)
+    """min 0.5 d'Nd + g'd with theta + d_theta kept in bounds (active set on the parameters),
+    on the unit-diagonal scaling with Levenberg-Marquardt damping lam; with `state_scale` (the
+    defect scale of each free node state) a proximal term NODE_PROXIMAL * |ds / state_scale|^2 / 2
+    keeps the steps of unobservable node states bounded. None where N or the step is not finite."""
+    if not (N.finite() and np.all(np.isfinite(g))):
+        return None
+    n_state = N.n_state
     if state_scale is not None and n_state:
-        N = N.copy()
-        idx = np.arange(n_state)
-        N[idx, idx] += NODE_PROXIMAL / np.asarray(state_scale, float) ** 2
-    fixed = np.zeros(n, bool)
-    d = np.zeros(n)
+        N = N.with_states(NODE_PROXIMAL / np.asarray(state_scale, float) ** 2)
+    Ns, ss, st = N.scaled()
+    idx = np.arange(ss.shape[1])
+    Ns.S[:, idx, idx] += lam * Ns.S[:, idx, idx]
+    Ns.T[np.diag_indices(len(st))] += lam * np.diag(Ns.T)
+    gs, gt = g[:n_state].reshape(ss.shape), g[n_state:]
+    fixed = np.zeros(len(theta), bool)
+    dt = np.zeros(len(theta))
     for _ in range(len(theta) + 1):
         free = ~fixed
-        scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
-        Ns = N / np.outer(scale, scale)
-        Ns = Ns + lam * np.diag(np.diag(Ns))
-        rhs = -(g + N[:, fixed] @ d[fixed]) / scale
-        try:
-            sol = np.linalg.solve(Ns[np.ix_(free, free)], rhs[free])
-        except np.linalg.LinAlgError:
-            sol = np.linalg.lstsq(Ns[np.ix_(free, free)], rhs[free], rcond=1e-12)[0]
-        d[free] = sol / scale[free]
-        th_new = theta + d[n_state:]
+        rs = -(gs + N.C[:, :, fixed] @ dt[fixed]) / ss
+        rt = -(gt + N.T[:, fixed] @ dt[fixed]) / st
+        x, y = _arrow_solve(ReducedNormal(Ns.S, Ns.C[:, :, free], Ns.T[np.ix_(free, free)]), rs, rt[free])
+        ds = x / ss
+        dt[free] = y / st[free]
+        th_new = theta + dt
         viol = (th_new < lower) | (th_new > upper)
         if not viol.any():
+            d = np.concatenate([ds.ravel(), dt])
             return d if np.all(np.isfinite(d)) else None
-        idx = np.flatnonzero(viol)
-        for i in idx:
-            d[n_state + i] = (lower[i] if th_new[i] < lower[i] else upper[i]) - theta[i]
-            fixed[n_state + i] = True
-    return d
+        for i in np.flatnonzero(viol):
+            dt[i] = (lower[i] if th_new[i] < lower[i] else upper[i]) - theta[i]
+            fixed[i] = True
+    return np.concatenate([ds.ravel(), dt])
 
 
 def linearize(ev, out_idx, wts, mask, M, nx, ny, nth):
@@ -541,50 +664,62 @@ def normal_equations(Js, Jt, r0, layouts, nx, nth):
     scores are the per-interval gradient contributions (for the cluster-robust covariance)."""
     Ktot, R = Js.shape[0], len(layouts)
     nred = R * nx + nth
-    N = np.zeros((nred, nred))
+    N = ReducedNormal.zeros(R, nx, nth)
     g = np.zeros(nred)
     # per-interval gradient contributions ("scores") for the cluster-robust covariance
     scores = np.zeros((Ktot, nred))
     for ri, l in enumerate(layouts):
         sl = slice(l.node0, l.node0 + l.K)
         scores[sl, ri * nx:(ri + 1) * nx] = np.einsum("kmoi,kmo->ki", Js[sl], r0[sl])
+        add_normal_block(N, g, Js[sl], Jt[sl], r0[sl], ri)
     scores[:, R * nx:] = np.einsum("kmoi,kmo->ki", Jt, r0)
-    for ri, l in enumerate(layouts):
-        add_normal_block(N, g, Js[l.node0:l.node0 + l.K], Jt[l.node0:l.node0 + l.K], r0[l.node0:l.node0 + l.K],
-                         ri, R, nx, nth)
     return N, g, scores
 
 
-def add_normal_block(N, g, Js, Jt, r0, ri, R, nx, nth):
-    """Add the intervals (Js, Jt, r0) of piece ri to N and g (R pieces)."""
+def add_normal_block(N: ReducedNormal, g, Js, Jt, r0, ri):
+    """Add the intervals (Js, Jt, r0) of piece ri to N and g."""
+    R, nx, nth = N.C.shape
     js = Js.reshape(-1, nx)
     jt = Jt.reshape(js.shape[0], nth)  # explicit rows: nth may be 0 (states only)
-    a, th = slice(ri * nx, (ri + 1) * nx), slice(R * nx, None)
-    N[a, a] += js.T @ js
-    N[a, th] += js.T @ jt
-    N[th, a] = N[a, th].T
-    N[th, th] += jt.T @ jt
-    add_gradient(g, js, jt, r0.reshape(-1), a, th)
+    N.S[ri] += js.T @ js
+    N.C[ri] += js.T @ jt
+    N.T[...] += jt.T @ jt
+    add_gradient(g, js, jt, r0.reshape(-1), slice(ri * nx, (ri + 1) * nx), slice(R * nx, None))
+
+
+@dataclass(frozen=True)
+class Clusters:
+    """The gradient contributions summed by cluster of consecutive intervals (the cluster-robust
+    covariance): a cluster lies in one piece, so its contribution is its piece's start-state part
+    `states` (n, nx), its parameter part `params` (n, nth) and the piece `piece` (n,)."""
+
+    states: np.ndarray
+    params: np.ndarray
+    piece: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.piece)
 
 
 class NormalEquations:
     """The condensed Gauss-Newton model of a fit at one point, accumulated chunk by chunk of
     intervals in their order (node transitions carried from one chunk to the next), so that no
-    sensitivity of the whole run is ever held: the reduced normal equations N, g in (ds0 of every
-    run or gap-free piece, dtheta), the node transitions P, Q, q, the defects, the sum of squared
-    residuals, the gradient contributions summed by cluster (the cluster-robust covariance) and
-    what the decrease a step predicts needs (`predicted`).
+    sensitivity of the whole run is ever held: the reduced normal equations N (ReducedNormal), g
+    in (ds0 of every run or gap-free piece, dtheta), the node transitions P, Q, q, the defects,
+    the sum of squared residuals, the gradient contributions summed by cluster (the
+    cluster-robust covariance) and what the decrease a step predicts needs (`predicted`).
 
     `pieces`: (first interval, intervals) of each run or gap-free piece, in order; `block`:
     intervals per cluster. Summed in one chunk, everything is the same to the last digit as the
-    whole problem condensed at once; in several, to rounding."""
+    whole problem condensed at once; in several, to rounding. What it holds grows with the
+    pieces linearly (never as their square)."""
 
     def __init__(self, pieces: Sequence[tuple[int, int]], nx: int, nth: int, block: int):
         R = len(pieces)
         self.nx, self.nth, self.R = nx, nth, R
         self.Ktot = sum(K for _, K in pieces)
         nred = R * nx + nth
-        self.N = np.zeros((nred, nred))
+        self.N = ReducedNormal.zeros(R, nx, nth)
         self.g = np.zeros(nred)
         self._Jc = np.zeros(nred)  # J'c (J'E = g - J'c: one product less per chunk)
         self._Ec, self._cc = 0.0, 0.0  # E'c, c'c
@@ -592,14 +727,15 @@ class NormalEquations:
         self.P = np.empty((self.Ktot, nx, nx))
         self.Q = np.empty((self.Ktot, nx, nth))
         self.q = np.empty((self.Ktot, nx))
-        self._pieces = list(pieces)
+        # the pieces tile the intervals in order
+        self._starts, Ks = (np.array([p[i] for p in pieces], int).reshape(R) for i in (0, 1))
+        self._ends = self._starts + Ks
         # clusters: `block` consecutive intervals of one piece
-        self._cluster_of = np.empty(self.Ktot, int)
-        n = 0
-        for k0, K in pieces:
-            self._cluster_of[k0:k0 + K] = n + np.arange(K) // block
-            n += -(-K // block)
-        self.clusters = np.zeros((n, nred))
+        n_of = -(-Ks // block)  # clusters of each piece
+        self._cluster_of = (np.repeat(np.cumsum(n_of) - n_of, Ks)
+                            + (np.arange(self.Ktot) - np.repeat(self._starts, Ks)) // block)
+        n = int(n_of.sum())
+        self.clusters = Clusters(np.zeros((n, nx)), np.zeros((n, nth)), np.repeat(np.arange(R), n_of))
         self.kept: tuple[np.ndarray, np.ndarray] | None = None  # (G, E) of a run linearised as one chunk
         self._defects: list[np.ndarray] = []
         self._next, self._start = 0, None
@@ -629,24 +765,20 @@ class NormalEquations:
         self._Ec += float(np.sum(E * c))
         self._cc += float(np.sum(c * c))
         th = slice(R * nx, None)
-        states = np.empty((b - a, nx))  # per-interval gradient contributions (scores)
-        for ri, (k0, K) in enumerate(self._pieces):
-            lo, hi = max(k0, a) - a, min(k0 + K, b) - a
-            if lo >= hi:
-                continue
-            states[lo:hi] = np.einsum("kmoi,kmo->ki", Js[lo:hi], r0[lo:hi])
-            add_normal_block(self.N, self.g, Js[lo:hi], Jt[lo:hi], r0[lo:hi], ri, R, nx, nth)
+        states = np.einsum("kmoi,kmo->ki", Js, r0)  # per-interval gradient contributions (scores)
+        # the pieces this chunk holds a part of
+        for ri in range(int(np.searchsorted(self._starts, a, side="right")) - 1,
+                        int(np.searchsorted(self._starts, b, side="left"))):
+            lo, hi = max(self._starts[ri], a) - a, min(self._ends[ri], b) - a
+            add_normal_block(self.N, self.g, Js[lo:hi], Jt[lo:hi], r0[lo:hi], ri)
             js = Js[lo:hi].reshape(-1, nx)
             jt = Jt[lo:hi].reshape(js.shape[0], nth)
-            sa = slice(ri * nx, (ri + 1) * nx)
-            add_gradient(self._Jc, js, jt, c[lo:hi].reshape(-1), sa, th)
+            add_gradient(self._Jc, js, jt, c[lo:hi].reshape(-1), slice(ri * nx, (ri + 1) * nx), th)
         params = np.einsum("kmoi,kmo->ki", Jt, r0)
         cl = self._cluster_of[a:b]
-        for ci in np.unique(cl):
-            rows = np.flatnonzero(cl == ci)
-            ri = int(np.searchsorted([k0 for k0, _ in self._pieces], a + rows[0], side="right")) - 1
-            self.clusters[ci, ri * nx:(ri + 1) * nx] += states[rows[0]:rows[-1] + 1].sum(axis=0)
-            self.clusters[ci, th] += params[rows[0]:rows[-1] + 1].sum(axis=0)
+        first = np.flatnonzero(np.r_[True, cl[1:] != cl[:-1]])  # clusters are runs of intervals
+        self.clusters.states[cl[first]] += np.add.reduceat(states, first, axis=0)
+        self.clusters.params[cl[first]] += np.add.reduceat(params, first, axis=0) if nth else 0.0
         self._defects.append(D)
         self.kept = (G, E) if keep else None
         self._next = b
@@ -657,44 +789,41 @@ class NormalEquations:
         l = J z + c, gdir = E'l and quad = l'l (the cost changes by gdir + quad / 2)."""
         z = np.asarray(step, float)
         gdir = float((self.g - self._Jc) @ z) + self._Ec
-        quad = float(z @ self.N @ z) + 2.0 * float(self._Jc @ z) + self._cc
+        quad = self.N.quadratic(z) + 2.0 * float(self._Jc @ z) + self._cc
         return gdir, quad
 
 
-def covariance(N: np.ndarray, n_state: int, cost: float, nres: float) -> np.ndarray | None:
-    sigma2 = 2 * cost / max(1.0, nres - N.shape[0])
+def covariance(N: ReducedNormal, cost: float, nres: float) -> np.ndarray | None:
+    """The parameters' Gauss-Newton covariance, sigma^2 times the parameter block of N^-1."""
+    sigma2 = 2 * cost / max(1.0, nres - N.n_state - len(N.T))
     try:
-        inv = scaled_inverse(N)
+        return sigma2 * N.parameter_inverse()
     except np.linalg.LinAlgError:
         return None
-    return (sigma2 * inv)[n_state:, n_state:]
 
 
-def cluster_covariance(N: np.ndarray, clusters: np.ndarray, n_state: int) -> np.ndarray | None:
-    """Sandwich covariance N^-1 (sum_b s_b s_b') N^-1 with the gradient contributions s_b summed
-    over clusters of consecutive intervals (about one second; NormalEquations.clusters): honest
-    when residuals are correlated in time."""
-    S = clusters
-    nb = len(S)
+def cluster_covariance(N: ReducedNormal, clusters: Clusters) -> np.ndarray | None:
+    """Sandwich covariance N^-1 (sum_b s_b s_b') N^-1 (its parameter block) with the gradient
+    contributions s_b summed over clusters of consecutive intervals (about one second;
+    NormalEquations.clusters): honest when residuals are correlated in time."""
+    nb = len(clusters)
     if nb < 5:
         return None
-    try:
-        inv = scaled_inverse(N)
-    except np.linalg.LinAlgError:
-        return None
     with np.errstate(over="ignore", invalid="ignore"):  # a score beyond float range: no robust estimate
-        meat = S.T @ S * nb / (nb - 1)
-        cov = (inv @ meat @ inv)[n_state:, n_state:]
+        try:
+            u = N.parameter_rows(clusters.states, clusters.piece, clusters.params)  # (N^-1 s_b) of the parameters
+        except np.linalg.LinAlgError:
+            return None
+        cov = u.T @ u * nb / (nb - 1)
     return cov if np.all(np.isfinite(cov)) else None
 
 
-def reported_covariance(N: np.ndarray, clusters: np.ndarray, n_state: int, cost: float,
-                        nres: float) -> np.ndarray | None:
+def reported_covariance(N: ReducedNormal, clusters: Clusters, cost: float, nres: float) -> np.ndarray | None:
     """The parameter covariance a fit reports: residuals of real rigs (and of a drive by noisy
     measured signals) are not white, so each variance is the larger of the Gauss-Newton and
     the cluster-robust one (NormalEquations.clusters), correlations as Gauss-Newton's."""
-    cov_gn = covariance(N, n_state, cost, nres)
-    cov_robust = cluster_covariance(N, clusters, n_state)
+    cov_gn = covariance(N, cost, nres)
+    cov_robust = cluster_covariance(N, clusters)
     if cov_gn is None or cov_robust is None:
         return cov_gn
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
@@ -716,10 +845,10 @@ def correlation(cov: np.ndarray) -> np.ndarray:
     return np.clip(r, -1.0, 1.0)
 
 
-def standard_deviations(N, n_state, cost, nres) -> np.ndarray:
-    cov = covariance(N, n_state, cost, nres)
+def standard_deviations(N: ReducedNormal, cost, nres) -> np.ndarray:
+    cov = covariance(N, cost, nres)
     if cov is None:
-        return np.full(N.shape[0] - n_state, np.inf)
+        return np.full(len(N.T), np.inf)
     return np.sqrt(np.maximum(np.diag(cov), 0.0))
 
 
