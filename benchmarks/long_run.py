@@ -2,7 +2,7 @@
 length of the run.
 
     python benchmarks/long_run.py [--durations 60 600 3600] [--cache DIR] [--baseline CHECKOUT]
-                                  [--cli] [--replay 60 600] [--calibrate 60 600]
+                                  [--cli] [--replay 60 600] [--calibrate 60 600] [--gaps 1]
 
 Every figure comes from a fresh process: its wall time, its CPU time (user + system, all
 threads: less at the mercy of other work on a shared machine than the wall time) and its peak
@@ -21,7 +21,9 @@ The runs are cached in --cache (default $TMPDIR/combined_reality_long_run), keye
 duration and seed. --baseline runs step 3 also with another checkout's code (e.g. the code
 before this benchmark, for the ratio of time and memory on the short runs; --baseline-max
 caps the durations it is run for). --replay and --calibrate measure `replay --speed max` and
-`calibrate` on runs of those durations.
+`calibrate` on runs of those durations. --gaps P makes the runs lossy before step 3: one sample
+lost in every P seconds (at a seeded place within each), so that an hour with --gaps 1 is 3600
+gap-free pieces, each identified from its own initial state.
 
 The targets: peak memory of identify at 3600 s <= 1 GB, time growing no worse than linearly
 (CPU time / duration relative to the shortest case <= 1, allowing for load), and the estimates of
@@ -87,7 +89,7 @@ def child_identify(npz: str) -> None:
         run = Run(t=d["t"], u=d["u"], x=d["x"], p1=d["p1"], p2=d["p2"])
     t0 = time.perf_counter()
     res = identify(cyl, [run])
-    print(json.dumps({"fit_s": time.perf_counter() - t0, "status": res.solver["status"],
+    print(json.dumps({"fit_s": time.perf_counter() - t0, "status": res.solver["status"], "pieces": len(res.fit_per_run),
                       "iterations": res.solver["iterations"], "residual_sigma": res.solver["residual_sigma"],
                       "n_intervals": res.solver["n_intervals"], "discretisation": res.solver.get("discretisation"),
                       "params": {n: [e.value, e.std] for n, e in res.params.items()},
@@ -120,6 +122,24 @@ def ensure_run(cache: Path, duration: float, seed: int) -> tuple[Path, Path, dic
     return csv, npz, known.get("simulate", {}), known.get("read", {})
 
 
+def lossy(npz: Path, period: float, seed: int) -> Path:
+    """The run of `npz` losing one sample in every `period` seconds (cached beside it)."""
+    import numpy as np
+
+    out = npz.with_name(f"{npz.stem}_gaps{period:g}.npz")
+    if not out.exists():
+        with np.load(npz) as d:
+            cols = {k: d[k] for k in ("t", "u", "x", "p1", "p2")}
+        t = cols["t"]
+        n = int((t[-1] - t[0]) // period)
+        rng = np.random.default_rng(seed)
+        lost = np.searchsorted(t, t[0] + (np.arange(n) + rng.uniform(0.1, 0.9, n)) * period)
+        keep = np.ones(len(t), bool)
+        keep[lost] = False
+        np.savez(out, **{k: v[keep] for k, v in cols.items()})
+    return out
+
+
 def identify_case(npz: Path, checkout: Path | None = None) -> dict:
     env = dict(os.environ)
     if checkout is not None:  # that checkout's package first on the path
@@ -141,6 +161,7 @@ def main() -> int:
     ap.add_argument("--cli", action="store_true", help="also `combined-reality identify` on the CSV")
     ap.add_argument("--replay", type=float, nargs="*", default=[], help="durations to replay (s)")
     ap.add_argument("--calibrate", type=float, nargs="*", default=[], help="durations to calibrate (s)")
+    ap.add_argument("--gaps", type=float, help="identify the runs losing one sample in every GAPS seconds")
     ap.add_argument("--child-read", nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--child-identify", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -156,6 +177,8 @@ def main() -> int:
     rows = []
     for d in durations:
         csv, npz, sim, rd = ensure_run(args.cache, d, args.seed)
+        if args.gaps:
+            npz = lossy(npz, args.gaps, args.seed)
         print(f"[{d:g} s] run ready ({csv.stat().st_size / 2**20:.0f} MB CSV)", flush=True)
         row = {"duration": d, "simulate": sim, "read": rd, "identify": identify_case(npz)}
         print(f"[{d:g} s] identify: {row['identify']['wall_s']:.1f} s, {row['identify']['peak_mb']:.0f} MB", flush=True)
@@ -176,10 +199,11 @@ def main() -> int:
             print(f"[{d:g} s] {kind}: {m['wall_s']:.1f} s, {m['peak_mb']:.0f} MB, exit {m['rc']}", flush=True)
 
     print()
-    print("identify (default options) of runs at 1 kHz, each in a fresh process; the run loaded from .npz")
+    print("identify (default options) of runs at 1 kHz, each in a fresh process; the run loaded from .npz"
+          + (f", one sample lost in every {args.gaps:g} s (pieces: gap-free pieces of 60 s at most)" if args.gaps else ""))
     first = rows[0]["identify"]
     print(f"{'duration':>9} {'samples':>9} {'wall s':>8} {'cpu s':>8} {'cpu/s':>7} {'vs first':>9} {'peak MB':>8} "
-          f"{'iter':>5} {'status':>10} {'sigma':>6}  estimates (truth; error in std)")
+          f"{'iter':>5} {'pieces':>6} {'status':>10} {'sigma':>6}  estimates (truth; error in std)")
     for r in rows:
         i = r["identify"]
         if "error" in i:
@@ -190,7 +214,8 @@ def main() -> int:
         est = "  ".join(f"{n} {v:.5g}+-{s:.2g} ({i['truth'][n]:.4g}; {(v - i['truth'][n]) / s:+.2f})"
                         for n, (v, s) in i["params"].items())
         print(f"{r['duration']:>9g} {int(r['duration'] * 1000):>9d} {i['wall_s']:>8.1f} {i['cpu_s']:>8.1f} {per:>7.3f} {rel:>9.2f} "
-              f"{i['peak_mb']:>8.0f} {i['iterations']:>5d} {i['status']:>10} {i['residual_sigma']:>6.3f}  {est}")
+              f"{i['peak_mb']:>8.0f} {i['iterations']:>5d} {i.get('pieces', 0):>6d} {i['status']:>10} "
+              f"{i['residual_sigma']:>6.3f}  {est}")
     print("\nthe discretisation term (identify.discretisation): the estimates' shift towards a 20 x finer "
           "integration, applied to them; the error of the estimate without it in units of the statistical std")
     for r in rows:
