@@ -52,26 +52,61 @@ def test_a_shift_measured_on_stretches_owns_their_spread(cyl_a, clean_run, monke
         assert part["std"][n] > 1.1 * disc.FINE_FACTOR * abs(part["shift"][n]), n
 
 
-def test_stretches_cover_a_long_run_evenly_each_within_one_piece():
-    from combined_reality.identify.discretisation import SPAN_S, STRETCH_S, stretches
+def test_stretches_cover_a_long_run_evenly_and_keep_its_pieces_apart():
+    """Beyond SPAN_S of data (padding not counted), SPAN_S / STRETCH_S stretches of STRETCH_S of
+    data each, evenly spread; a stretch over pieces of a second (a sample lost every second)
+    holds a minute of them, each kept apart, not a single second."""
+    from combined_reality.identify.discretisation import SPAN_S, STRETCH_S, pieces_within, stretches
     from combined_reality.identify.shooting import RunLayout
 
-    def layouts(piece_intervals):
+    M, dt = 100, 1e-3
+
+    def layouts(piece_intervals, samples=None):
         out, k0 = [], 0
         for K in piece_intervals:
-            out.append(RunLayout(None, K, k0, None, None, None, None, None))
+            H = np.zeros((1, K * M))
+            H[0, :K * M if samples is None else samples] = dt
+            out.append(RunLayout(None, K, k0, None, H, None, None, None))
             k0 += K
         return out
 
-    M, dt = 100, 1e-3
     short = layouts([600, 600, 300])  # 150 s: measured whole
-    assert stretches(short, M, dt) == [(0, 600), (600, 600), (1200, 300)]
+    assert stretches(short, M) == [(0, 600), (600, 600), (1200, 300)]
     n_pieces = int(3 * SPAN_S / 60)  # three times the span, in pieces of 60 s (600 intervals)
     total = 600 * n_pieces
-    parts = stretches(layouts([600] * n_pieces), M, dt)
+    parts = stretches(layouts([600] * n_pieces), M)
     each = round(STRETCH_S / (M * dt))
     assert len(parts) == SPAN_S // STRETCH_S and all(K == each for _, K in parts)
     starts = [k0 for k0, _ in parts]
     assert starts == sorted(starts) and starts[0] < total / len(parts) and starts[-1] > total * (1 - 1 / len(parts))
-    for k0, K in parts:  # never across two pieces
-        assert k0 // 600 == (k0 + K - 1) // 600
+    # an hour and a half losing a sample every second: pieces of 999 samples in 10 intervals
+    lossy = layouts([10] * 5400, samples=999)
+    assert sum(float(l.H.sum()) for l in lossy) == pytest.approx(5394.6)
+    parts = stretches(lossy, M)
+    assert len(parts) == SPAN_S // STRETCH_S
+    for k0, K in parts:
+        pieces = pieces_within(lossy, k0, K)
+        assert sum(n for _, n in pieces) == K and len(pieces) >= 60
+        assert sum(float(l.H.sum()) for l in lossy[k0 // 10:(k0 + K) // 10]) == pytest.approx(STRETCH_S, rel=0.02)
+    assert stretches(layouts([10] * 3000, samples=999), M) == [(10 * i, 10) for i in range(3000)]  # 2997 s: whole
+
+
+def test_a_shift_measured_on_stretches_of_many_pieces(cyl_a, clean_run, monkeypatch):
+    """A run that loses a sample every 0.5 s: measured on 4 s in stretches of 2 s, each stretch
+    holds four pieces kept apart and the 4 s measured are 4 s of data (not four pieces' worth of
+    padding-free seconds cut to one piece each); the shift is near that of the run measured whole."""
+    import combined_reality.identify.discretisation as disc
+    from combined_reality.files import Run
+
+    keep = np.ones(clean_run.n, bool)
+    keep[250::500] = False
+    idx = np.flatnonzero(keep)
+    run = Run(t=clean_run.t[idx], u=clean_run.u[idx], x=clean_run.x[idx], p1=clean_run.p1[idx],
+              p2=clean_run.p2[idx])
+    whole = identify(cyl_a, [run], IdentifyOptions(discretisation_min_s=0.0)).solver["discretisation"]
+    monkeypatch.setattr(disc, "SPAN_S", 4.0)
+    monkeypatch.setattr(disc, "STRETCH_S", 2.0)
+    part = identify(cyl_a, [run], IdentifyOptions(discretisation_min_s=0.0)).solver["discretisation"]
+    assert part["span_s"] == pytest.approx(4.0, rel=0.05)
+    for n in ("Fc", "Fv"):  # (kp's shift on these 6 s is too small to be measured on 4 s of them)
+        assert part["shift"][n] == pytest.approx(whole["shift"][n], rel=0.6), n

@@ -47,21 +47,28 @@ def fine_functions(sf: ShootingFunctions, opts: IntegratorOptions, progress=None
                               with_sens=False)
 
 
-def stretches(layouts: Sequence[RunLayout], M: int, dt: float) -> list[tuple[int, int]]:
-    """(first interval, intervals) of the stretches measured: every run or piece when they hold
-    at most SPAN_S in all, else SPAN_S / STRETCH_S stretches of STRETCH_S each, centred at equal
-    spacing over all intervals, each within one piece."""
+def stretches(layouts: Sequence[RunLayout], M: int) -> list[tuple[int, int]]:
+    """(first interval, intervals) of the stretches measured: every run or piece when their data
+    hold at most SPAN_S, else SPAN_S / STRETCH_S stretches of about STRETCH_S of data each,
+    centred at equal spacing over all intervals. A stretch may hold several gap-free pieces
+    (a recording that loses a sample a second is pieces of a second): they stay apart in it."""
     total = sum(l.K for l in layouts)
-    if total * M * dt <= SPAN_S * (1 + 1e-9):
+    seconds = sum(float(l.H.sum()) for l in layouts)  # the data's, padding left out
+    if seconds <= SPAN_S * (1 + 1e-9):
         return [(l.node0, l.K) for l in layouts]
-    each = max(1, int(round(STRETCH_S / (M * dt))))
+    per_interval = seconds / total
+    each = min(total, max(1, int(round(STRETCH_S / per_interval))))
     n = max(1, int(SPAN_S // STRETCH_S))
+    return [(min(max(0, int((j + 0.5) * total / n) - each // 2), total - each), each) for j in range(n)]
+
+
+def pieces_within(layouts: Sequence[RunLayout], k0: int, K: int) -> list[tuple[int, int]]:
+    """(first interval relative to k0, intervals) of the runs' or pieces' parts in k0..k0+K-1."""
     out = []
-    for j in range(n):
-        centre = int((j + 0.5) * total / n)
-        l = next(l for l in layouts if l.node0 <= centre < l.node0 + l.K)
-        K = min(each, l.K)
-        out.append((min(max(l.node0, centre - K // 2), l.node0 + l.K - K), K))
+    for l in layouts:
+        a, b = max(k0, l.node0), min(k0 + K, l.node0 + l.K)
+        if a < b:
+            out.append((a - k0, b - a))
     return out
 
 
@@ -85,26 +92,30 @@ class Discretisation:
                 "span_s": self.span_s}
 
 
-def _sub_problem(problem: ShootingProblem, sf: ShootingFunctions, k0: int, K: int,
+def _sub_problem(problem: ShootingProblem, sf: ShootingFunctions, k0: int, K: int, pieces: Sequence[tuple[int, int]],
                  threads: int) -> ShootingProblem:
-    """The problem restricted to intervals k0..k0+K-1, as one piece."""
+    """The problem restricted to intervals k0..k0+K-1, its pieces (relative) kept apart."""
     M = problem.M
     possible = None if problem.possible is None else (problem.possible[0][:, 0], problem.possible[1][:, 0])
+    links = np.concatenate([np.arange(a, a + n - 1) for a, n in pieces]).astype(int)
     return ShootingProblem(sf, K, threads, problem.W[:, k0 * (M + 1):(k0 + K) * (M + 1)],
                            problem.H[:, k0 * M:(k0 + K) * M], problem.Y[k0:k0 + K], problem.mask[k0:k0 + K],
-                           problem.wts, problem.sscale, np.arange(K - 1), possible)
+                           problem.wts, problem.sscale, links, possible)
 
 
-def _stretch_steps(problem: ShootingProblem, sf: ShootingFunctions, fine: ShootingFunctions, k0: int, K: int,
-                   S: np.ndarray, p: np.ndarray, threads: int) -> tuple[np.ndarray, np.ndarray] | None:
+def _stretch_steps(problem: ShootingProblem, sf: ShootingFunctions, fine: ShootingFunctions,
+                   layouts: Sequence[RunLayout], k0: int, K: int, S: np.ndarray, p: np.ndarray,
+                   threads: int) -> tuple[np.ndarray, np.ndarray] | None:
     """(F, shift) of one stretch: the parameters' information (node states eliminated) and the
     difference of the Gauss-Newton steps with the fine and with the fit's residuals and defects,
     both on the fit's linearisation."""
-    coarse, finer = _sub_problem(problem, sf, k0, K, threads), _sub_problem(problem, fine, k0, K, threads)
+    pieces = pieces_within(layouts, k0, K)
+    coarse, finer = (_sub_problem(problem, f, k0, K, pieces, threads) for f in (sf, fine))
     Ss = S[:, k0:k0 + K]
     nx, nth = coarse.nx, coarse.nth
-    eqs = [NormalEquations([(0, K)], nx, nth, K), NormalEquations([(0, K)], nx, nth, K)]
-    has_next = np.arange(K) < K - 1
+    eqs = [NormalEquations(pieces, nx, nth, K), NormalEquations(pieces, nx, nth, K)]
+    has_next = np.zeros(K, bool)
+    has_next[coarse.nxt] = True
     for a, b in coarse.spans:
         sim = coarse.span_simulation(Ss, p, a, b, True)
         other = finer.span_simulation(Ss, p, a, b, False)
@@ -134,10 +145,9 @@ def discretisation(problem: ShootingProblem, sf: ShootingFunctions, opts: Integr
 
     Measured on stretches, the shift is their information-weighted mean; its uncertainty the
     spread between them (a sandwich over the stretches), times the share of the data they leave."""
-    dt = float(problem.H[0, 0]) if problem.H.size else 1.0
-    parts = stretches(layouts, problem.M, dt)
+    parts = stretches(layouts, problem.M)
     fine = fine_functions(sf, opts, progress)
-    found = [_stretch_steps(problem, sf, fine, k0, K, S, p, threads) for k0, K in parts]
+    found = [_stretch_steps(problem, sf, fine, layouts, k0, K, S, p, threads) for k0, K in parts]
     if any(f is None for f in found):
         return None
     Fs = np.array([f[0] for f in found])
@@ -155,7 +165,8 @@ def discretisation(problem: ShootingProblem, sf: ShootingFunctions, opts: Integr
         cov = cov + (1 - covered) * (Finv @ (u.T @ u) @ Finv) * n / (n - 1)
     if not np.all(np.isfinite(cov)):
         return None
-    return Discretisation(shift, cov, round(sum(K for _, K in parts) * problem.M * dt, 6))
+    M = problem.M
+    return Discretisation(shift, cov, round(sum(float(problem.H[0, k0 * M:(k0 + K) * M].sum()) for k0, K in parts), 6))
 
 
 def corrected(theta: np.ndarray, cov: np.ndarray | None, term: Discretisation | None, lower: np.ndarray,
