@@ -39,8 +39,10 @@ def test_the_break_aways_give_the_static_friction_and_the_external_force(cyl_a, 
     assert start["external_force"] == pytest.approx(3.0, abs=2.0)
 
 
-def test_a_piston_that_does_not_stick_gives_no_start(cyl_a):
-    assert stiction_prefit(cyl_a, [_run(cyl_a, (), seed=4)]) == {}
+@pytest.mark.parametrize("effects", [(), (make_effect("stiction", {"Fs_excess": 1.0, "v_stribeck": 0.01}),)],
+                         ids=["no stiction", "weak stiction"])
+def test_a_piston_that_does_not_stick_and_slip_gives_no_start(cyl_a, effects):
+    assert stiction_prefit(cyl_a, [_run(cyl_a, effects, seed=4)]) == {}
 
 
 @pytest.mark.slow

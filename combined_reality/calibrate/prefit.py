@@ -73,7 +73,11 @@ def force_balance_prefit(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> 
 # before the onset. Velocities of a short Savitzky-Golay window (11 ms): a slip lasts some 30 ms
 STILL, SLIDING = 2e-3, 5e-3  # m/s
 STUCK_S, ONSET_S, PEAK_S = 0.02, 0.05, 0.03
-BREAKAWAYS_MIN = 5  # per direction, for a start
+# a start where the piston sticks and slips: this many break-aways per direction at least (a rig
+# without stiction gives its ordinary starts from rest, 1-14 per direction on the gauntlet's 20 s
+# calibration runs, a stick-slip one 10-55), and static friction STICK_SLIP above the seal level
+BREAKAWAYS_MIN = 10
+STICK_SLIP = 0.1
 
 
 def breakaway_forces(cyl: Cylinder, runs: Sequence[Run], half: int = 5) -> list[tuple[float, float, float]]:
@@ -112,16 +116,16 @@ def stiction_prefit(cyl: Cylinder, runs: Sequence[Run]) -> dict[str, float]:
     """The break-away force above the seal level (Fs_excess) and the external force from the
     break-aways of both directions (breakaway_forces): the median force of each direction less
     `cyl`'s pressure friction (kp |p1 - p2|) is (Fc + Fs) - F_ext extending and -(Fc + Fs) - F_ext
-    retracting (`cyl`'s Fc). Empty where either direction breaks away fewer than BREAKAWAYS_MIN times (a
-    piston that slides off smoothly: nothing sticks) or the static friction stays under the
-    Coulomb level."""
+    retracting (`cyl`'s Fc). Empty where either direction breaks away fewer than BREAKAWAYS_MIN
+    times or the static friction exceeds the seal level by less than STICK_SLIP of the break-away
+    force: no stick-slip to start from."""
     kp, Fc = cyl.friction.kp, cyl.friction.Fc
     found = {d: [f - d * kp * dp for e, f, dp in breakaway_forces(cyl, runs) if e == d] for d in (1.0, -1.0)}
     if min(len(f) for f in found.values()) < BREAKAWAYS_MIN:
         return {}
     up, down = float(np.median(found[1.0])), float(np.median(found[-1.0]))
     excess = 0.5 * (up - down) - Fc
-    if excess <= 0:
+    if excess < STICK_SLIP * (excess + Fc):
         return {}
     return {"Fs_excess": excess, "external_force": -0.5 * (up + down)}
 

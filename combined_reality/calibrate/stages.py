@@ -384,16 +384,18 @@ STRIBECK_START = 0.01
 def breakaway_fit(start: Cylinder, runs: Sequence[Run], effect: Effect, options: CalibrateOptions,
                   say: Callable[[str], None], file_cyl: Cylinder | None = None) -> IdentifyResult | None:
     """The force balance through the command-driven model (`start`'s valve and chambers held) with
-    a stiction `effect` started from the data: the linear start's mass and friction (the cylinder
-    file's kp, and its mass where the accelerations cannot weigh it), the break-away force above the seal level and the external
+    a stiction `effect` started from the data: the cylinder file's friction law (the linear start's
+    takes the slips for sliding: Fc 28.7 N for 24.8 on a reference-plant case), the linear start's
+    mass (the file's where the accelerations cannot weigh it), the break-away force above the seal level and the external
     force from the break-aways of both directions (prefit.stiction_prefit), the Stribeck velocity
     at STRIBECK_START. Stick-slip leaves the fit from any other start in a wrong basin (a project
     case: 859 x the noise without the effect, 89 x with it from its defaults); from this one the
     mechanical quantities settle with the effect held, then everything together, from node states
     afresh. None where the runs hold no break-aways of both directions."""
     file_cyl = file_cyl if file_cyl is not None else start
-    values = {"mass": file_cyl.mechanics.moving_mass, "kp": file_cyl.friction.kp}
-    values.update({k: v for k, v in force_balance_prefit(file_cyl, runs).items() if k in ("mass", "Fc", "Fv")})
+    f = file_cyl.friction
+    values = {"mass": file_cyl.mechanics.moving_mass, "Fc": f.Fc, "Fv": f.Fv, "kp": f.kp}
+    values.update({k: v for k, v in force_balance_prefit(file_cyl, runs).items() if k == "mass"})
     base = start.with_values(values)
     found = stiction_prefit(base, runs)
     if not found:
