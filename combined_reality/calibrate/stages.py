@@ -40,8 +40,8 @@ from .identifiability import Identifiability, assess
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets, stiction_prefit
 
 __all__ = ["MECHANICAL", "PNEUMATIC", "CALIBRATED", "OTHER_STARTS_ABOVE", "CalibrateOptions", "Calibration", "applies",
-           "breakaway_fit", "calibrate",
-           "effect_names", "finish", "first_stages", "force_balance", "force_balance_in_model", "joint_start",
+           "DATA_STARTS", "breakaway_fit", "calibrate",
+           "effect_names", "finish", "first_stages", "force_balance", "force_balance_in_model", "from_data", "joint_start",
            "misfit_note", "model_start", "run_stage", "smooth_valve_prior", "stage_summaries", "validation_figures",
            "valve_and_chambers", "whole_model", "with_model_error"]
 
@@ -208,6 +208,7 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
     say = progress or (lambda _msg: None)
     mech, pneu = first_stages(cyl, runs, options, say, effects)
     through = force_balance_in_model(cyl, runs, options, say, mech, pneu)
+    through = from_data(cyl, runs, options, say, mech, pneu, through, effects)
     joint, stages = whole_model(cyl, runs, options, say, *model_start(cyl, mech, pneu, through))
     return finish(cyl, runs, options, joint, mech, pneu, stage_summaries(mech, pneu, through) + stages, t0)
 
@@ -270,6 +271,24 @@ def force_balance_in_model(cyl: Cylinder, runs: Sequence[Run], options: Calibrat
                      "command", estimate, replace(options, max_iter=min(options.max_iter, 20)), say, nodes, effects,
                      start_only=start_only, held=[e.name for e in effects if e.subsystem != "mechanical"],
                      restart=False)
+
+
+def from_data(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, say: Callable[[str], None],
+              mech: IdentifyResult | None, pneu: IdentifyResult | None, through: IdentifyResult | None,
+              effects: Sequence[Effect]) -> IdentifyResult | None:
+    """The force balance through the model once more from the data's start of the one effect
+    calibrated that has one (DATA_STARTS), kept where it ends lower: `through` otherwise."""
+    if len(effects) != 1 or effects[0].name not in DATA_STARTS or mech is None or pneu is None:
+        return through
+    try:
+        res = DATA_STARTS[effects[0].name](joint_start(cyl, mech, pneu)[0], runs, effects[0],
+                                           replace(options, max_iter=min(options.max_iter, 20)), say, cyl)
+    except IdentificationError as e:
+        say(f"  that start failed ({e})")
+        return through
+    if res is None or (through is not None and res.solver["cost"] >= through.solver["cost"]):
+        return through
+    return res
 
 
 def model_start(cyl: Cylinder, mech: IdentifyResult | None, pneu: IdentifyResult | None,
@@ -410,6 +429,10 @@ def breakaway_fit(start: Cylinder, runs: Sequence[Run], effect: Effect, options:
     free = run_stage(f"the force balance with {effect.name}", held.cylinder, runs, "command", estimate, options, say,
                      effects=held.effects, start_only=False, restart=False)
     return free if free.solver["cost"] <= held.solver["cost"] else held
+
+
+# effects with a start from the data: stick-slip leaves a fit from the defaults in a wrong basin
+DATA_STARTS = {"stiction": breakaway_fit}
 
 
 def valve_and_chambers(cyl: Cylinder, runs: Sequence[Run], want: set[str], options: CalibrateOptions,

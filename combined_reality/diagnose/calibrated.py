@@ -56,7 +56,7 @@ import numpy as np
 from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect
 
-from ..calibrate import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, breakaway_fit, finish,
+from ..calibrate import (CALIBRATED, DATA_STARTS, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, finish,
                          first_stages, force_balance_in_model, misfit_note, model_start, run_stage, separability,
                          stage_summaries, whole_model)
 from ..files import Run
@@ -88,10 +88,7 @@ SCREEN_MIN_GAIN = 0.005
 # ranks: a fit that leads somewhere gains that much in its first iterations)
 SCREEN_GIVE_UP = 0.1
 SCREEN_GIVE_UP_AFTER = 4
-# mechanical candidates with a start from the data (besides nested and defaults), and its
-# iterations per step: stick-slip leaves a fit from the defaults in a wrong basin
-DATA_STARTS = {"stiction": breakaway_fit}
-DATA_START_ITER = 20
+DATA_START_ITER = 20  # iterations per step of a screen from the data (calibrate.DATA_STARTS)
 STALLED = 2  # a nested screen that ends within this many iterations without a gain did not move
 STRONG_CORRELATION = 0.95  # |r| above which an effect parameter and a calibrated quantity trade off
 
