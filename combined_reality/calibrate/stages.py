@@ -403,26 +403,44 @@ STRIBECK_START = 0.01
 def breakaway_fit(start: Cylinder, runs: Sequence[Run], effect: Effect, options: CalibrateOptions,
                   say: Callable[[str], None], file_cyl: Cylinder | None = None) -> IdentifyResult | None:
     """The force balance through the command-driven model (`start`'s valve and chambers held) with
-    a stiction `effect` started from the data: the cylinder file's friction law (the linear start's
-    takes the slips for sliding: Fc 28.7 N for 24.8 on a reference-plant case), the linear start's
-    mass (the file's where the accelerations cannot weigh it), the break-away force above the seal level and the external
-    force from the break-aways of both directions (prefit.stiction_prefit), the Stribeck velocity
-    at STRIBECK_START. Stick-slip leaves the fit from any other start in a wrong basin (a project
-    case: 859 x the noise without the effect, 89 x with it from its defaults); from this one the
+    a stiction `effect` started from the data: the break-away force above the seal level and the
+    external force from the break-aways of both directions (prefit.stiction_prefit), the Stribeck
+    velocity at STRIBECK_START, the linear start's mass (the file's where the accelerations cannot
+    weigh it). Stick-slip leaves the fit from any other start in a wrong basin (a project case:
+    859 x the noise without the effect, 89 x with it from its defaults); from this one the
     mechanical quantities settle with the effect held, then everything together, from node states
-    afresh. None where the runs hold no break-aways of both directions."""
+    afresh. The seal level from the cylinder file's friction law, then, where that fit ends above
+    the noise (CRAWLING), from the linear start's Fc and Fv (which take the slips for sliding: Fc
+    28.7 N for 24.8 on a reference-plant case, yet its fit went further there); the lower cost
+    kept. None where the runs show no stick-slip (the break-aways by the file's seal level)."""
     file_cyl = file_cyl if file_cyl is not None else start
     f = file_cyl.friction
-    values = {"mass": file_cyl.mechanics.moving_mass, "Fc": f.Fc, "Fv": f.Fv, "kp": f.kp}
-    values.update({k: v for k, v in force_balance_prefit(file_cyl, runs).items() if k == "mass"})
-    base = start.with_values(values)
+    linear = force_balance_prefit(file_cyl, runs)
+    base = start.with_values({"mass": linear.get("mass", file_cyl.mechanics.moving_mass), "Fc": f.Fc, "Fv": f.Fv,
+                              "kp": f.kp})
     found = stiction_prefit(base, runs)
     if not found:
         return None
     base = base.with_values({"external_force": found["external_force"]})
-    effect = replace(effect, Fs_excess=found["Fs_excess"], v_stribeck=STRIBECK_START)
-    say(f"  {effect.name} from the break-aways: Fs_excess={found['Fs_excess']:.4g} N, external_force="
-        f"{found['external_force']:.4g} N")
+    laws = [{"Fc": f.Fc, "Fv": f.Fv}]
+    if {"Fc", "Fv"} <= set(linear) and f.Fc + found["Fs_excess"] > linear["Fc"]:
+        laws.append({"Fc": linear["Fc"], "Fv": linear["Fv"]})
+    best = None
+    for law in laws:
+        excess = found["Fs_excess"] + f.Fc - law["Fc"]  # the same break-away force
+        res = _from_breakaways(base.with_values(law), runs, replace(effect, Fs_excess=excess,
+                                                                    v_stribeck=STRIBECK_START), options, say)
+        if best is None or res.solver["cost"] < best.solver["cost"]:
+            best = res
+        if best.solver["residual_sigma"] <= CRAWLING:
+            break
+    return best
+
+
+def _from_breakaways(base: Cylinder, runs: Sequence[Run], effect: Effect, options: CalibrateOptions,
+                     say: Callable[[str], None]) -> IdentifyResult:
+    say(f"  {effect.name} from the break-aways: Fs_excess={effect.Fs_excess:.4g} N over Fc={base.friction.Fc:.4g} N, "
+        f"external_force={base.mechanics.external_force:.4g} N")
     estimate = [n for n in MECHANICAL if n in options.estimate]
     held = run_stage(f"the force balance with {effect.name} held at the break-aways", base, runs, "command", estimate,
                      options, say, effects=(effect,), start_only=False, held=(effect.name,), restart=False)
