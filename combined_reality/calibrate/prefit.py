@@ -21,7 +21,8 @@ from sim.plant import MODEL_REVISION
 from ..files import Run
 from ..identify import savgol_kernels, scaled_lstsq
 
-__all__ = ["force_balance_prefit", "settled_offsets", "chamber_prefit", "unit_flows", "opening_basis"]
+__all__ = ["force_balance_prefit", "breakaway_forces", "stiction_prefit", "settled_offsets", "chamber_prefit",
+           "unit_flows", "opening_basis"]
 
 _P_FROM, _P_TO, _B, _T = (ca.SX.sym(n) for n in ("p_from", "p_to", "b", "T"))
 SMOOTH = 0.02  # weight of the slope-continuity rows of the flow characteristic, relative to the data
@@ -65,6 +66,68 @@ def force_balance_prefit(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> 
     if M > 0.2 * cyl.mechanics.moving_mass:  # accelerations too weak to weigh it: keep the file's
         out["mass"] = M
     return out
+
+
+# a break-away: the piston still (|v| under STILL) for STUCK_S at least, then sliding beyond SLIDING
+# within ONSET_S; its force is the largest pressure force towards the motion in the last PEAK_S
+# before the onset. Velocities of a short Savitzky-Golay window (11 ms): a slip lasts some 30 ms
+STILL, SLIDING = 2e-3, 5e-3  # m/s
+STUCK_S, ONSET_S, PEAK_S = 0.02, 0.05, 0.03
+# a start where the piston sticks and slips: this many break-aways per direction at least (a rig
+# without stiction gives its ordinary starts from rest, 1-14 per direction on the gauntlet's 20 s
+# calibration runs, a stick-slip one 10-55), and static friction STICK_SLIP above the seal level
+BREAKAWAYS_MIN = 10
+STICK_SLIP = 0.1
+
+
+def breakaway_forces(cyl: Cylinder, runs: Sequence[Run], half: int = 5) -> list[tuple[float, float, float]]:
+    """(direction +1/-1, pressure force at break-away, |p1 - p2| there) of every break-away from
+    rest away from the end stops: the pressure force (p1 A1 - p2 A2 - pa (A1 - A2), the pressures
+    less `cyl`'s offsets) then holds the external force plus the static friction towards the motion."""
+    g = cyl.geometry
+    A1, A2, pa, margin = g.area_cap, g.area_rod, cyl.supply.atmosphere, 0.01 * g.stroke
+    _, k1, _ = savgol_kernels(half)
+    out = []
+    for r in runs:
+        if r.n < 4 * half:
+            continue
+        dt = r.sample_period
+        v = np.convolve(r.x, k1, mode="same") / dt
+        v[:half] = v[-half:] = np.nan  # no derivative at the ends
+        p1, p2 = r.p1 - cyl.sensors.offset_p1, r.p2 - cyl.sensors.offset_p2
+        force = p1 * A1 - p2 * A2 - pa * (A1 - A2)
+        edges = np.diff(np.r_[0, (np.abs(v) < STILL).astype(np.int8), 0])
+        ahead, peak = int(round(ONSET_S / dt)), int(round(PEAK_S / dt))
+        for i0, i1 in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+            if (i1 - i0) * dt < STUCK_S or i1 + ahead > r.n or not margin < r.x[i1] < g.stroke - margin:
+                continue
+            moving = np.abs(v[i1:i1 + ahead]) > SLIDING
+            if not moving.any():
+                continue
+            k = i1 + int(np.argmax(moving))
+            d = float(np.sign(v[k]))
+            w = slice(max(i0, i1 - peak), k + 1)
+            j = w.start + int(np.argmax(d * force[w]))
+            out.append((d, float(force[j]), float(abs(p1[j] - p2[j]))))
+    return out
+
+
+def stiction_prefit(cyl: Cylinder, runs: Sequence[Run]) -> dict[str, float]:
+    """The break-away force above the seal level (Fs_excess) and the external force from the
+    break-aways of both directions (breakaway_forces): the median force of each direction less
+    `cyl`'s pressure friction (kp |p1 - p2|) is (Fc + Fs) - F_ext extending and -(Fc + Fs) - F_ext
+    retracting (`cyl`'s Fc). Empty where either direction breaks away fewer than BREAKAWAYS_MIN
+    times or the static friction exceeds the seal level by less than STICK_SLIP of the break-away
+    force: no stick-slip to start from."""
+    kp, Fc = cyl.friction.kp, cyl.friction.Fc
+    found = {d: [f - d * kp * dp for e, f, dp in breakaway_forces(cyl, runs) if e == d] for d in (1.0, -1.0)}
+    if min(len(f) for f in found.values()) < BREAKAWAYS_MIN:
+        return {}
+    up, down = float(np.median(found[1.0])), float(np.median(found[-1.0]))
+    excess = 0.5 * (up - down) - Fc
+    if excess < STICK_SLIP * (excess + Fc):
+        return {}
+    return {"Fs_excess": excess, "external_force": -0.5 * (up + down)}
 
 
 def settled_offsets(cyl: Cylinder, runs: Sequence[Run], half: int = 10) -> dict[str, float]:

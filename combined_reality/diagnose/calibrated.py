@@ -56,7 +56,7 @@ import numpy as np
 from sim.cylinder import Cylinder
 from sim.effects import EFFECTS, Effect
 
-from ..calibrate import (CALIBRATED, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, finish,
+from ..calibrate import (CALIBRATED, DATA_STARTS, MECHANICAL, PNEUMATIC, CalibrateOptions, Calibration, finish,
                          first_stages, force_balance_in_model, misfit_note, model_start, run_stage, separability,
                          stage_summaries, whole_model)
 from ..files import Run
@@ -88,6 +88,7 @@ SCREEN_MIN_GAIN = 0.005
 # ranks: a fit that leads somewhere gains that much in its first iterations)
 SCREEN_GIVE_UP = 0.1
 SCREEN_GIVE_UP_AFTER = 4
+DATA_START_ITER = 20  # iterations per step of a screen from the data (calibrate.DATA_STARTS)
 STALLED = 2  # a nested screen that ends within this many iterations without a gain did not move
 STRONG_CORRELATION = 0.95  # |r| above which an effect parameter and a calibrated quantity trade off
 
@@ -109,7 +110,7 @@ class Screen:
     share: float = math.nan
     status: str = "failed"
     iterations: int = 0
-    start: int = 0
+    start: int | str = 0  # the candidate's start index (candidate_starts), or "data"
     wall_s: float = 0.0
     params: dict[str, float] = field(default_factory=dict)
     error: str | None = None
@@ -149,22 +150,32 @@ def _excess_share(base: IdentifyResult, cost: float) -> float:
 
 def _screen_fit(base: IdentifyResult, runs: Sequence[Run], drive: str, estimate: tuple[str, ...], effect: Effect,
                 start: int, workers: int) -> Screen:
+    opts = replace(_options(workers), max_iter=SCREEN_ITER)
+    give_up = base.solver["cost"] - max(SCREEN_GIVE_UP * _excess(base), 0.5 * SCREEN_MIN_GAIN * base.solver["cost"])
+    return _screened(base, drive, effect, start, lambda: run_stage(
+        f"screen {effect.name}", base.cylinder, runs, drive, estimate, opts, _quiet, base.nodes, (effect,),
+        start_only=False, restart=False, give_up_after=SCREEN_GIVE_UP_AFTER, give_up_above=give_up))
+
+
+def _screened(base: IdentifyResult, drive: str, effect: Effect, start: int | str,
+              fit: Callable[[], IdentifyResult | None]) -> Screen:
+    """A screen of `effect` by `fit`, measured against its stage's nominal fit `base`."""
     stage = "valve and chambers" if drive == "chambers" else "force balance in the whole model"
     sc = Screen(effect=effect.name, stage=stage, start=start)
     t0 = time.perf_counter()
-    opts = replace(_options(workers), max_iter=SCREEN_ITER)
     try:
         with np.errstate(all="ignore"):
-            res = run_stage(f"screen {effect.name}", base.cylinder, runs, drive, estimate, opts, _quiet, base.nodes,
-                            (effect,), start_only=False, restart=False, give_up_after=SCREEN_GIVE_UP_AFTER,
-                            give_up_above=base.solver["cost"] - max(SCREEN_GIVE_UP * _excess(base),
-                                                                    0.5 * SCREEN_MIN_GAIN * base.solver["cost"]))
+            res = fit()
     except (IdentificationError, ValueError, np.linalg.LinAlgError, RuntimeError) as e:
         sc.error = f"the fit could not be computed ({type(e).__name__}: {e})"
         sc.wall_s = time.perf_counter() - t0
         return sc
+    if res is None:
+        sc.error, sc.wall_s = "the runs give no start of this kind", time.perf_counter() - t0
+        return sc
     sc.result, sc.status, sc.iterations = res, res.solver["status"], res.solver["iterations"]
-    sc.params = {k: res.params[effect.key(k)].value for k in effect.PARAMS}
+    fitted = next(e for e in res.effects if e.name == effect.name)  # estimated, or held where a fit held it
+    sc.params = {k: float(getattr(fitted, k)) for k in effect.PARAMS}
     sc.gain = 1.0 - res.solver["cost"] / base.solver["cost"]
     sc.share = _excess_share(base, res.solver["cost"])
     sc.wall_s = time.perf_counter() - t0
@@ -176,7 +187,7 @@ def screen_candidate(args) -> list[Screen]:
     from the effect's defaults where the nested fit did not move (some effects never leave
     their neutral value, stiction without a break-away force) or has none (heat exchange).
     args: (name, base fit, runs, workers)."""
-    name, base, runs, workers = args
+    name, base, runs, workers, file_cyl = args
     mechanical = EFFECTS[name].subsystem == "mechanical"
     drive = "command" if mechanical else "chambers"
     estimate = MECHANICAL if mechanical else PNEUMATIC
@@ -186,6 +197,11 @@ def screen_candidate(args) -> list[Screen]:
         out.append(_screen_fit(base, runs, drive, estimate, starts[0], 0, workers))
     if not out or (out[0].result is None or (out[0].gain < 1e-3 and out[0].iterations <= STALLED)):
         out.append(_screen_fit(base, runs, drive, estimate, starts[1], 1, workers))
+    from_data = DATA_STARTS.get(name) if mechanical else None
+    if from_data is not None:
+        opts = replace(_options(workers), max_iter=DATA_START_ITER)
+        out.append(_screened(base, drive, starts[1], "data", lambda: from_data(
+            base.cylinder, runs, starts[1], opts, _quiet, file_cyl)))
     ok = [s for s in out if s.result is not None]
     if not ok:
         return out[:1]
@@ -316,7 +332,7 @@ def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[st
     say(f"the force balance through the whole model, and {len(pneumatic)} pneumatic candidates screened in the valve "
         f"and chambers ({min(workers, 1 + len(pneumatic))} processes) ...")
     done = run_jobs(_call, [(mechanical_base, (cyl, runs, mech, pneu, workers))]
-                    + [(screen_candidate, (n, pneu, runs, workers)) for n in pneumatic], workers)
+                    + [(screen_candidate, (n, pneu, runs, workers, cyl)) for n in pneumatic], workers)
     base = done[0]
     screens: list[Screen] = [s for ss in done[1:] for s in ss]
     say(f"  the force balance through the whole model (the valve and chambers as calibrated): residual "
@@ -325,7 +341,7 @@ def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[st
     if mechanical:
         say(f"screening {len(mechanical)} mechanical candidates through the whole model "
             f"({min(workers, len(mechanical))} processes) ...")
-        done = run_jobs(_call, [(screen_candidate, (n, base, runs, workers)) for n in mechanical], workers)
+        done = run_jobs(_call, [(screen_candidate, (n, base, runs, workers, cyl)) for n in mechanical], workers)
         screens += [s for ss in done for s in ss]
     for s in screens:
         say(f"  screen {s.effect:20s} ({s.stage}): " + (
