@@ -135,3 +135,30 @@ def test_a_run_longer_than_a_minute_is_fitted_in_equal_pieces_of_whole_intervals
     assert all(p.duration <= LONG_PIECE_S for p in pieces)
     assert all(p.n % 100 == 0 for p in pieces[:-1])
     assert np.array_equal(np.concatenate([p.t for p in pieces]), long.t)
+
+
+def test_the_chambers_linear_start_holds_no_more_per_sample_than_its_rows(cyl_a, monkeypatch):
+    """The valve and chambers' linear start forms its least squares ROWS_AT_ONCE rows at a time
+    and keeps the rises of one overlap per direction: what it allocates grows with the run by
+    less than 300 bytes a sample (its rows: measured 104; holding the rises of every overlap
+    searched and all rows at once, 1.4 kB: 816 MB at 600 s), and its result is that of all rows
+    at once to rounding."""
+    import combined_reality.calibrate.prefit as pf
+
+    runs = {d: simulate_run(cyl_a, d, seed=7) for d in (2.0, 8.0)}
+    whole = pf.chamber_prefit(cyl_a, [runs[8.0]])
+    monkeypatch.setattr(pf, "ROWS_AT_ONCE", 256)
+    blocked = pf.chamber_prefit(cyl_a, [runs[8.0]])
+    assert whole.keys() == blocked.keys()
+    for name, value in whole.items():
+        assert blocked[name] == pytest.approx(value, rel=1e-9, abs=1e-15), name
+    peaks = {}
+    for d, run in runs.items():
+        tracemalloc.start()
+        try:
+            pf.chamber_prefit(cyl_a, [run])
+            peaks[d] = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    per_sample = (peaks[8.0] - peaks[2.0]) / 6000
+    assert per_sample < 300, peaks
