@@ -137,6 +137,33 @@ def test_a_run_longer_than_a_minute_is_fitted_in_equal_pieces_of_whole_intervals
     assert np.array_equal(np.concatenate([p.t for p in pieces]), long.t)
 
 
+def test_a_chunk_of_many_free_parameters_is_shorter_and_its_sensitivities_come_in_small_pieces(cyl_a):
+    """A chunk's sensitivities stay within CHUNK_SENSITIVITIES numbers whatever the number of free
+    parameters (calibrate's whole model: 42), while a 20 s run of that model at 1 kHz and 0.1 s
+    intervals is still one chunk and identify's chunks keep CHUNK_SAMPLES; the sensitivities are
+    computed by map functions of at most two sizes, an eighth of a chunk at most, however many
+    chunks (a map function holds its results between calls), and equal those of one call."""
+    import combined_reality.identify.shooting as sh
+
+    for nx, nth in ((4, 42), (5, 60), (2, 37), (4, 3)):
+        size = sh.chunk_intervals(100, nx, nth)
+        assert size * 100 * nx * (nx + nth) <= sh.CHUNK_SENSITIVITIES and size % sh.TRIAL_CHUNKS == 0
+    assert sh.chunk_intervals(100, 4, 42) * 100 >= 20_000
+    assert sh.chunk_intervals(100, 4, 3) * 100 == sh.CHUNK_SAMPLES // 800 * 800
+
+    run = simulate_run(cyl_a, 3.3, seed=11)
+    prob, layouts, S, p, free = _problem(cyl_a, [run], chunk_intervals=16)
+    assert prob.spans == [(0, 16), (16, 32), (32, 33)] and prob.sens_piece == 2
+    eqs = prob.linearise(S, p, sh.NormalEquations([(0, prob.K)], prob.nx, prob.nth, 10))
+    assert eqs is not None
+    sizes = sorted(n for with_sens, n in prob._maps if with_sens)
+    assert sizes == [1, 2]
+    X, Sens = prob.span_simulation(S, p, 16, 32, True)
+    whole = prob._sf.sens.map(16)(S[:, 16:32], prob.W[:, 16 * 101:32 * 101], p, prob.H[:, 1600:3200])
+    assert np.array_equal(X, np.asarray(whole[0]).reshape(X.shape))
+    assert np.array_equal(Sens, np.asarray(whole[1]).reshape(Sens.shape))
+
+
 def test_the_chambers_linear_start_holds_no_more_per_sample_than_its_rows(cyl_a, monkeypatch):
     """The valve and chambers' linear start forms its least squares ROWS_AT_ONCE rows at a time
     and keeps the rises of one overlap per direction: what it allocates grows with the run by
