@@ -20,15 +20,22 @@ For each duration (at 1 kHz, cylinder A, the virtual rig under closed-loop posit
 The runs are cached in --cache (default $TMPDIR/combined_reality_long_run), keyed by
 duration and seed. --baseline runs step 3 also with another checkout's code (e.g. the code
 before this benchmark, for the ratio of time and memory on the short runs; --baseline-max
-caps the durations it is run for). --replay and --calibrate measure `replay --speed max` and
-`calibrate` on runs of those durations. --gaps P makes the runs lossy before step 3: one sample
-lost in every P seconds (at a seeded place within each), so that an hour with --gaps 1 is 3600
-gap-free pieces, each identified from its own initial state.
+caps the durations it is run for, and with --calibrate-baseline the calibrate rows too).
+--replay and --calibrate measure `combined-reality replay --speed max` and `combined-reality
+calibrate` (every calibrated quantity, on the CSV, as a user runs them) on runs of those
+durations: wall, CPU and peak RSS, the peak's growth per sample beyond the shortest run's (the
+run's own arrays, read as floats, are 40 bytes a sample) and the estimates against the truth (the
+cylinder file the run was simulated with). `--durations` with no value skips the identify rows.
+--gaps P makes the runs lossy before identify: one sample lost in every P seconds (at a seeded
+place within each), so that an hour with --gaps 1 is 3600 gap-free pieces, each identified from
+its own initial state.
 
 The targets: peak memory of identify at 3600 s <= 1 GB, time growing no worse than linearly
 (CPU time / duration relative to the shortest case <= 1, allowing for load), and the estimates of
 the longest run within their std of the truth (the estimates corrected for the identifier's own
 discretisation error, identify.discretisation; the error without that correction is printed too).
+calibrate and replay: peak memory growing with the run by no more than its data (a few arrays of
+its length), time no worse than linearly.
 It is a report: it exits 0 whatever the figures are (non-zero only on a crash).
 """
 from __future__ import annotations
@@ -151,9 +158,66 @@ def identify_case(npz: Path, checkout: Path | None = None) -> dict:
     return {**m, **json.loads(m["stdout"].strip().splitlines()[-1])}
 
 
+SHOWN = ("Fc", "Fv", "kp", "mass", "critical_ratio", "dead_volume_cap", "dead_volume_rod")  # calibrate's table
+
+
+def cli_case(kind: str, csv: Path, checkout: Path | None = None) -> dict:
+    """`combined-reality calibrate` or `replay --speed max` on the run CSV, with its JSON: the
+    figures, the status and the estimates as {name: [value, std, truth]}."""
+    env = dict(os.environ)
+    if checkout is not None:
+        env["PYTHONPATH"] = str(checkout) + os.pathsep + env.get("PYTHONPATH", "")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out.json"
+        args = ("--speed", "max") if kind == "replay" else ()
+        m = measured(cli(kind, *args, "--config", str(CFG), "-q", "--json", str(out), str(csv)), env=env,
+                     cwd=checkout or REPO)
+        doc = json.loads(out.read_text()) if out.exists() else None
+    if doc is None:  # exit 1 with the document written: finished, said why (status, sigma)
+        return {**m, "error": m["stderr"].strip().splitlines()[-1:] or ["?"]}
+    from sim.cylinder import load_cylinder
+
+    cyl = load_cylinder(CFG)  # the truth of the simulated run
+    solver = doc["solver"]
+    return {**m, "status": solver["status"], "residual_sigma": solver.get("residual_sigma", doc["fit"].get("sigma")),
+            "params": {n: [d["value"], d["std"], cyl.value(n)] for n, d in doc["params"].items()}}
+
+
+def print_cli_rows(kind: str, cases: list[tuple[float, dict]]) -> None:
+    """The table of `kind` against the run's length: figures, ratios to the shortest, estimates."""
+    ok = [(d, m) for d, m in cases if "error" not in m]
+    what = ("every calibrated quantity, the command line on the CSV" if kind == "calibrate"
+            else "--speed max, the command line on the CSV")
+    print(f"\n{kind} ({what}) of runs at 1 kHz, each in a fresh process")
+    print(f"{'duration':>9} {'samples':>9} {'wall s':>8} {'cpu s':>8} {'cpu/s':>7} {'vs first':>9} {'peak MB':>8} "
+          f"{'vs first':>9} {'B/sample':>9} {'status':>14} {'sigma':>6}  estimates (truth; error in std)")
+    for d, m in cases:
+        if "error" in m:
+            print(f"{d:>9g} failed (exit {m['rc']}): {m['error'][0]}  (peak {m['peak_mb']:.0f} MB)")
+            continue
+        d0, m0 = ok[0]
+        per = m["cpu_s"] / d
+        grown = ((m["peak_mb"] - m0["peak_mb"]) * 2**20 / ((d - d0) * 1000)) if d > d0 else float("nan")
+        names = [n for n in (SHOWN if kind == "calibrate" else NAMES) if n in m["params"]]
+        est = "  ".join(f"{n} {v:.5g}+-{s:.2g} ({t:.4g}; {(v - t) / s:+.2f})" for n, (v, s, t) in
+                        ((n, m["params"][n]) for n in names))
+        worst = max((abs(v - t) / s for v, s, t in m["params"].values() if s > 0), default=float("nan"))
+        sigma = m["residual_sigma"] if m["residual_sigma"] is not None else float("nan")
+        print(f"{d:>9g} {int(d * 1000):>9d} {m['wall_s']:>8.1f} {m['cpu_s']:>8.1f} {per:>7.3f} "
+              f"{per / (m0['cpu_s'] / d0):>9.2f} {m['peak_mb']:>8.0f} {m['peak_mb'] / m0['peak_mb']:>9.2f} "
+              f"{grown:>9.0f} {m['status']:>14} {sigma:>6.3f}  {est}  (all {len(m['params'])}: within {worst:.2f} std)")
+    if len(ok) > 1:
+        (d0, m0), (d1, m1) = ok[0], ok[-1]
+        print(f"longest ({d1:g} s) against shortest ({d0:g} s): peak {m1['peak_mb']:.0f} / {m0['peak_mb']:.0f} MB "
+              f"(+{(m1['peak_mb'] - m0['peak_mb']) * 2**20 / ((d1 - d0) * 1000):.0f} bytes per sample of data more; "
+              f"the run's columns alone are 40), CPU time per second of data "
+              f"{m1['cpu_s'] / d1 / (m0['cpu_s'] / d0):.2f} x the shortest's")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--durations", type=float, nargs="+", default=[60.0, 600.0, 3600.0])
+    ap.add_argument("--durations", type=float, nargs="*", default=[60.0, 600.0, 3600.0],
+                    help="durations to identify (s); none: no identify rows")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "combined_reality_long_run")
     ap.add_argument("--baseline", type=Path, help="another checkout whose identify is measured beside")
@@ -162,6 +226,8 @@ def main() -> int:
     ap.add_argument("--replay", type=float, nargs="*", default=[], help="durations to replay (s)")
     ap.add_argument("--calibrate", type=float, nargs="*", default=[], help="durations to calibrate (s)")
     ap.add_argument("--gaps", type=float, help="identify the runs losing one sample in every GAPS seconds")
+    ap.add_argument("--calibrate-baseline", action="store_true",
+                    help="--baseline's checkout calibrates too (durations up to --baseline-max)")
     ap.add_argument("--child-read", nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--child-identify", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -188,19 +254,37 @@ def main() -> int:
             c = measured(cli("identify", "--config", str(CFG), str(csv)), cwd=REPO)
             row["cli"] = {k: c[k] for k in ("wall_s", "cpu_s", "peak_mb", "rc")}
         rows.append(row)
-    extra = []
+    extra: dict[str, list[tuple[float, dict]]] = {"replay": [], "calibrate": [], "calibrate, baseline": []}
     for kind, lengths in (("replay", args.replay), ("calibrate", args.calibrate)):
-        for d in lengths:
+        for d in sorted(lengths):
             csv, *_ = ensure_run(args.cache, d, args.seed)
-            cmd = (cli("replay", "--speed", "max", "--config", str(CFG), "-q", str(csv)) if kind == "replay"
-                   else cli("calibrate", "--config", str(CFG), "-q", str(csv)))
-            m = measured(cmd, cwd=REPO)
-            extra.append((kind, d, m))
+            m = cli_case(kind, csv)
+            extra[kind].append((d, m))
             print(f"[{d:g} s] {kind}: {m['wall_s']:.1f} s, {m['peak_mb']:.0f} MB, exit {m['rc']}", flush=True)
+            if kind == "calibrate" and args.baseline and args.calibrate_baseline and d <= args.baseline_max:
+                b = cli_case(kind, csv, args.baseline)
+                extra["calibrate, baseline"].append((d, b))
+                print(f"[{d:g} s] calibrate with {args.baseline}: {b['wall_s']:.1f} s, {b['peak_mb']:.0f} MB", flush=True)
+    if rows:
+        print_identify(rows, args.baseline, args.gaps)
+    for kind, cases in extra.items():
+        if cases:
+            print_cli_rows(kind, cases)
+    print("\nthe other steps (fresh processes; {} where the run came from the cache):")
+    for r in rows:
+        parts = []
+        for k in ("simulate", "read", "cli"):
+            if r.get(k):
+                parts.append(f"{k} {r[k]['wall_s']:.1f} s (cpu {r[k].get('cpu_s', float('nan')):.1f} s) {r[k]['peak_mb']:.0f} MB")
+        print(f"{r['duration']:>9g} s: " + ("; ".join(parts) or "{}"))
+    return 0
 
+
+def print_identify(rows: list[dict], baseline: Path | None, gaps: float | None = None) -> None:
+    """The identify table, the discretisation term, the longest run against the targets and the baseline."""
     print()
     print("identify (default options) of runs at 1 kHz, each in a fresh process; the run loaded from .npz"
-          + (f", one sample lost in every {args.gaps:g} s (pieces: gap-free pieces of 60 s at most)" if args.gaps else ""))
+          + (f", one sample lost in every {gaps:g} s (pieces: gap-free pieces of 60 s at most)" if gaps else ""))
     first = rows[0]["identify"]
     print(f"{'duration':>9} {'samples':>9} {'wall s':>8} {'cpu s':>8} {'cpu/s':>7} {'vs first':>9} {'peak MB':>8} "
           f"{'iter':>5} {'pieces':>6} {'status':>10} {'sigma':>6}  estimates (truth; error in std)")
@@ -236,7 +320,7 @@ def main() -> int:
               f" x the shortest's (<= 1: linear or better), estimates within {worst:.2f} std of the truth")
     base = [r for r in rows if "baseline" in r]
     if base:
-        print(f"\nthis code vs {args.baseline} (same runs, same process setup):")
+        print(f"\nthis code vs {baseline} (same runs, same process setup):")
         for r in base:
             b, i = r["baseline"], r["identify"]
             if "error" in b:
@@ -248,16 +332,6 @@ def main() -> int:
                   f"cpu {i['cpu_s']:.2f} / {b['cpu_s']:.2f} s = {i['cpu_s'] / b['cpu_s']:.2f}, "
                   f"fit {i['fit_s']:.2f} / {b['fit_s']:.2f} s = {i['fit_s'] / b['fit_s']:.2f}, peak {i['peak_mb']:.0f} / "
                   f"{b['peak_mb']:.0f} MB; estimates and std {same}")
-    print("\nthe other steps (fresh processes; {} where the run came from the cache):")
-    for r in rows:
-        parts = []
-        for k in ("simulate", "read", "cli"):
-            if r.get(k):
-                parts.append(f"{k} {r[k]['wall_s']:.1f} s (cpu {r[k].get('cpu_s', float('nan')):.1f} s) {r[k]['peak_mb']:.0f} MB")
-        print(f"{r['duration']:>9g} s: " + ("; ".join(parts) or "{}"))
-    for kind, d, m in extra:
-        print(f"{d:>9g} s: {kind} {m['wall_s']:.1f} s (cpu {m['cpu_s']:.1f} s) {m['peak_mb']:.0f} MB (exit {m['rc']})")
-    return 0
 
 
 if __name__ == "__main__":

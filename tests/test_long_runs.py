@@ -273,3 +273,57 @@ def test_a_run_losing_a_sample_every_quarter_second_identifies_the_friction(cyl_
     assert res.solver["status"] == "converged" and res.solver["residual_sigma"] < 1.05
     for n in ("Fc", "Fv", "kp"):
         assert abs(res.params[n].value - cyl_a.value(n)) < 4 * res.params[n].std, n
+
+
+def test_a_chunk_of_many_free_parameters_is_shorter_and_its_sensitivities_come_in_small_pieces(cyl_a):
+    """A chunk's sensitivities stay within CHUNK_SENSITIVITIES numbers whatever the number of free
+    parameters (calibrate's whole model: 42), while a 20 s run of that model at 1 kHz and 0.1 s
+    intervals is still one chunk and identify's chunks keep CHUNK_SAMPLES; the sensitivities are
+    computed by map functions of at most two sizes, an eighth of a chunk at most, however many
+    chunks (a map function holds its results between calls), and equal those of one call."""
+    import combined_reality.identify.shooting as sh
+
+    for nx, nth in ((4, 42), (5, 60), (2, 37), (4, 3)):
+        size = sh.chunk_intervals(100, nx, nth)
+        assert size * 100 * nx * (nx + nth) <= sh.CHUNK_SENSITIVITIES and size % sh.TRIAL_CHUNKS == 0
+    assert sh.chunk_intervals(100, 4, 42) * 100 >= 20_000
+    assert sh.chunk_intervals(100, 4, 3) * 100 == sh.CHUNK_SAMPLES // 800 * 800
+
+    run = simulate_run(cyl_a, 3.3, seed=11)
+    prob, layouts, S, p, free = _problem(cyl_a, [run], chunk_intervals=16)
+    assert prob.spans == [(0, 16), (16, 32), (32, 33)] and prob.sens_piece == 2
+    eqs = prob.linearise(S, p, sh.NormalEquations([(0, prob.K)], prob.nx, prob.nth, 10))
+    assert eqs is not None
+    sizes = sorted(n for with_sens, n in prob._maps if with_sens)
+    assert sizes == [1, 2]
+    X, Sens = prob.span_simulation(S, p, 16, 32, True)
+    whole = prob._sf.sens.map(16)(S[:, 16:32], prob.W[:, 16 * 101:32 * 101], p, prob.H[:, 1600:3200])
+    assert np.array_equal(X, np.asarray(whole[0]).reshape(X.shape))
+    assert np.array_equal(Sens, np.asarray(whole[1]).reshape(Sens.shape))
+
+
+def test_the_chambers_linear_start_holds_no_more_per_sample_than_its_rows(cyl_a, monkeypatch):
+    """The valve and chambers' linear start forms its least squares ROWS_AT_ONCE rows at a time
+    and keeps the rises of one overlap per direction: what it allocates grows with the run by
+    less than 300 bytes a sample (its rows: measured 104; holding the rises of every overlap
+    searched and all rows at once, 1.4 kB: 816 MB at 600 s), and its result is that of all rows
+    at once to rounding."""
+    import combined_reality.calibrate.prefit as pf
+
+    runs = {d: simulate_run(cyl_a, d, seed=7) for d in (2.0, 8.0)}
+    whole = pf.chamber_prefit(cyl_a, [runs[8.0]])
+    monkeypatch.setattr(pf, "ROWS_AT_ONCE", 256)
+    blocked = pf.chamber_prefit(cyl_a, [runs[8.0]])
+    assert whole.keys() == blocked.keys()
+    for name, value in whole.items():
+        assert blocked[name] == pytest.approx(value, rel=1e-9, abs=1e-15), name
+    peaks = {}
+    for d, run in runs.items():
+        tracemalloc.start()
+        try:
+            pf.chamber_prefit(cyl_a, [run])
+            peaks[d] = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    per_sample = (peaks[8.0] - peaks[2.0]) / 6000
+    assert per_sample < 300, peaks

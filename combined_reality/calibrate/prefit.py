@@ -28,6 +28,9 @@ _P_FROM, _P_TO, _B, _T = (ca.SX.sym(n) for n in ("p_from", "p_to", "b", "T"))
 SMOOTH = 0.02  # weight of the slope-continuity rows of the flow characteristic, relative to the data
 OVERLAP_MAX = 0.2  # the largest overlap the linear start considers
 OVERLAP_TIE = 0.002  # overlaps whose cost is within this share of the searched costs' span count as a tie
+# the chambers' least squares is formed this many rows at a time (a row per chamber and block of
+# samples: 327 s of data at 1 kHz), so that its memory does not grow with the runs beyond their rows
+ROWS_AT_ONCE = 1 << 16
 
 
 def force_balance_prefit(cyl: Cylinder, runs: Sequence[Run], half: int = 15) -> dict[str, float]:
@@ -258,40 +261,60 @@ class _ChamberFit:
         self.widths = np.diff(np.r_[0.0, OPENING_GRID])
         self.weight = np.sqrt(np.mean((rhs * w) ** 2))  # the data rows' typical size
         self.opens = (ub > 0, ub < 0)  # per direction, the samples that open it
-        self.columns: dict[tuple[int, float], np.ndarray] = {}
+        # per direction, the overlap last asked for and its rises: the search asks for the other
+        # direction's again and again (more would hold K numbers a row for every overlap searched)
+        self.columns: dict[int, tuple[float, np.ndarray]] = {}
 
     def rises(self, d: int, overlap: float) -> np.ndarray:
-        """Each sample's rises of direction d summed in its block's row, (rows, K); the overlap
-        search asks for each value several times."""
-        if (d, overlap) not in self.columns:
-            sel = self.opens[d]
-            per_sample = np.zeros(self.ub.shape + (len(OPENING_GRID),))
-            per_sample[sel] = opening_basis(np.abs(self.ub[sel]), overlap) * self.qb[sel][:, None]
-            self.columns[(d, overlap)] = per_sample.sum(axis=1)
-        return self.columns[(d, overlap)]
+        """Each sample's rises of direction d summed in its block's row, (rows, K)."""
+        if d not in self.columns or self.columns[d][0] != overlap:
+            out = np.empty((len(self.ub), len(OPENING_GRID)))
+            step = max(1, ROWS_AT_ONCE // self.ub.shape[1])  # rows of every sample's rises at a time
+            for a in range(0, len(self.ub), step):
+                ub, qb, sel = (v[a:a + step] for v in (self.ub, self.qb, self.opens[d]))
+                per_sample = np.zeros(ub.shape + (len(OPENING_GRID),))
+                per_sample[sel] = opening_basis(np.abs(ub[sel]), overlap) * qb[sel][:, None]
+                out[a:a + step] = per_sample.sum(axis=1)
+            self.columns[d] = (overlap, out)
+        return self.columns[d][1]
+
+    def _rows(self, overlaps: tuple[float, float], a: int) -> tuple[np.ndarray, np.ndarray]:
+        """(Aw, bw): the weighted rows a..a+ROWS_AT_ONCE of the least squares and their right-hand side."""
+        K = len(OPENING_GRID)
+        b = min(a + ROWS_AT_ONCE, len(self.rhs))
+        A = np.zeros((b - a, 2 * K + 2))
+        for d in (0, 1):
+            A[:, d * K:(d + 1) * K] = self.rises(d, overlaps[d])[a:b]
+        chamber, v0col = self.chamber[a:b], self.v0col[a:b]
+        A[chamber == 0, 2 * K] = -v0col[chamber == 0]
+        A[chamber == 1, 2 * K + 1] = -v0col[chamber == 1]
+        w = self.w[a:b]
+        return A * w[:, None], self.rhs[a:b] * w
 
     def solve(self, overlaps: tuple[float, float]) -> tuple[float, np.ndarray]:
         """(the residual cost, the rises of both directions and the two dead volumes)."""
-        K, chamber, widths = len(OPENING_GRID), self.chamber, self.widths
-        A = np.zeros((len(self.rhs), 2 * K + 2))
-        for d in (0, 1):
-            A[:, d * K:(d + 1) * K] = self.rises(d, overlaps[d])
-        A[chamber == 0, 2 * K] = -self.v0col[chamber == 0]
-        A[chamber == 1, 2 * K + 1] = -self.v0col[chamber == 1]
-        Aw, bw = A * self.w[:, None], self.rhs * self.w
+        K, widths = len(OPENING_GRID), self.widths
         smooth = np.zeros((2 * (K - 1), 2 * K + 2))
         for d in (0, 1):
             for k in range(1, K):
                 smooth[d * (K - 1) + k - 1, d * K + k] = 1.0 / widths[k]
                 smooth[d * (K - 1) + k - 1, d * K + k - 1] = -1.0 / widths[k - 1]
         # the bounded problem on the Cholesky factor of the normal equations of [Aw; smooth] (scaled
-        # columns): as small as the number of unknowns, whatever the number of samples
-        norms = np.sqrt(np.sum(Aw**2, axis=0))
+        # columns): as small as the number of unknowns, whatever the number of samples; the rows'
+        # sums are taken ROWS_AT_ONCE rows at a time
+        starts = range(0, len(self.rhs), ROWS_AT_ONCE)
+        norms = np.sqrt(sum(np.sum(self._rows(overlaps, a)[0] ** 2, axis=0) for a in starts))
         scale = np.maximum(norms, 1e-6 * norms.max())  # a segment no sample opens: its prior decides
-        As, Ss = Aw / scale, SMOOTH * self.weight * smooth / scale
-        normal = As.T @ As + Ss.T @ Ss
+        Ss = SMOOTH * self.weight * smooth / scale
+        normal, rhs = 0.0, 0.0
+        for a in starts:
+            Aw, bw = self._rows(overlaps, a)
+            As = Aw / scale
+            normal, rhs = normal + As.T @ As, rhs + As.T @ bw
+        normal = normal + Ss.T @ Ss
         R = np.linalg.cholesky(normal + 1e-12 * np.eye(len(normal))).T
-        target = np.linalg.solve(R.T, As.T @ bw)
+        target = np.linalg.solve(R.T, rhs)
+        bw = self.rhs * self.w
         lo = np.r_[np.zeros(2 * K), np.full(2, 1e-8)] * scale
         hi = np.r_[np.full(2 * K, 5.0), np.full(2, 1e-2)] * scale
         fit = lsq_linear(R, target, bounds=(lo, hi), method="bvls")

@@ -150,6 +150,19 @@ TRIAL_CHUNKS = 8
 # never by the sensitivities (1.2 kB per sample with Fc, Fv, kp free: a 1000 s run at 1 kHz
 # passed 2 GiB). A 20 s run at 1 kHz is one chunk, fitted as a whole.
 CHUNK_SAMPLES = 1 << 15
+# ... and a chunk's sensitivities (nx * (nx + nth) numbers a sample) at most this many numbers:
+# a fit of many parameters takes shorter chunks (calibrate's whole model, 42 free: 7.4 kB a
+# sample in all its copies, 240 MB a chunk of CHUNK_SAMPLES). A 20 s run at 1 kHz of that
+# model is still one chunk.
+CHUNK_SENSITIVITIES = 1 << 22
+
+
+def chunk_intervals(M: int, nx: int, nth: int) -> int:
+    """Intervals of M samples in a chunk (ShootingProblem.spans): CHUNK_SAMPLES at most, and
+    CHUNK_SENSITIVITIES numbers of sensitivities to (nx states, nth parameters) at most; a
+    multiple of TRIAL_CHUNKS (a chunk's sensitivities are computed in that many pieces)."""
+    samples = min(CHUNK_SAMPLES, CHUNK_SENSITIVITIES // (nx * (nx + nth)))
+    return max(TRIAL_CHUNKS, samples // M // TRIAL_CHUNKS * TRIAL_CHUNKS)
 
 
 class ShootingProblem:
@@ -167,9 +180,12 @@ class ShootingProblem:
         self.nx, self.nth = plant.nx, len(sf.free)
         self.out_idx = [plant.state_names.index(n) for n in plant.output_names]
         self._maps: dict[tuple[bool, int], NumpyCall] = {}
-        size = max(TRIAL_CHUNKS, CHUNK_SAMPLES // self.M // TRIAL_CHUNKS * TRIAL_CHUNKS)
+        size = chunk_intervals(self.M, self.nx, self.nth)
         # (first, end) intervals of each chunk: linearised, and a trial's merit summed, a chunk at a time
         self.spans = [(a, min(a + size, K)) for a in range(0, K, size)]
+        # a chunk's sensitivities are computed this many intervals at a time, into one array: a
+        # map function holds its results between calls, the pieces' (at most two sizes) are small
+        self.sens_piece = size // TRIAL_CHUNKS
 
     @functools.cached_property
     def f_sens(self) -> NumpyCall:
@@ -203,11 +219,20 @@ class ShootingProblem:
         not finite. The node states must be possible (allows)."""
         nx, M = self.nx, self.M
         W = self.W if W is None else W
-        out = self._map(with_sens, b - a)(S[:, a:b], W[:, a * (M + 1):b * (M + 1)], p, self.H[:, a * M:b * M])
-        X = out[0].reshape(nx, b - a, M)
+        if not with_sens:
+            out = self._map(False, b - a)(S[:, a:b], W[:, a * (M + 1):b * (M + 1)], p, self.H[:, a * M:b * M])
+            X = out[0].reshape(nx, b - a, M)
+            return (X, None) if np.all(np.isfinite(X)) else None
+        X = np.empty((nx, b - a, M))
+        Sens = np.empty((nx, b - a, M, nx + self.nth))
+        for c in range(a, b, self.sens_piece):
+            d = min(c + self.sens_piece, b)
+            out = self._map(True, d - c)(S[:, c:d], W[:, c * (M + 1):d * (M + 1)], p, self.H[:, c * M:d * M])
+            X[:, c - a:d - a] = out[0].reshape(nx, d - c, M)
+            Sens[:, c - a:d - a] = out[1].reshape(nx, d - c, M, nx + self.nth)
         if not np.all(np.isfinite(X)):
             return None
-        return X, out[1].reshape(nx, b - a, M, nx + self.nth) if with_sens else None
+        return X, Sens
 
     def span_residuals(self, S: np.ndarray, X: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         """E (b-a, M, ny) and the defects D of the links from intervals a..b-1 (their successors'
