@@ -18,7 +18,7 @@ from typing import Callable
 
 from .errors import InputError
 
-__all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "TOML_MAX_BYTES", "TOML_MAX_LINE", "file_kind",
+__all__ = ["InputFileError", "QUOTE_LIMIT", "shorten", "is_utf8", "TOML_MAX_BYTES", "TOML_MAX_LINE", "file_kind",
            "regular_file_size", "checked_size", "read_checked", "read_bounded", "decode_text", "line_breaks",
            "parse_toml"]
 
@@ -111,6 +111,11 @@ def _read_at_most(path: str | os.PathLike[str], what: str, limit: int | None, li
     return data
 
 
+def is_utf8(encoding: str) -> bool:
+    """Whether `encoding` names UTF-8 (whose byte order mark opening a file is dropped)."""
+    return encoding.lower().replace("_", "-") in ("utf-8", "utf8")
+
+
 def decode_text(data: bytes, not_text: Callable[[int, int], Exception] | None = None, encoding: str = "utf-8",
                 line0: int = 1, cr_ends_lines: bool = False) -> str:
     """`data`, the bytes of a file from its line `line0` on, as text in `encoding`; a UTF-8
@@ -118,7 +123,7 @@ def decode_text(data: bytes, not_text: Callable[[int, int], Exception] | None = 
     editors like to write one). Bytes that are not such text raise not_text(line, byte): the
     line of the first bad one (lines end at \n; with `cr_ends_lines` at \r and \r\n too, as in
     a CSV) and its offset after the mark; without `not_text`, the UnicodeDecodeError."""
-    if line0 == 1 and encoding.lower().replace("_", "-") in ("utf-8", "utf8") and data.startswith(codecs.BOM_UTF8):
+    if line0 == 1 and is_utf8(encoding) and data.startswith(codecs.BOM_UTF8):
         data = data[len(codecs.BOM_UTF8):]
     try:
         return data.decode(encoding)

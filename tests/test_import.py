@@ -324,15 +324,44 @@ def _long_lab_csv(path: Path, rows: int, line_end: str = "\n", bad_row: int | No
 
 
 @pytest.mark.parametrize("line_end", ["\n", "\r\n", "\r"])
-def test_a_long_recording_is_read_once_as_a_stream_whatever_ends_its_lines(tmp_path, capsys, line_end):
+def test_a_long_recording_is_read_once_as_a_stream_whatever_ends_its_lines(tmp_path, capsys, monkeypatch,
+                                                                             line_end):
     """Every sample of a recording read block by block (line ends split across blocks
-    included), the run header's sha256 that of the recording's bytes as they were read."""
+    included), each byte read once, the run header's sha256 that of those bytes."""
+    import builtins
     import hashlib
 
     raw = _long_lab_csv(tmp_path / "messung.csv", 30_000, line_end)
     assert raw.stat().st_size > 1 << 20  # more than one block
+    got, real_open = [], builtins.open
+
+    class Counted:
+        def __init__(self, f):
+            self.f = f
+
+        def read(self, *a):
+            data = self.f.read(*a)
+            got.append(len(data))
+            return data
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.f.__exit__(*exc)
+
+    def counting_open(file, mode="r", *a, **k):
+        f = real_open(file, mode, *a, **k)
+        return Counted(f) if str(file) == str(raw) and "b" in mode else f
+
+    monkeypatch.setattr(builtins, "open", counting_open)
     code, err, out = do_import(tmp_path, capsys, raw, EXAMPLE_MAP)
+    monkeypatch.undo()
     assert code == 0, err
+    assert sum(got) == raw.stat().st_size  # once: no second read for the digest or the line count
     run = read_run(out)
     assert run.n == 30_000
     np.testing.assert_allclose(run.t, np.arange(30_000) * 1e-3)

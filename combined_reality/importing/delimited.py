@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.inputs import checked_size, line_breaks, shorten
+from sim.inputs import checked_size, is_utf8, line_breaks, shorten
 
 from .mapping import ImportMapping, MappingError
 from .raw import RawTable, require_column_time
@@ -103,8 +103,7 @@ class _Lines:
         self.last: str | None = None  # the last one ('' where the file ends with a line break)
 
     def __iter__(self):
-        utf8 = self.encoding.lower().replace("_", "-") in ("utf-8", "utf8")
-        decoder = codecs.getincrementaldecoder("utf-8-sig" if utf8 else self.encoding)("strict")
+        decoder = codecs.getincrementaldecoder("utf-8-sig" if is_utf8(self.encoding) else self.encoding)("strict")
         carry = ""
         while True:
             block = self.f.read(_BLOCK)
@@ -164,10 +163,12 @@ def _columns(path: Path, lines, first: int, col_of: dict[str, int], delimiter: s
                                    f"missing.")
         decimal = decimal or _decimal_mark(cells, col_of.values(), delimiter)
         at = n - len(batch)
-        foretold = size // max(1, sum(map(len, batch)) // len(batch) + 1) + 1
+        if n > cols[next(iter(cols))].size:  # the rows the bytes foretell at this batch's line length, at first
+            foretold = size // (sum(map(len, batch)) // len(batch) + 1) + 1
+            grow = max(n, cols[next(iter(cols))].size * 3 // 2, min(foretold + foretold // 50, max_rows or foretold))
         for name, j in col_of.items():
             if n > cols[name].size:
-                grown = np.empty(max(n, cols[name].size * 3 // 2, min(foretold + foretold // 50, max_rows or foretold)))
+                grown = np.empty(grow)
                 grown[:at] = cols[name][:at]
                 cols[name] = grown
             cols[name][at:n] = _numbers(path, [c[j] for c in cells], first + at, name, decimal)
