@@ -214,11 +214,12 @@ def regime_variances(blocks: Blocks, theta_r: np.ndarray, scales: Sequence[float
     Gs = np.concatenate([np.zeros((1,) + G.shape[1:]), G.cumsum(axis=0)])
     As = np.concatenate([np.zeros((1,) + blocks.A.shape[1:]), blocks.A.cumsum(axis=0)])
     mid = 0.5 * (blocks.t0 + blocks.t1)
+    block_s = max(float(np.median(blocks.t1 - blocks.t0)), 1e-9)
     trend = None  # around the blocks' trend (a rig that drifts has no more regime than one that does not)
     out: list[np.ndarray | None] = []
     for cluster_s in scales:
         # every stretch of about cluster_s (sliding by a block): a regime is not aligned to a grid
-        n = max(1, int(round(cluster_s / max(float(np.median(blocks.t1 - blocks.t0)), 1e-9))))
+        n = max(1, int(round(cluster_s / block_s)))
         if len(blocks) < n:
             out.append(None)
             continue
