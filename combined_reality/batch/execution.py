@@ -151,8 +151,11 @@ def _identify_row(job: CylinderJob, row: dict) -> dict:
     out.update({"rmse_x": res.fit.get("rmse_x"), "r2_x": res.fit.get("r2_x"), "rmse_p1": res.fit.get("rmse_p1"),
                 "rmse_p2": res.fit.get("rmse_p2"), "solver_status": res.status,
                 "iterations": res.solver["iterations"]})
-    warnings = notes + ([f"the data do not determine {', '.join(res.not_determined)}"] if res.status == "not_determined"
-                        else [f"the solver stopped with status {res.status}"] if res.status != "converged" else [])
+    warnings = list(notes)
+    if res.status == "not_determined":
+        warnings.append(f"the data do not determine {', '.join(res.not_determined)}")
+    elif res.status != "converged":
+        warnings.append(f"the solver stopped with status {res.status}")
     if warnings:
         out["warning"] = "; ".join(warnings)  # the preflight's notes (what it was not sure of) first
     if job.diagnose:
