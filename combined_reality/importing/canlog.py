@@ -16,7 +16,38 @@ __all__ = ["read_can_log"]
 
 
 def read_can_log(path: Path, mapping: ImportMapping) -> RawTable:
-    import can
+    db = _database(mapping)
+    dbc_path = mapping.source.dbc
+    require_file(path)
+    t = mapping.channel("t")
+    where = {c.name: _message_and_signal(db, mapping, c.source if c.source is not None else c.time_of)
+             for c in mapping.channels}
+    if t.time_of is None and where["t"][1] is None:
+        raise MappingError(f"{mapping.path}: key 'columns.t.from' names the message {where['t'][0]}; use "
+                           f"time_of = \"{where['t'][0]}\" for its frames' time stamps, or a signal for a clock.")
+    frames = _decoded_frames(path, db, dbc_path, {db.get_message_by_name(m).frame_id: m for m, _ in where.values()})
+
+    def signal(channel: str) -> Signal:
+        msg, sig = where[channel]
+        times = np.array([ts for ts, _ in frames[msg]])
+        if sig is None:
+            return Signal(times, times)
+        return Signal(np.array([float(d[sig]) for _, d in frames[msg]]), times)
+
+    base = signal("t")
+    signals = {c.name: signal(c.name) for c in mapping.channels if c.name != "t"}
+    aligned, kept, note = align_signals(mapping, signals, base.times, method="nearest")
+    columns = {"t": base.values[kept], **aligned}
+    if columns["t"].size < 2:
+        raise MappingError(f"{path}: {columns['t'].size} sample(s); a run needs at least 2.")
+    msg_t = where["t"][0]
+    return RawTable(columns=columns, locate=lambda i: f"frame {int(kept[i]) + 1} of message {msg_t}",
+                    describe=f"CAN log decoded with {dbc_path.name}, rows at the frames of {msg_t}",
+                    notes=(note,) if note else ())
+
+
+def _database(mapping: ImportMapping):
+    """The mapping's DBC, loaded by cantools."""
     import cantools
 
     dbc_path = mapping.source.dbc
@@ -24,39 +55,41 @@ def read_can_log(path: Path, mapping: ImportMapping) -> RawTable:
         raise MappingError(f"{mapping.path}: a CAN log needs [source] dbc = \"...\" (the database that decodes its "
                            f"frames).")
     try:
-        db = cantools.database.load_file(dbc_path)
+        return cantools.database.load_file(dbc_path)
     except FileNotFoundError:
         raise MappingError(f"{mapping.path}: key 'source.dbc': {dbc_path} not found.") from None
     except Exception as e:  # cantools raises its own parse errors, UnsupportedDatabaseFormatError ...
         raise MappingError(f"{mapping.path}: key 'source.dbc': {dbc_path} is not a readable DBC "
                            f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}).") from None
-    require_file(path)
 
-    def resolve(name: str) -> tuple[str, str | None]:
-        msg_name, dot, sig_name = name.partition(".")
-        names = {m.name for m in db.messages}
-        if dot and msg_name in names:
-            msg = db.get_message_by_name(msg_name)
-            if sig_name not in [s.name for s in msg.signals]:
-                raise MappingError(f"{mapping.path}: message {msg_name} of {dbc_path.name} has no signal '{sig_name}' "
-                                   f"(it has {', '.join(s.name for s in msg.signals)}).")
-            return msg_name, sig_name
-        if not dot and name in names:
-            return name, None  # a message: its frames' time stamps (time_of)
-        owners = [m.name for m in db.messages if name in [s.name for s in m.signals]]
-        if len(owners) == 1:
-            return owners[0], name
-        if owners:
-            raise MappingError(f"{mapping.path}: signal '{name}' is in several messages ({', '.join(owners)}); "
-                               f"write it as Message.Signal.")
-        raise MappingError(f"{mapping.path}: '{name}' is no message or signal of {dbc_path.name}.")
 
-    t = mapping.channel("t")
-    where = {c.name: resolve(c.source if c.source is not None else c.time_of) for c in mapping.channels}
-    if t.time_of is None and where["t"][1] is None:
-        raise MappingError(f"{mapping.path}: key 'columns.t.from' names the message {where['t'][0]}; use "
-                           f"time_of = \"{where['t'][0]}\" for its frames' time stamps, or a signal for a clock.")
-    ids = {db.get_message_by_name(m).frame_id: m for m, _ in where.values()}
+def _message_and_signal(db, mapping: ImportMapping, name: str) -> tuple[str, str | None]:
+    """A channel's source: "Message.Signal", a signal one message holds, or a message alone
+    (its frames' time stamps: time_of)."""
+    dbc_name = mapping.source.dbc.name
+    msg_name, dot, sig_name = name.partition(".")
+    names = {m.name for m in db.messages}
+    if dot and msg_name in names:
+        msg = db.get_message_by_name(msg_name)
+        if sig_name not in [s.name for s in msg.signals]:
+            raise MappingError(f"{mapping.path}: message {msg_name} of {dbc_name} has no signal '{sig_name}' "
+                               f"(it has {', '.join(s.name for s in msg.signals)}).")
+        return msg_name, sig_name
+    if not dot and name in names:
+        return name, None
+    owners = [m.name for m in db.messages if name in [s.name for s in m.signals]]
+    if len(owners) == 1:
+        return owners[0], name
+    if owners:
+        raise MappingError(f"{mapping.path}: signal '{name}' is in several messages ({', '.join(owners)}); "
+                           f"write it as Message.Signal.")
+    raise MappingError(f"{mapping.path}: '{name}' is no message or signal of {dbc_name}.")
+
+
+def _decoded_frames(path: Path, db, dbc_path: Path, ids: dict[int, str]) -> dict[str, list[tuple[float, dict]]]:
+    """(time stamp, decoded signals) of every frame of the messages `ids` (frame id -> name)."""
+    import can
+
     frames: dict[str, list[tuple[float, dict]]] = {m: [] for m in ids.values()}
     try:
         reader = can.LogReader(path)
@@ -84,21 +117,4 @@ def read_can_log(path: Path, mapping: ImportMapping) -> RawTable:
     for name, got in frames.items():
         if not got:
             raise MappingError(f"{path}: no frame of message {name} (id 0x{db.get_message_by_name(name).frame_id:x}).")
-
-    def signal(channel: str) -> Signal:
-        msg, sig = where[channel]
-        times = np.array([ts for ts, _ in frames[msg]])
-        if sig is None:
-            return Signal(times, times)
-        return Signal(np.array([float(d[sig]) for _, d in frames[msg]]), times)
-
-    base = signal("t")
-    signals = {c.name: signal(c.name) for c in mapping.channels if c.name != "t"}
-    aligned, kept, note = align_signals(mapping, signals, base.times, method="nearest")
-    columns = {"t": base.values[kept], **aligned}
-    if columns["t"].size < 2:
-        raise MappingError(f"{path}: {columns['t'].size} sample(s); a run needs at least 2.")
-    msg_t = where["t"][0]
-    return RawTable(columns=columns, locate=lambda i: f"frame {int(kept[i]) + 1} of message {msg_t}",
-                    describe=f"CAN log decoded with {dbc_path.name}, rows at the frames of {msg_t}",
-                    notes=(note,) if note else ())
+    return frames
