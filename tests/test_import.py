@@ -232,6 +232,29 @@ def test_can_log_decoded_with_the_rigs_dbc(tmp_path, capsys, short_run, suffix):
     assert_close(read_run(out), short_run, t=6e-7, u=5.1e-5, x=5.1e-9, p=10.01)
 
 
+@pytest.mark.parametrize("dbc, x_from, says", [
+    (True, "Seq", "signal 'Seq' is in several messages (RigSampleTime, RigSamplePosition, RigSamplePressure, RigStatus); "
+                  "write it as Message.Signal."),
+    (True, "RigSamplePosition.Y", "message RigSamplePosition of rig_can.dbc has no signal 'Y' (it has Seq, X, Ps)."),
+    (True, "Nowhere", "'Nowhere' is no message or signal of rig_can.dbc."),
+    (False, "RigSamplePosition.X", "a CAN log needs [source] dbc = \"...\" (the database that decodes its frames)."),
+])
+def test_can_log_mapping_errors_name_the_dbc_and_the_fix(tmp_path, capsys, short_run, dbc, x_from, says):
+    import can
+
+    from hw.can_mapping import dbc_path
+
+    raw = tmp_path / "rig.asc"
+    with can.Logger(str(raw)) as log:
+        log.on_message_received(can.Message(timestamp=1.0, arbitration_id=0x100, data=bytes(8)))
+    mapping = ((f"[source]\ndbc = \"{dbc_path()}\"\n" if dbc else "") + "[columns]\n"
+               "t = { from = \"RigSampleTime.TimeUs\", unit = \"us\" }\nu = { from = \"UApplied\" }\n"
+               f"x = {{ from = \"{x_from}\", unit = \"m\" }}\np1 = {{ from = \"P1\", unit = \"Pa\" }}\n"
+               "p2 = { from = \"P2\", unit = \"Pa\" }\n")
+    code, err, _ = do_import(tmp_path, capsys, raw, mapping)
+    assert code == 2 and says in err and "Traceback" not in err, err
+
+
 # ------------------------------------------------------------------ sampling
 
 
