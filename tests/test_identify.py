@@ -408,7 +408,7 @@ def test_an_overflowing_linearisation_gives_no_step_and_no_warning():
     condensed normal equations are not finite, no step comes of them, and numpy stays silent."""
     import warnings
 
-    from combined_reality.identify.shooting import NormalEquations, solve_bounded
+    from combined_reality.identify.shooting import NormalEquations, solve_bounded, step_matrix
 
     K, M, ny, nx, nth = 400, 3, 1, 2, 1
     G = np.ones((K, M, ny, nx))
@@ -426,7 +426,7 @@ def test_an_overflowing_linearisation_gives_no_step_and_no_warning():
             eqs.add((G[a:a + 100], Hth[a:a + 100], A[a:a + 100], B[a:a + 100]), E[a:a + 100], D, D, has_next)
         N, g = eqs.N, eqs.g
         assert not N.finite()
-        assert solve_bounded(N, g, np.zeros(nth), np.full(nth, -1.0), np.full(nth, 1.0), 0.0) is None
+        assert solve_bounded(step_matrix(N), g, np.zeros(nth), np.full(nth, -1.0), np.full(nth, 1.0), 0.0) is None
 
 
 def test_node_states_no_cylinder_can_have_are_rejected_without_a_simulation(cyl_a):

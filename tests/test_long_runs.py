@@ -74,8 +74,8 @@ def test_the_normal_equations_accumulated_chunk_by_chunk_are_those_of_the_whole_
     theta = p[free]
     lo, hi = sh.parameter_bounds(whole.plant, ("Fc", "Fv", "kp"))
     n_state = len(pieces) * whole.nx
-    step = sh.solve_bounded(one.N, one.g, theta, lo, hi, 0.0)
-    assert close(step, sh.solve_bounded(many.N, many.g, theta, lo, hi, 0.0), 1e-8)
+    step = sh.solve_bounded(sh.step_matrix(one.N), one.g, theta, lo, hi, 0.0)
+    assert close(step, sh.solve_bounded(sh.step_matrix(many.N), many.g, theta, lo, hi, 0.0), 1e-8)
     # the decrease predicted from the accumulated sums is that of the residuals linearised whole
     E, D, X, Sens = whole.evaluate(S, p, True)
     G, Hth, _, _ = sh.linearize((E, D, X, Sens), whole.out_idx, whole.wts, whole.mask, whole.M, whole.nx,
@@ -171,8 +171,9 @@ def _dense_solve_bounded(N, g, theta, lower, upper, n_state, lam, state_scale=No
 def test_the_start_states_eliminated_piece_by_piece_give_the_dense_step_and_covariance():
     """Six pieces whose start states couple only with three parameters of scales ten decades
     apart: the step (undamped, damped with the node states bounded, with a parameter at its
-    bound), the decrease it predicts, the Gauss-Newton and cluster-robust covariances and a
-    parameter solution taken block by block equal those of the dense matrix to 1e-10."""
+    bound), the decrease it predicts, the Gauss-Newton and cluster-robust covariances and the
+    parameters' information and gradient with the start states eliminated, taken block by
+    block, equal those of the dense matrix to 1e-10."""
     import combined_reality.identify.shooting as sh
 
     rng = np.random.default_rng(5)
@@ -192,24 +193,27 @@ def test_the_start_states_eliminated_piece_by_piece_give_the_dense_step_and_cova
 
     theta, wide = np.zeros(nth), np.full(nth, 1e9)
     free_step = -np.linalg.solve(N, g)
-    assert close(sh.solve_bounded(red, g, theta, -wide, wide, 0.0), free_step)
+    assert close(sh.solve_bounded(sh.step_matrix(red), g, theta, -wide, wide, 0.0), free_step)
     scale = rng.uniform(0.5, 2.0, R * nx)
     upper = wide.copy()
     upper[1] = free_step[R * nx + 1] - 0.5 * abs(free_step[R * nx + 1])  # the free step goes beyond it
     for lam, bounds, sscale in ((0.0, (-wide, wide), None), (1e-2, (-wide, wide), scale),
                                 (0.0, (-wide, upper), None), (1e-3, (-wide, upper), scale)):
-        d = sh.solve_bounded(red, g, theta, *bounds, lam, sscale)
+        d = sh.solve_bounded(sh.step_matrix(red, sscale), g, theta, *bounds, lam)
         want = _dense_solve_bounded(N, g, theta, *bounds, R * nx, lam, sscale)
         assert close(d, want), (lam, d - want)
         assert d[R * nx + 1] <= bounds[1][1]
-    assert sh.solve_bounded(red, g, theta, -wide, upper, 0.0)[R * nx + 1] == upper[1]
+    assert sh.solve_bounded(sh.step_matrix(red), g, theta, -wide, upper, 0.0)[R * nx + 1] == upper[1]
     z = rng.normal(size=len(g))
     assert red.quadratic(z) == pytest.approx(float(z @ N @ z), rel=1e-12)
     cost, nres = 0.5 * float(r @ r), float(len(r))
     inv = np.linalg.inv(N)
-    cov = sh.covariance(red, cost, nres)
+    E = red.schur()
+    cov = sh.covariance(E, cost, nres)
     assert close(cov, 2 * cost / (nres - len(g)) * inv[R * nx:, R * nx:])
-    assert close(red.parameter_solution(g), (inv @ g)[R * nx:])
+    n = R * nx
+    assert close(E.information(), N[n:, n:] - N[n:, :n] @ np.linalg.solve(N[:n, :n], N[:n, n:]))
+    assert close(E.reduced(g), g[n:] - N[n:, :n] @ np.linalg.solve(N[:n, :n], g[:n]))
     # clusters of 10 rows within a piece: the sandwich's parameter block
     piece = np.repeat(np.arange(R), rows // 10)
     dense_scores = np.stack([J[k * 10:(k + 1) * 10].T @ r[k * 10:(k + 1) * 10] for k in range(len(piece))])
@@ -217,7 +221,7 @@ def test_the_start_states_eliminated_piece_by_piece_give_the_dense_step_and_cova
     clusters = sh.Clusters(states, dense_scores[:, R * nx:], piece)
     nb = len(piece)
     sandwich = (inv @ dense_scores.T @ dense_scores @ inv)[R * nx:, R * nx:] * nb / (nb - 1)
-    assert close(sh.cluster_covariance(red, clusters), sandwich)
+    assert close(sh.cluster_covariance(E, clusters), sandwich)
 
 
 def test_a_start_state_no_residual_sees_takes_no_step_and_leaves_no_covariance():
@@ -235,10 +239,10 @@ def test_a_start_state_no_residual_sees_takes_no_step_and_leaves_no_covariance()
     J[:, nx + 3] = 0.0
     r = rng.normal(size=R * rows)
     red = sh.ReducedNormal.from_dense(J.T @ J, R, nx)
-    d = sh.solve_bounded(red, J.T @ r, np.zeros(nth), np.full(nth, -1e9), np.full(nth, 1e9), 0.0)
+    d = sh.solve_bounded(sh.step_matrix(red), J.T @ r, np.zeros(nth), np.full(nth, -1e9), np.full(nth, 1e9), 0.0)
     want = np.linalg.lstsq(J, -r, rcond=None)[0]
     assert np.max(np.abs(d - want)) <= 1e-10 * np.max(np.abs(want)) and d[nx + 3] == 0.0
-    assert sh.covariance(red, 1.0, 100.0) is None
+    assert sh.covariance(red.schur(), 1.0, 100.0) is None
 
 
 def test_the_normal_equations_of_thousands_of_pieces_grow_linearly():

@@ -103,12 +103,12 @@ def _sub_problem(problem: ShootingProblem, sf: ShootingFunctions, k0: int, K: in
                            problem.wts, problem.sscale, links, possible)
 
 
-def _stretch_steps(problem: ShootingProblem, sf: ShootingFunctions, fine: ShootingFunctions,
+def _stretch_terms(problem: ShootingProblem, sf: ShootingFunctions, fine: ShootingFunctions,
                    layouts: Sequence[RunLayout], k0: int, K: int, S: np.ndarray, p: np.ndarray,
                    threads: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """(F, shift) of one stretch: the parameters' information (node states eliminated) and the
-    difference of the Gauss-Newton steps with the fine and with the fit's residuals and defects,
-    both on the fit's linearisation."""
+    """(F, b) of one stretch: the parameters' information and the difference of the gradients
+    with the fine and with the fit's residuals and defects, node states eliminated, both on the
+    fit's linearisation: the Gauss-Newton steps (-F^-1 times the gradient) differ by -F^-1 b."""
     pieces = pieces_within(layouts, k0, K)
     coarse, finer = (_sub_problem(problem, f, k0, K, pieces, threads) for f in (sf, fine))
     Ss = S[:, k0:k0 + K]
@@ -128,12 +128,8 @@ def _stretch_steps(problem: ShootingProblem, sf: ShootingFunctions, fine: Shooti
         Ef, Df = coarse.span_residuals(Ss, other[0], a, b)
         eqs[0].add(lin, E, D * coarse.sscale[:, None], D, has_next)
         eqs[1].add(lin, Ef, Df * coarse.sscale[:, None], Df, has_next)
-    try:
-        F = scaled_inverse(eqs[0].N.parameter_inverse())
-        # a Gauss-Newton step is -N^-1 g: the two steps differ by -N^-1 (g_fine - g_fit)
-        return F, -eqs[0].N.parameter_solution(eqs[1].g - eqs[0].g)
-    except np.linalg.LinAlgError:
-        return None
+    E = eqs[0].N.schur()
+    return E.information(), E.reduced(eqs[1].g - eqs[0].g)
 
 
 def discretisation(problem: ShootingProblem, sf: ShootingFunctions, opts: IntegratorOptions,
@@ -147,21 +143,21 @@ def discretisation(problem: ShootingProblem, sf: ShootingFunctions, opts: Integr
     spread between them (a sandwich over the stretches), times the share of the data they leave."""
     parts = stretches(layouts, problem.M)
     fine = fine_functions(sf, opts, progress)
-    found = [_stretch_steps(problem, sf, fine, layouts, k0, K, S, p, threads) for k0, K in parts]
+    found = [_stretch_terms(problem, sf, fine, layouts, k0, K, S, p, threads) for k0, K in parts]
     if any(f is None for f in found):
         return None
     Fs = np.array([f[0] for f in found])
-    shifts = np.array([f[1] for f in found])
+    bs = np.array([f[1] for f in found])
     try:
         Finv = scaled_inverse(Fs.sum(axis=0))
     except np.linalg.LinAlgError:
         return None
-    shift = Finv @ np.einsum("jab,jb->a", Fs, shifts)
+    shift = -Finv @ bs.sum(axis=0)  # the stretches' shifts -F_j^-1 b_j weighted by F_j
     cov = np.outer(shift, shift) * FINE_FACTOR ** 2
     n = len(parts)
     covered = sum(K for _, K in parts) / max(1, sum(l.K for l in layouts))
     if n > 1 and covered < 1:
-        u = np.einsum("jab,jb->ja", Fs, shifts - shift[None, :])
+        u = -bs - Fs @ shift  # F_j (shift_j - shift)
         cov = cov + (1 - covered) * (Finv @ (u.T @ u) @ Finv) * n / (n - 1)
     if not np.all(np.isfinite(cov)):
         return None

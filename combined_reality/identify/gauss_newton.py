@@ -18,7 +18,7 @@ from typing import Callable, NamedTuple, Protocol
 
 import numpy as np
 
-from .shooting import ReducedNormal, solve_bounded
+from .shooting import ReducedNormal, solve_bounded, step_matrix
 
 __all__ = ["Exit", "Damping", "Prediction", "StepModel", "StepOutcome", "damped_step"]
 
@@ -101,15 +101,17 @@ def damped_step(N: ReducedNormal, g: np.ndarray, theta: np.ndarray, lower: np.nd
     theta): steps of growing damping until one is accepted, nothing is left to gain, or
     `damping.attempts` have failed (or `out_of_time()`, asked before each retry)."""
     out = StepOutcome(lam=lam, mu=mu)
-    scale = np.sqrt(np.maximum(N.diagonal(), 1e-300))
-    failed = None
+    scaled = step_matrix(N)  # scaled once for every damping, and once more when the states are bounded
+    scale = scaled.scale
+    failed, bounded = None, False
     for attempt in range(damping.attempts):
         if attempt and out_of_time is not None and out_of_time():
             break  # a struggling line search is where the time goes
         # once a step has failed, the damping bounds the free node states too: a state the data
         # cannot see (the velocity of a piston stuck where a piece starts) may have taken it all
-        bound_states = failed is not None or (damping.bound_states_on_retry and attempt > 0)
-        step = out.step = solve_bounded(N, g, theta, lower, upper, out.lam, node_scale if bound_states else None)
+        if not bounded and (failed is not None or (damping.bound_states_on_retry and attempt > 0)):
+            scaled, bounded = step_matrix(N, node_scale), True
+        step = out.step = solve_bounded(scaled, g, theta, lower, upper, out.lam)
         if out.first_step is None:
             out.first_step = step
         if step is None or (damping.same_step and failed is not None and (

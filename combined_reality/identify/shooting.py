@@ -432,9 +432,10 @@ class ReducedNormal:
     """The reduced normal matrix in (the start state of each of R runs or gap-free pieces, the
     parameters): a piece's start state couples with the parameters only (an arrowhead), so the
     matrix is held as its blocks, per piece S (R, nx, nx) and C (R, nx, nth), and T (nth, nth);
-    solves and covariances eliminate the start states piece by piece (a Schur complement), in
-    time and memory linear in the pieces (an hour with one lost sample a second: 3600 pieces,
-    whose dense matrix took 1.7 GB). Accumulated in place (NormalEquations), used as a value."""
+    solves and covariances eliminate the start states piece by piece (a Schur complement, see
+    `schur`), in time and memory linear in the pieces (an hour with one lost sample a second:
+    3600 pieces, whose dense matrix took 1.7 GB). Accumulated in place (NormalEquations), used
+    as a value."""
 
     S: np.ndarray
     C: np.ndarray
@@ -488,42 +489,146 @@ class ReducedNormal:
         zs, zt = z[:self.n_state].reshape(self.S.shape[:2]), z[self.n_state:]
         return float(np.sum(zs * ((self.S @ zs[:, :, None])[..., 0] + 2.0 * (self.C @ zt)))) + float(zt @ self.T @ zt)
 
-    def scaled(self) -> tuple["ReducedNormal", np.ndarray, np.ndarray]:
-        """(the matrix on its unit-diagonal scaling, the state scales (R, nx), the parameter
-        scales): parameters differ by 10 decades."""
+    def scaled(self) -> "ScaledNormal":
+        """The matrix with its unit-diagonal scaling: parameters differ by 10 decades."""
         scale = np.sqrt(np.maximum(self.diagonal(), 1e-300))
         ss, st = scale[:self.n_state].reshape(self.S.shape[:2]), scale[self.n_state:]
-        return (ReducedNormal(self.S / (ss[:, :, None] * ss[:, None, :]), self.C / (ss[:, :, None] * st),
-                              self.T / np.outer(st, st)), ss, st)
+        unit = ReducedNormal(self.S / (ss[:, :, None] * ss[:, None, :]), self.C / (ss[:, :, None] * st),
+                             self.T / np.outer(st, st))
+        return ScaledNormal(self, unit, ss, st)
 
-    def _eliminated(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(ss, st, W, Z) on the unit-diagonal scaling: W = S^-1 C per piece, Z the inverse of the
-        parameters' Schur complement T - sum C'W (the parameter block of the scaled inverse).
-        LinAlgError where the matrix is singular."""
-        Ns, ss, st = self.scaled()
-        W = np.linalg.solve(Ns.S, Ns.C)
-        Z = np.linalg.inv(Ns.T - np.sum(Ns.C.transpose(0, 2, 1) @ W, axis=0))
-        return ss, st, W, Z
+    def schur(self, keep: int | None = None) -> "Schur":
+        """The start states eliminated (and the parameters after the first `keep`): ScaledNormal.schur."""
+        return self.scaled().schur(keep)
+
+
+@dataclass(frozen=True)
+class ScaledNormal:
+    """A reduced normal matrix N and its unit-diagonal scaling `unit` = N / (s s') (damped:
+    its diagonal times 1 + lam), the scales s held as those of the start states ss (R, nx) and
+    of the parameters st (nth): scaled once for any damping."""
+
+    N: ReducedNormal
+    unit: ReducedNormal
+    ss: np.ndarray
+    st: np.ndarray
+
+    @property
+    def scale(self) -> np.ndarray:
+        return np.concatenate([self.ss.ravel(), self.st])
+
+    def damped(self, lam: float) -> "ScaledNormal":
+        """The unit-diagonal matrix with its diagonal times 1 + lam (Levenberg-Marquardt)."""
+        U = self.unit
+        return replace(self, unit=U.with_states(lam * np.diagonal(U.S, axis1=1, axis2=2))
+                       .with_parameters(lam * np.diag(np.diag(U.T))))
+
+    def schur(self, keep: int | None = None, rhs: np.ndarray | None = None) -> "Schur":
+        """The start states eliminated piece by piece from the unit-diagonal matrix, and with
+        them the parameters after the first `keep` (nuisances: the online window's gap offsets;
+        None: none); `rhs` (R, nx): the state parts of a right-hand side (unit-diagonal)
+        eliminated along (Schur.solve)."""
+        U, nth = self.unit, len(self.st)
+        B = U.C if rhs is None else np.concatenate([U.C, rhs[:, :, None]], axis=2)
+        try:
+            WB, singular = np.linalg.solve(U.S, B), False
+        except np.linalg.LinAlgError:
+            WB, singular = np.linalg.pinv(U.S, rcond=1e-12, hermitian=True) @ B, True
+        CtW = np.sum(U.C.transpose(0, 2, 1) @ WB, axis=0)
+        return Schur(self, WB[..., :nth], U.T - CtW[:, :nth], singular, nth if keep is None else keep,
+                     WB[..., nth:], CtW[:, nth:])
+
+
+@dataclass(frozen=True)
+class Schur:
+    """The start states eliminated from a scaled reduced normal matrix (ScaledNormal.schur), on
+    its unit-diagonal scaling: W = S^-1 C per piece and the parameters' Schur complement
+    A = T - sum C'W; the parameters after the first `keep` (nuisances) are eliminated from A in
+    turn (`profile`); x = S^-1 rhs and Cx = sum C'x of a right-hand side eliminated along.
+    Where a block S is `singular`, its pseudo-inverse stands for S^-1: steps are least-squares
+    ones and N has no inverse (LinAlgError)."""
+
+    scaled: ScaledNormal
+    W: np.ndarray
+    A: np.ndarray
+    singular: bool
+    keep: int
+    x: np.ndarray
+    Cx: np.ndarray
+
+    @functools.cached_property
+    def profile(self) -> tuple[np.ndarray, np.ndarray]:
+        """(X, H): the nuisances' response A_nn^-1 A_nk to the kept parameters and the kept
+        parameters' information A_kk - A_kn X (unit-diagonal); LinAlgError where A_nn is singular."""
+        k = self.keep
+        if k == len(self.A):
+            return np.zeros((0, k)), self.A
+        X = np.linalg.solve(self.A[k:, k:], self.A[k:, :k])
+        return X, self.A[:k, :k] - self.A[:k, k:] @ X
+
+    @functools.cached_property
+    def inverse(self) -> np.ndarray:
+        """The kept parameters' block of the unit-diagonal N^-1; LinAlgError where N is singular."""
+        if self.singular:
+            raise np.linalg.LinAlgError("a start state's block is singular")
+        return np.linalg.inv(self.profile[1])
+
+    @property
+    def _st(self) -> np.ndarray:  # the kept parameters' scales
+        return self.scaled.st[:self.keep]
+
+    def _eliminated(self, vs: np.ndarray, piece, vt) -> np.ndarray:
+        """v_t - C' S^-1 v_s on the unit-diagonal scaling, of vectors v given by their start-state
+        parts vs (m, nx), each in its piece (`piece`: m indices, or a slice of all), and their
+        parameter parts vt (m, nth)."""
+        sc = self.scaled
+        return vt / sc.st - np.einsum("mif,mi->mf", self.W[piece], vs / sc.ss[piece])
+
+    def _kept(self, w: np.ndarray) -> np.ndarray:
+        """Such parameter parts with the nuisances eliminated too."""
+        k = self.keep
+        return w[..., :k] - w[..., k:] @ self.profile[0] if k < w.shape[-1] else w
+
+    def information(self) -> np.ndarray:
+        """The kept parameters' information, the start states and nuisances eliminated."""
+        return self.profile[1] * np.outer(self._st, self._st)
 
     def parameter_inverse(self) -> np.ndarray:
-        """The parameter block of N^-1 (on the unit-diagonal scaling); LinAlgError where N is singular."""
-        _, st, _, Z = self._eliminated()
-        return Z / np.outer(st, st)
+        """The kept parameters' block of N^-1; LinAlgError where N is singular."""
+        return self.inverse / np.outer(self._st, self._st)
+
+    def reduced(self, v: np.ndarray) -> np.ndarray:
+        """A right-hand side v (of all unknowns) with the start states and nuisances eliminated:
+        v_k - N_kn N_nn^-1 v_n."""
+        n, ss = self.scaled.N.n_state, self.scaled.ss
+        w = self._eliminated(v[:n].reshape(ss.shape), slice(None), 0.0).sum(axis=0) + v[n:] / self.scaled.st
+        return self._kept(w) * self._st
+
+    def profiled(self, vs: np.ndarray, piece: np.ndarray, vt: np.ndarray) -> np.ndarray:
+        """reduced(v) of vectors v (m of them), each with its start-state part vs (m, nx) in
+        one piece (piece, m) and its parameter part vt (m, nth): (m, keep)."""
+        return self._kept(self._eliminated(vs, piece, vt)) * self._st
 
     def parameter_rows(self, vs: np.ndarray, piece: np.ndarray, vt: np.ndarray) -> np.ndarray:
-        """The parameter part of N^-1 v for vectors v (m of them), each with its start-state part
-        vs (m, nx) in one piece (piece, m) and its parameter part vt (m, nth): (m, nth).
-        LinAlgError where N is singular."""
-        ss, st, W, Z = self._eliminated()
-        w = vt / st - np.einsum("mif,mi->mf", W[piece], vs / ss[piece])
-        return (w @ Z) / st  # Z symmetric
+        """The kept parameters' part of N^-1 v of such vectors: (m, keep). LinAlgError where N
+        is singular."""
+        return (self._kept(self._eliminated(vs, piece, vt)) @ self.inverse) / self._st  # inverse symmetric
 
-    def parameter_solution(self, v: np.ndarray) -> np.ndarray:
-        """The parameter part of N^-1 v (a vector of all unknowns)."""
-        R = self.S.shape[0]
-        vt = np.zeros((R, len(self.T)))
-        vt[0] = v[self.n_state:]
-        return self.parameter_rows(v[:self.n_state].reshape(R, -1), np.arange(R), vt).sum(axis=0)
+    def solve(self, rt: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(x, y), the start states and the parameters `free` (the others' columns taken out),
+        solving the unit-diagonal system with the right-hand side (rhs given to schur, rt[free]);
+        no parameter kept apart (keep: all). Where it is singular, its least-squares solution (a
+        start state no residual sees has no row or column in a positive semidefinite N, so it is
+        left alone)."""
+        Sc, rhs = self.A[np.ix_(free, free)], (rt - self.Cx[:, 0])[free]
+        if not len(rhs):
+            y = rhs
+        else:
+            try:
+                y = np.linalg.solve(Sc, rhs)
+            except np.linalg.LinAlgError:
+                y = np.linalg.lstsq(Sc, rhs, rcond=1e-12)[0]
+        return self.x[..., 0] - np.compress(free, self.W, axis=2) @ y, y
 
 
 def scaled_inverse(N: np.ndarray) -> np.ndarray:
@@ -540,51 +645,34 @@ def scaled_inverse(N: np.ndarray) -> np.ndarray:
 NODE_PROXIMAL = 1e-2
 
 
-def _arrow_solve(Ns: ReducedNormal, rs: np.ndarray, rt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(x, y) of [[blockdiag(S), C], [C', T]] (x, y) = (rs, rt) by eliminating x piece by piece;
-    where the system is singular, its least-squares solution (pseudo-inverses: a start state no
-    residual sees has no row or column in a positive semidefinite N, so it is left alone)."""
-    B = np.concatenate([Ns.C, rs[:, :, None]], axis=2)
-    try:
-        W = np.linalg.solve(Ns.S, B)
-    except np.linalg.LinAlgError:
-        W = np.linalg.pinv(Ns.S, rcond=1e-12, hermitian=True) @ B
-    CtW = np.sum(Ns.C.transpose(0, 2, 1) @ W, axis=0)  # (nf, nf + 1)
-    Sc, rhs = Ns.T - CtW[:, :-1], rt - CtW[:, -1]
-    if not len(rhs):
-        y = rhs
-    else:
-        try:
-            y = np.linalg.solve(Sc, rhs)
-        except np.linalg.LinAlgError:
-            y = np.linalg.lstsq(Sc, rhs, rcond=1e-12)[0]
-    return W[..., -1] - W[..., :-1] @ y, y
+@np.errstate(over="ignore", invalid="ignore")  # see node_transitions
+def step_matrix(N: ReducedNormal, state_scale: np.ndarray | None = None) -> ScaledNormal:
+    """N as solve_bounded takes it, scaled once for any damping: with `state_scale` (the defect
+    scale of each free node state) a proximal term NODE_PROXIMAL * |ds / state_scale|^2 / 2 keeps
+    the steps of unobservable node states bounded."""
+    if state_scale is not None and N.n_state:
+        N = N.with_states(NODE_PROXIMAL / np.asarray(state_scale, float) ** 2)
+    return N.scaled()
 
 
 @np.errstate(over="ignore", invalid="ignore")  # see node_transitions
-def solve_bounded(N: ReducedNormal, g: np.ndarray, theta, lower, upper, lam: float,
-                  state_scale: np.ndarray | None = None):
-    """min 0.5 d'Nd + g'd with theta + d_theta kept in bounds (active set on the parameters),
-    on the unit-diagonal scaling with Levenberg-Marquardt damping lam; with `state_scale` (the
-    defect scale of each free node state) a proximal term NODE_PROXIMAL * |ds / state_scale|^2 / 2
-    keeps the steps of unobservable node states bounded. None where N or the step is not finite."""
+def solve_bounded(Ns: ScaledNormal, g: np.ndarray, theta, lower, upper, lam: float):
+    """min 0.5 d'Nd + g'd (N: step_matrix's) with theta + d_theta kept in bounds (active set on
+    the parameters), on the unit-diagonal scaling with Levenberg-Marquardt damping lam. None
+    where N or the step is not finite."""
+    N = Ns.N
     if not (N.finite() and np.all(np.isfinite(g))):
         return None
-    n_state = N.n_state
-    if state_scale is not None and n_state:
-        N = N.with_states(NODE_PROXIMAL / np.asarray(state_scale, float) ** 2)
-    Ns, ss, st = N.scaled()
-    idx = np.arange(ss.shape[1])
-    Ns.S[:, idx, idx] += lam * Ns.S[:, idx, idx]
-    Ns.T[np.diag_indices(len(st))] += lam * np.diag(Ns.T)
-    gs, gt = g[:n_state].reshape(ss.shape), g[n_state:]
+    ss, st = Ns.ss, Ns.st
+    Ns = Ns.damped(lam)
+    gs, gt = g[:N.n_state].reshape(ss.shape), g[N.n_state:]
     fixed = np.zeros(len(theta), bool)
     dt = np.zeros(len(theta))
     for _ in range(len(theta) + 1):
         free = ~fixed
         rs = -(gs + N.C[:, :, fixed] @ dt[fixed]) / ss
         rt = -(gt + N.T[:, fixed] @ dt[fixed]) / st
-        x, y = _arrow_solve(ReducedNormal(Ns.S, Ns.C[:, :, free], Ns.T[np.ix_(free, free)]), rs, rt[free])
+        x, y = Ns.schur(rhs=rs).solve(rt, free)
         ds = x / ss
         dt[free] = y / st[free]
         th_new = theta + dt
@@ -818,16 +906,18 @@ class NormalEquations:
         return gdir, quad
 
 
-def covariance(N: ReducedNormal, cost: float, nres: float) -> np.ndarray | None:
-    """The parameters' Gauss-Newton covariance, sigma^2 times the parameter block of N^-1."""
+def covariance(E: Schur, cost: float, nres: float) -> np.ndarray | None:
+    """The parameters' Gauss-Newton covariance, sigma^2 times the parameter block of N^-1 (E:
+    N's start states eliminated, N.schur())."""
+    N = E.scaled.N
     sigma2 = 2 * cost / max(1.0, nres - N.n_state - len(N.T))
     try:
-        return sigma2 * N.parameter_inverse()
+        return sigma2 * E.parameter_inverse()
     except np.linalg.LinAlgError:
         return None
 
 
-def cluster_covariance(N: ReducedNormal, clusters: Clusters) -> np.ndarray | None:
+def cluster_covariance(E: Schur, clusters: Clusters) -> np.ndarray | None:
     """Sandwich covariance N^-1 (sum_b s_b s_b') N^-1 (its parameter block) with the gradient
     contributions s_b summed over clusters of consecutive intervals (about one second;
     NormalEquations.clusters): honest when residuals are correlated in time."""
@@ -836,7 +926,7 @@ def cluster_covariance(N: ReducedNormal, clusters: Clusters) -> np.ndarray | Non
         return None
     with np.errstate(over="ignore", invalid="ignore"):  # a score beyond float range: no robust estimate
         try:
-            u = N.parameter_rows(clusters.states, clusters.piece, clusters.params)  # (N^-1 s_b) of the parameters
+            u = E.parameter_rows(clusters.states, clusters.piece, clusters.params)  # (N^-1 s_b) of the parameters
         except np.linalg.LinAlgError:
             return None
         cov = u.T @ u * nb / (nb - 1)
@@ -847,8 +937,9 @@ def reported_covariance(N: ReducedNormal, clusters: Clusters, cost: float, nres:
     """The parameter covariance a fit reports: residuals of real rigs (and of a drive by noisy
     measured signals) are not white, so each variance is the larger of the Gauss-Newton and
     the cluster-robust one (NormalEquations.clusters), correlations as Gauss-Newton's."""
-    cov_gn = covariance(N, cost, nres)
-    cov_robust = cluster_covariance(N, clusters)
+    E = N.schur()
+    cov_gn = covariance(E, cost, nres)
+    cov_robust = cluster_covariance(E, clusters)
     if cov_gn is None or cov_robust is None:
         return cov_gn
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
@@ -871,7 +962,7 @@ def correlation(cov: np.ndarray) -> np.ndarray:
 
 
 def standard_deviations(N: ReducedNormal, cost, nres) -> np.ndarray:
-    cov = covariance(N, cost, nres)
+    cov = covariance(N.schur(), cost, nres)
     if cov is None:
         return np.full(len(N.T), np.inf)
     return np.sqrt(np.maximum(np.diag(cov), 0.0))
