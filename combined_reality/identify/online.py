@@ -60,8 +60,7 @@ from .gauss_newton import Damping, Exit, Prediction, StepOutcome, damped_step
 from .newton import equation_error_friction
 from .offline import MISMATCH
 from .shooting import (ReducedNormal, ShootingProblem, free_parameters, line_search, linearize, node_transitions,
-                       normal_equations, parameter_bounds, parameter_unit, residual_scales, scaled_inverse,
-                       shooting_residuals)
+                       normal_equations, parameter_bounds, parameter_unit, residual_scales, shooting_residuals)
 from .smoothing import fill_missing, velocity_estimate
 from .tracking import Blocks, Change, Drift, Regime, analyse, pinv, regime_variances, trend_fit
 
@@ -1127,14 +1126,11 @@ class MovingHorizonEstimator:
         """Standard deviations of the whole-session estimate: the larger of the Gauss-Newton one
         (scaled by the session's residual variance) and the cluster-robust one. Nm holds the
         window's normal equations with the arrival cost; its node states and gap offsets are
-        profiled out (the window's few pieces: as one matrix)."""
+        profiled out."""
         nx, nth = self.plant.nx, len(self.free)
-        Nm = Nm.dense()
-        th = np.zeros(Nm.shape[0], bool)
-        th[R * nx:R * nx + nth] = True
-        proj = pinv(Nm[~th][:, ~th], rcond=_NUISANCE_RCOND)[0] @ Nm[~th][:, th]
+        E = Nm.schur(keep=nth)
         try:
-            Hinv = scaled_inverse(Nm[th][:, th] - Nm[th][:, ~th] @ proj)
+            Hinv = E.parameter_inverse()
         except np.linalg.LinAlgError:
             return np.full(nth, np.nan)
         # the session's residual variance: what left the window and the window itself
@@ -1143,12 +1139,8 @@ class MovingHorizonEstimator:
         var = np.diag(Hinv) * (ssr / dof if dof > 0 else np.nan)
         # each window interval's parameter gradient, with the window's nuisances profiled out,
         # joins the clusters of what has left
-        K = len(piece_of)
-        g_nuis = np.zeros((K, int((~th).sum())))
         g_state, g_par = red.scores(r)
-        g_nuis[np.arange(K)[:, None], piece_of[:, None] * nx + np.arange(nx)] = g_state
-        g_nuis[:, R * nx:] = g_par[:, nth:]
-        s_k = g_par[:, :nth] - g_nuis @ proj
+        s_k = E.profiled(g_state, piece_of, g_par)
         scores = self._clusters.at(theta, (t0 // self.options.cluster_s).astype(int), s_k)
         if len(scores) >= 5:
             meat = scores.T @ scores * len(scores) / (len(scores) - 1)

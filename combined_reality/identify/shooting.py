@@ -456,17 +456,6 @@ class ReducedNormal:
     def n_state(self) -> int:
         return self.S.shape[0] * self.S.shape[1]
 
-    def dense(self) -> np.ndarray:
-        """The whole matrix: for a problem of a few pieces only (the online window's profile)."""
-        R, nx, n = self.S.shape[0], self.S.shape[1], self.n_state
-        N = np.zeros((n + len(self.T),) * 2)
-        for i in range(R):
-            N[i * nx:(i + 1) * nx, i * nx:(i + 1) * nx] = self.S[i]
-        N[:n, n:] = self.C.reshape(n, -1)
-        N[n:, :n] = N[:n, n:].T
-        N[n:, n:] = self.T
-        return N
-
     def diagonal(self) -> np.ndarray:
         return np.concatenate([np.diagonal(self.S, axis1=1, axis2=2).ravel(), np.diag(self.T)])
 
