@@ -11,7 +11,7 @@ from combined_reality.identify.shooting import ReducedNormal
 J = np.array([[2.0, 0.0, 1.0], [0.0, 1.0, 0.0], [1.0, 1.0, 3.0], [0.0, 0.0, 1.0]])
 r = np.array([1.0, -2.0, 0.5, 0.3])
 N, g = J.T @ J, J.T @ r
-NR = ReducedNormal.from_dense(N, 1, 1)  # (one node state, two parameters)
+NR = ReducedNormal(N[None, :1, :1], N[None, :1, 1:], N[1:, 1:])  # (one node state, two parameters)
 LOWER, UPPER = np.full(2, -10.0), np.full(2, 10.0)
 
 

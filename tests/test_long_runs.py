@@ -168,24 +168,36 @@ def _dense_solve_bounded(N, g, theta, lower, upper, n_state, lam, state_scale=No
     return d
 
 
+def _arrowhead(rng, R, nx, nth, rows, state_scale=1.0, th_scale=1.0):
+    """A random least-squares problem in R pieces' start states and nth parameters: its Jacobian
+    J (rows per piece, each piece's rows reaching only its own start state), the residuals r and
+    its normal matrix as blocks, each summed from its piece's rows alone."""
+    import combined_reality.identify.shooting as sh
+
+    J = np.zeros((R * rows, R * nx + nth))
+    blocks = sh.ReducedNormal.zeros(R, nx, nth)
+    for i in range(R):
+        js = rng.normal(size=(rows, nx)) * state_scale
+        jt = rng.normal(size=(rows, nth)) * th_scale
+        J[i * rows:(i + 1) * rows, i * nx:(i + 1) * nx], J[i * rows:(i + 1) * rows, R * nx:] = js, jt
+        blocks.S[i], blocks.C[i] = js.T @ js, js.T @ jt
+        blocks.T[...] += jt.T @ jt
+    return J, rng.normal(size=R * rows), blocks
+
+
 def test_the_start_states_eliminated_piece_by_piece_give_the_dense_step_and_covariance():
     """Six pieces whose start states couple only with three parameters of scales ten decades
-    apart: the step (undamped, damped with the node states bounded, with a parameter at its
-    bound), the decrease it predicts, the Gauss-Newton and cluster-robust covariances and the
-    parameters' information and gradient with the start states eliminated, taken block by
-    block, equal those of the dense matrix to 1e-10."""
+    apart, the blocks summed piece by piece: the step (undamped, damped with the node states
+    bounded, with a parameter at its bound), the decrease it predicts, the Gauss-Newton and
+    cluster-robust covariances, the parameters' information and gradient with the start states
+    eliminated, and with a parameter eliminated too, equal numpy's on the dense J'J to 1e-10."""
     import combined_reality.identify.shooting as sh
 
     rng = np.random.default_rng(5)
     R, nx, nth, rows = 6, 4, 3, 40
-    th_scale = np.array([1.0, 1e-2, 1e8])  # N, N s/m, N/Pa-like columns
-    J = np.zeros((R * rows, R * nx + nth))
-    for i in range(R):
-        J[i * rows:(i + 1) * rows, i * nx:(i + 1) * nx] = rng.normal(size=(rows, nx)) * [1e3, 1.0, 1e-3, 1e2]
-        J[i * rows:(i + 1) * rows, R * nx:] = rng.normal(size=(rows, nth)) * th_scale
-    r = rng.normal(size=R * rows)
+    J, r, red = _arrowhead(rng, R, nx, nth, rows, [1e3, 1.0, 1e-3, 1e2], np.array([1.0, 1e-2, 1e8]))
     N, g = J.T @ J, J.T @ r
-    red = sh.ReducedNormal.from_dense(N, R, nx)
+    n = R * nx
 
     def close(a, b, tol=1e-10):
         return np.max(np.abs(np.asarray(a) - b)) <= tol * np.max(np.abs(b))
@@ -193,34 +205,42 @@ def test_the_start_states_eliminated_piece_by_piece_give_the_dense_step_and_cova
     theta, wide = np.zeros(nth), np.full(nth, 1e9)
     free_step = -np.linalg.solve(N, g)
     assert close(sh.solve_bounded(sh.step_matrix(red), g, theta, -wide, wide, 0.0), free_step)
-    scale = rng.uniform(0.5, 2.0, R * nx)
+    scale = rng.uniform(0.5, 2.0, n)
     upper = wide.copy()
-    upper[1] = free_step[R * nx + 1] - 0.5 * abs(free_step[R * nx + 1])  # the free step goes beyond it
+    upper[1] = free_step[n + 1] - 0.5 * abs(free_step[n + 1])  # the free step goes beyond it
     for lam, bounds, sscale in ((0.0, (-wide, wide), None), (1e-2, (-wide, wide), scale),
                                 (0.0, (-wide, upper), None), (1e-3, (-wide, upper), scale)):
         d = sh.solve_bounded(sh.step_matrix(red, sscale), g, theta, *bounds, lam)
-        want = _dense_solve_bounded(N, g, theta, *bounds, R * nx, lam, sscale)
+        want = _dense_solve_bounded(N, g, theta, *bounds, n, lam, sscale)
         assert close(d, want), (lam, d - want)
-        assert d[R * nx + 1] <= bounds[1][1]
-    assert sh.solve_bounded(sh.step_matrix(red), g, theta, -wide, upper, 0.0)[R * nx + 1] == upper[1]
+        assert d[n + 1] <= bounds[1][1]
+    assert sh.solve_bounded(sh.step_matrix(red), g, theta, -wide, upper, 0.0)[n + 1] == upper[1]
     z = rng.normal(size=len(g))
     assert red.quadratic(z) == pytest.approx(float(z @ N @ z), rel=1e-12)
     cost, nres = 0.5 * float(r @ r), float(len(r))
     inv = np.linalg.inv(N)
     E = red.schur()
     cov = sh.covariance(E, cost, nres)
-    assert close(cov, 2 * cost / (nres - len(g)) * inv[R * nx:, R * nx:])
-    n = R * nx
-    assert close(E.information(), N[n:, n:] - N[n:, :n] @ np.linalg.solve(N[:n, :n], N[:n, n:]))
+    assert close(cov, 2 * cost / (nres - len(g)) * inv[n:, n:])
+    info = N[n:, n:] - N[n:, :n] @ np.linalg.solve(N[:n, :n], N[:n, n:])
+    assert close(E.information(), info)
     assert close(E.reduced(g), g[n:] - N[n:, :n] @ np.linalg.solve(N[:n, :n], g[:n]))
     # clusters of 10 rows within a piece: the sandwich's parameter block
     piece = np.repeat(np.arange(R), rows // 10)
     dense_scores = np.stack([J[k * 10:(k + 1) * 10].T @ r[k * 10:(k + 1) * 10] for k in range(len(piece))])
     states = np.stack([s[p * nx:(p + 1) * nx] for s, p in zip(dense_scores, piece)])
-    clusters = sh.Clusters(states, dense_scores[:, R * nx:], piece)
+    clusters = sh.Clusters(states, dense_scores[:, n:], piece)
     nb = len(piece)
-    sandwich = (inv @ dense_scores.T @ dense_scores @ inv)[R * nx:, R * nx:] * nb / (nb - 1)
+    sandwich = (inv @ dense_scores.T @ dense_scores @ inv)[n:, n:] * nb / (nb - 1)
     assert close(sh.cluster_covariance(E, clusters), sandwich)
+    # the last parameter eliminated with the start states (a nuisance: the online window's gap offsets)
+    E2 = red.schur(keep=nth - 1)
+    k = n + nth - 1
+    assert close(E2.parameter_inverse(), inv[n:k, n:k])
+    assert close(E2.information(), np.linalg.inv(inv[n:k, n:k]), 1e-9)
+    kept, nuis = np.arange(n, k), np.r_[np.arange(n), k]
+    proj = np.linalg.solve(N[np.ix_(nuis, nuis)], N[np.ix_(nuis, kept)])
+    assert close(E2.profiled(states, piece, dense_scores[:, n:]), dense_scores[:, kept] - dense_scores[:, nuis] @ proj)
 
 
 def test_a_start_state_no_residual_sees_takes_no_step_and_leaves_no_covariance():
@@ -231,13 +251,9 @@ def test_a_start_state_no_residual_sees_takes_no_step_and_leaves_no_covariance()
 
     rng = np.random.default_rng(1)
     R, nx, nth, rows = 3, 4, 2, 30
-    J = np.zeros((R * rows, R * nx + nth))
-    for i in range(R):
-        J[i * rows:(i + 1) * rows, i * nx:(i + 1) * nx] = rng.normal(size=(rows, nx))
-        J[i * rows:(i + 1) * rows, R * nx:] = rng.normal(size=(rows, nth))
+    J, r, red = _arrowhead(rng, R, nx, nth, rows)
     J[:, nx + 3] = 0.0
-    r = rng.normal(size=R * rows)
-    red = sh.ReducedNormal.from_dense(J.T @ J, R, nx)
+    red.S[1, 3, :], red.S[1, :, 3], red.C[1, 3] = 0.0, 0.0, 0.0
     d = sh.solve_bounded(sh.step_matrix(red), J.T @ r, np.zeros(nth), np.full(nth, -1e9), np.full(nth, 1e9), 0.0)
     want = np.linalg.lstsq(J, -r, rcond=None)[0]
     assert np.max(np.abs(d - want)) <= 1e-10 * np.max(np.abs(want)) and d[nx + 3] == 0.0

@@ -445,13 +445,6 @@ class ReducedNormal:
     def zeros(cls, R: int, nx: int, nth: int) -> "ReducedNormal":
         return cls(np.zeros((R, nx, nx)), np.zeros((R, nx, nth)), np.zeros((nth, nth)))
 
-    @classmethod
-    def from_dense(cls, N: np.ndarray, R: int, nx: int) -> "ReducedNormal":
-        """The blocks of a dense arrowhead matrix (its state-by-state blocks off the diagonal are left out)."""
-        n = R * nx
-        S = np.stack([N[i * nx:(i + 1) * nx, i * nx:(i + 1) * nx] for i in range(R)]) if R else np.zeros((0, nx, nx))
-        return cls(S, N[:n, n:].reshape(R, nx, -1).copy(), N[n:, n:].copy())
-
     @property
     def n_state(self) -> int:
         return self.S.shape[0] * self.S.shape[1]
