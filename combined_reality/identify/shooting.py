@@ -1018,22 +1018,31 @@ def interval_residual_sigma(problem: "ShootingProblem", layouts: Sequence[RunLay
     sensitivities G at (S, p), linearised in `eqs`), divided by the same for `reps` simulations
     with the inputs perturbed by their sensors' noise (seeded: the same figure on every machine).
     A run of several chunks (problem.spans) is taken a chunk at a time, its sensitivities
-    computed again for each simulation with noise (none is held for the whole run)."""
+    computed again for each simulation with noise unless the chunks' G and E together hold at
+    most CHUNK_SENSITIVITIES numbers (then kept: the simulations with noise need them again)."""
     plant = problem.plant
     spans = problem.spans
     if not problem.allows(S):
         return math.nan, 1.0
+    kept: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    room = [CHUNK_SENSITIVITIES]
 
     def state_sensitivities(a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(G, E) of intervals a..b-1 at (S, p)."""
         if eqs.kept is not None:
             return eqs.kept
+        if (a, b) in kept:
+            return kept[a, b]
         sim = problem.span_simulation(S, p, a, b, True)
         if sim is None:
             return None
         E = problem.span_residuals(S, sim[0], a, b)[0]
-        return linearize((E, None, *sim), problem.out_idx, problem.wts, problem.mask[a:b], problem.M, problem.nx,
-                         len(problem.out_idx), problem.nth)[0], E
+        GE = linearize((E, None, *sim), problem.out_idx, problem.wts, problem.mask[a:b], problem.M, problem.nx,
+                       len(problem.out_idx), problem.nth)[0], E
+        if GE[0].size + E.size <= room[0]:
+            kept[a, b] = GE
+            room[0] -= GE[0].size + E.size
+        return GE
 
     raw2 = 0.0
     for a, b in spans:
