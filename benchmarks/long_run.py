@@ -180,7 +180,9 @@ def cli_case(kind: str, csv: Path, checkout: Path | None = None) -> dict:
     cyl = load_cylinder(CFG)  # the truth of the simulated run
     solver = doc["solver"]
     return {**m, "status": solver["status"], "residual_sigma": solver.get("residual_sigma", doc["fit"].get("sigma")),
-            "params": {n: [d["value"], d["std"], cyl.value(n)] for n, d in doc["params"].items()}}
+            "params": {n: [d["value"], d["std"], cyl.value(n)] for n, d in doc["params"].items()},
+            "stages": [[s["stage"], s["iterations"], s["wall_s"], s.get("data_s")] for s in solver.get("stages", ())],
+            "start_share": solver.get("start_share")}
 
 
 def print_cli_rows(kind: str, cases: list[tuple[float, dict]]) -> None:
@@ -206,6 +208,14 @@ def print_cli_rows(kind: str, cases: list[tuple[float, dict]]) -> None:
         print(f"{d:>9g} {int(d * 1000):>9d} {m['wall_s']:>8.1f} {m['cpu_s']:>8.1f} {per:>7.3f} "
               f"{per / (m0['cpu_s'] / d0):>9.2f} {m['peak_mb']:>8.0f} {m['peak_mb'] / m0['peak_mb']:>9.2f} "
               f"{grown:>9.0f} {m['status']:>14} {sigma:>6.3f}  {est}  (all {len(m['params'])}: within {worst:.2f} std)")
+    staged = [(d, m) for d, m in ok if m.get("stages")]
+    if staged:
+        print("its stages (iterations, wall s; the data they saw where the stages started from a share of it):")
+        for d, m in staged:
+            share = m.get("start_share")
+            print(f"{d:>9g} s" + (f" (stages from {share['seconds']:g} s of {share['of']:g} s)" if share else "") + ": "
+                  + "; ".join(f"{name} {it} it {w:.0f} s" + (f" [{ds:g} s]" if ds is not None else "")
+                              for name, it, w, ds in m["stages"]))
     if len(ok) > 1:
         (d0, m0), (d1, m1) = ok[0], ok[-1]
         print(f"longest ({d1:g} s) against shortest ({d0:g} s): peak {m1['peak_mb']:.0f} / {m0['peak_mb']:.0f} MB "

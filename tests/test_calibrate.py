@@ -290,6 +290,23 @@ def test_the_stages_give_the_same_estimates_beside_each_other_as_one_after_the_o
         assert e.value == pytest.approx(in_turn.result.params[n].value, rel=1e-9, abs=1e-12), n
 
 
+def test_a_long_recording_starts_on_stretches_spread_over_it_and_a_short_one_on_all_of_it():
+    """The stages of a calibration start from START_S of the data, in stretches spread evenly over
+    the runs (not their beginning), where the runs hold more; up to START_S, from all of it."""
+    from combined_reality.calibrate import START_S, start_share
+
+    t = np.arange(3_600_001) / 1000.0
+    zero = np.zeros_like(t)
+    hour = Run(t=t, u=zero, x=zero, p1=zero, p2=zero)
+    assert start_share([hour.slice(0, int(START_S * 1000) + 1)]) is None
+    assert start_share([hour.slice(0, 20_001)] * 6) is None  # 6 runs of 20 s: all of them
+    for seconds, stretches in ((600, [(120, 180), (420, 480)]), (3600, [(900, 960), (2700, 2760)])):
+        share = start_share([hour.slice(0, seconds * 1000 + 1)])
+        assert [(p.t[0], p.t[-1]) for p in share] == [pytest.approx(s, abs=0.1) for s in stretches]
+    runs = [hour.slice(i * 20_000, (i + 1) * 20_000 + 1) for i in range(12)]  # 240 s in runs of 20 s: every other
+    assert [p.t[0] for p in start_share(runs)] == pytest.approx([20, 60, 100, 140, 180, 220])
+
+
 def test_the_advice_says_what_the_runs_lacked_by_stretch_of_the_valve_and_keeps_a_zero_overlap(cyl_a):
     """A run whose commands stay below a third of full opening: the undetermined segments of each
     direction's characteristic in one line each, saying how long the runs held those commands and

@@ -16,6 +16,13 @@
 
 Stages 1 and 2 need nothing from each other and run side by side.
 
+Runs of more than START_S in all are calibrated on a share of them first (start_share): the
+stages and the whole model see START_S of the data, in stretches of START_STRETCH_S spread
+evenly over the runs; the whole model is then fitted to all the data from there (every estimate,
+its std and the identifiability from all of it). The stages only start the whole model, and on a
+long run they cost the most and gain nothing: a 600 s force balance ran into a failed line
+search far above the noise, and the whole model crawled 13 iterations from its start.
+
 Each stage is the one identifier (multiple-shooting Gauss-Newton) on the one plant with
 another drive, so nothing of the physics is written twice.
 """
@@ -28,6 +35,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from sim.cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, VALVE_DIRECTIONS, Cylinder
 from sim.extension import Effect
@@ -39,8 +47,8 @@ from .dead_band import dead_band_in_overlap, overlap_as_dead_band
 from .identifiability import Identifiability, assess
 from .prefit import chamber_prefit, force_balance_prefit, settled_offsets, stiction_prefit
 
-__all__ = ["MECHANICAL", "PNEUMATIC", "CALIBRATED", "OTHER_STARTS_ABOVE", "CalibrateOptions", "Calibration", "applies",
-           "DATA_STARTS", "breakaway_fit", "calibrate",
+__all__ = ["MECHANICAL", "PNEUMATIC", "CALIBRATED", "OTHER_STARTS_ABOVE", "START_S", "START_STRETCH_S",
+           "CalibrateOptions", "Calibration", "applies", "DATA_STARTS", "breakaway_fit", "calibrate", "start_share",
            "effect_names", "finish", "first_stages", "force_balance", "force_balance_in_model", "from_data", "joint_start",
            "misfit_note", "model_start", "run_stage", "smooth_valve_prior", "stage_summaries", "validation_figures",
            "valve_and_chambers", "whole_model", "with_model_error"]
@@ -69,6 +77,11 @@ CRAWLING = 1.5  # the critical ratio's other starts (its realistic span 0.15-0.5
 # beyond at 0.83 of the true slope (a rise the data barely reach, pulled by the cubic's knot
 # slopes), and VALID, which went to 0.45, was missed by 1.26 x the noise; at 0.05, 1.02 x.
 SLOPE_CHANGE = 0.05
+
+# runs of more than this much data in all (s) are calibrated on START_S of it first, in stretches
+# of START_STRETCH_S spread evenly, then the whole model on all of it (module docstring)
+START_S = 120.0
+START_STRETCH_S = 60.0
 
 
 def smooth_valve_prior() -> tuple[PriorRow, ...]:
@@ -104,6 +117,8 @@ class Calibration:
     stages: list[dict] = field(default_factory=list)
     wall_s: float = 0.0
     misfit_above: float = CalibrateOptions.misfit
+    # (seconds of data the stages started from, seconds in all) where that was a share (start_share)
+    start_share: tuple[float, float] | None = None
 
     @property
     def effects(self) -> tuple[Effect, ...]:
@@ -122,7 +137,9 @@ class Calibration:
         if start is not None:
             for n, d in out["params"].items():
                 d["file"] = start.value(n)
-        out["solver"] = {**out["solver"], "wall_s": round(self.wall_s, 3), "stages": self.stages}
+        out["solver"] = {**out["solver"], "wall_s": round(self.wall_s, 3), "stages": self.stages,
+                         "start_share": None if self.start_share is None else
+                         {"seconds": round(self.start_share[0], 3), "of": round(self.start_share[1], 3)}}
         v = self.cylinder.valve
         out["valve"] = {"opening": list(OPENING_GRID), **{
             d: {"overlap": getattr(v, f"overlap_{d}"), "flow": list(getattr(v, f"flow_{d}")),
@@ -203,14 +220,58 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
               progress: Callable[[str], None] | None = None, effects: Sequence[Effect] = ()) -> Calibration:
     """Estimate `options.estimate` from the runs in three stages (module docstring); with
     `effects`, their parameters too, each in the stages that see it (a mechanical effect in the
-    force balance, a pneumatic one in the valve and chambers, both in the whole model)."""
+    force balance, a pneumatic one in the valve and chambers, both in the whole model). Runs of
+    more than START_S start on a share of them (start_share), the whole model then on all.
+
+    One BLAS thread: the compiled evaluations take the cores, and OpenBLAS's own threads spin
+    beside them (the normal equations' products of a chunk took 20 x as long so on a busy
+    2-core machine)."""
     t0 = time.perf_counter()
     say = progress or (lambda _msg: None)
-    mech, pneu = first_stages(cyl, runs, options, say, effects)
-    through = force_balance_in_model(cyl, runs, options, say, mech, pneu)
-    through = from_data(cyl, runs, options, say, mech, pneu, through, effects)
-    joint, stages = whole_model(cyl, runs, options, say, *model_start(cyl, mech, pneu, through))
-    return finish(cyl, runs, options, joint, mech, pneu, stage_summaries(mech, pneu, through) + stages, t0)
+    with threadpool_limits(1, user_api="blas"):
+        share = start_share(runs)
+        staged = runs if share is None else share
+        if share is not None:
+            say(f"  the stages start from {_seconds(share):.0f} s of the {_seconds(runs):.0f} s of data (stretches of "
+                f"{START_STRETCH_S:g} s spread over it), the whole model then fitted to all of it")
+        mech, pneu = first_stages(cyl, staged, options, say, effects)
+        through = force_balance_in_model(cyl, staged, options, say, mech, pneu)
+        through = from_data(cyl, staged, options, say, mech, pneu, through, effects)
+        joint, stages = whole_model(cyl, staged, options, say, *model_start(cyl, mech, pneu, through))
+        stages = stage_summaries(mech, pneu, through) + stages
+        if share is not None:
+            # the whole model on all the data, from the share's estimates and node states afresh
+            joint, more = whole_model(cyl, runs, options, say, joint.cylinder, None, joint.effects,
+                                      name="3/3 on all the data:")
+            stages = ([{**s, "data_s": round(_seconds(share), 3)} for s in stages]
+                      + [{**s, "data_s": round(_seconds(runs), 3)} for s in more])
+        cal = finish(cyl, runs, options, joint, mech, pneu, stages, t0)
+    if share is not None:
+        cal.start_share = (_seconds(share), _seconds(runs))
+    return cal
+
+
+def _seconds(runs: Sequence[Run]) -> float:
+    return sum(r.duration for r in runs)
+
+
+def start_share(runs: Sequence[Run], share_s: float = START_S, stretch_s: float = START_STRETCH_S) -> list[Run] | None:
+    """The data the stages start from where the runs hold more than `share_s` in all (None where
+    they hold less, or where the share would be all of them): the runs cut into equal pieces of at most `stretch_s`, and about
+    `share_s / stretch_s` of them taken at equal spacing over all (a 600 s run: 120-180 s and
+    420-480 s), so that the start sees what the whole recording holds rather than its beginning."""
+    total = _seconds(runs)
+    if total <= share_s * (1 + 1e-9):
+        return None
+    pieces = []
+    for r in runs:
+        n = max(1, math.ceil(r.duration / stretch_s - 1e-9))
+        per = math.ceil(r.n / n)
+        pieces += [r.slice(a, min(a + per, r.n)) for a in range(0, r.n, per) if min(a + per, r.n) - a >= 3]
+    k = max(1, round(share_s / (total / len(pieces))))
+    if k >= len(pieces):  # the share would be all of it
+        return None
+    return [pieces[int((i + 0.5) * len(pieces) / k)] for i in range(k)]
 
 
 def first_stages(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, say: Callable[[str], None],
@@ -315,7 +376,7 @@ def stage_summaries(mech: IdentifyResult | None, pneu: IdentifyResult | None,
 
 def whole_model(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, say: Callable[[str], None],
                 start: Cylinder, nodes: np.ndarray | None, effects: Sequence[Effect] = (),
-                give_up_above: float = math.inf) -> tuple[IdentifyResult, list[dict]]:
+                give_up_above: float = math.inf, name: str = "3/3") -> tuple[IdentifyResult, list[dict]]:
     """Stage 3: everything together, driven by the command, from `start` (values, node states
     and effects of the stages or of another fit), with the dead band moved into the overlap
     before it and, where the fit closed one itself, once more after it (kept where it ends
@@ -327,7 +388,7 @@ def whole_model(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, s
     estimate = [n for n in CALIBRATED if n in want]
     if not estimate and not effects:
         raise IdentificationError("nothing to calibrate: the estimate list is empty.")
-    joint = run_stage("3/3 the whole model (driven by the command)", start, runs, "command", estimate, options, say,
+    joint = run_stage(f"{name} the whole model (driven by the command)", start, runs, "command", estimate, options, say,
                       nodes, effects, give_up_above=give_up_above)
     stages.append({"stage": "whole model", "drive": "command", **_summary(joint)})
     status = joint.solver["status"]
@@ -339,7 +400,7 @@ def whole_model(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, s
         # the lower cost kept
         why = "a failed line search" if status == "line_search_failed" else "running out of iterations"
         try:
-            again = run_stage(f"3/3 again after {why}", joint.cylinder, runs, "command", estimate, options, say,
+            again = run_stage(f"{name} again after {why}", joint.cylinder, runs, "command", estimate, options, say,
                               None, joint.effects, give_up_above=min(give_up_above, joint.solver["cost"]))
         except IdentificationError as e:
             say(f"  that start failed ({e})")
@@ -352,7 +413,7 @@ def whole_model(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, s
     moved = _dead_band_moved(joint.cylinder, want, say, start)
     if moved:  # the whole model closed a dead band of its own: once more, from the same curve said so
         try:
-            again = run_stage("3/3 again, the dead band in the overlap", joint.cylinder.with_values(moved), runs,
+            again = run_stage(f"{name} again, the dead band in the overlap", joint.cylinder.with_values(moved), runs,
                               "command", estimate, options, say, joint.nodes, joint.effects)
         except IdentificationError as e:  # a second start only: the first fit stands
             say(f"  the second start failed ({e}); the first fit stands")
