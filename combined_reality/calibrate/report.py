@@ -111,7 +111,11 @@ def _validation_figure(val: Validation, valid: Run, noise_x: float):
 
 
 def _stages_html(cal: Calibration) -> str:
-    rows = "".join(f"<tr><td>{escape(s['stage'])}</td><td>{escape(s['drive'])}</td><td>{escape(s['status'])}</td>"
+    def seen(s: dict) -> str:  # the data a stage saw, where the stages started from a share of it
+        return f" (on {s['data_s']:.0f} s of the data)" if "data_s" in s else ""
+
+    rows = "".join(f"<tr><td>{escape(s['stage'] + seen(s))}</td><td>{escape(s['drive'])}</td>"
+                   f"<td>{escape(s['status'])}</td>"
                    f"<td class=\"num\">{s['iterations']}</td><td class=\"num\">{s['wall_s']:.1f} s</td>"
                    f"<td class=\"num\">{s['residual_sigma']:.3g} ×</td></tr>" for s in cal.stages)
     return (f"<table><tr><th>stage</th><th>driven by</th><th>status</th><th>iterations</th><th>time</th>"
@@ -163,6 +167,9 @@ def write_calibration_report(cal: Calibration, start: Cylinder, runs: Sequence[R
         box.append(f"On VALID, a run no fit saw: {validation.normalized_rms():.2f} × the sensor noise (position RMSE "
                    f"{um(validation.rmse('x'))}).")
     lacking = grouped(cal.identifiability.undetermined)
+    if cal.start_share is not None:
+        box.append(f"The stages started from {cal.start_share[0]:.0f} s of the {cal.start_share[1]:.0f} s of data "
+                   "(stretches spread over it); the whole model was then fitted to all of it.")
     box.append(f"Solver: {s['status']}; {cal.wall_s:.0f} s in all. "
                + (f"What these runs could not determine: {', '.join(u['name'] for u in lacking)} (below, with what to "
                   "record)." if lacking else "Every calibrated parameter is determined by these runs."))

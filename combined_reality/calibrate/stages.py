@@ -257,9 +257,10 @@ def _seconds(runs: Sequence[Run]) -> float:
 
 def start_share(runs: Sequence[Run], share_s: float = START_S, stretch_s: float = START_STRETCH_S) -> list[Run] | None:
     """The data the stages start from where the runs hold more than `share_s` in all (None where
-    they hold less, or where the share would be all of them): the runs cut into equal pieces of at most `stretch_s`, and about
-    `share_s / stretch_s` of them taken at equal spacing over all (a 600 s run: 120-180 s and
-    420-480 s), so that the start sees what the whole recording holds rather than its beginning."""
+    they hold less, or where the share would be all of them): the runs cut into equal pieces of
+    at most `stretch_s`, and about `share_s / stretch_s` of them taken at equal spacing over all
+    (a 600 s run: 120-180 s and 420-480 s), so that the start sees what the whole recording
+    holds rather than its beginning."""
     total = _seconds(runs)
     if total <= share_s * (1 + 1e-9):
         return None
