@@ -240,8 +240,13 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
         joint, stages = whole_model(cyl, staged, options, say, *model_start(cyl, mech, pneu, through))
         stages = stage_summaries(mech, pneu, through) + stages
         if share is not None:
-            # the whole model on all the data, from the share's estimates and node states afresh
-            joint, more = whole_model(cyl, runs, options, say, joint.cylinder, None, joint.effects,
+            # the whole model on all the data, from the share's estimates, its node states fitted
+            # first with them held (sensitivities to the states alone: a tenth of the cost)
+            nodes = identify(joint.cylinder, runs, IdentifyOptions(
+                drive="command", estimate=(), interval_s=options.interval_s, max_iter=options.max_iter,
+                prefit=False, threads=options.threads, restart_misfit=False), effects=joint.effects,
+                progress=stage_steps(say, "3/3 on all the data: the node states")).nodes
+            joint, more = whole_model(cyl, runs, options, say, joint.cylinder, nodes, joint.effects,
                                       name="3/3 on all the data:")
             stages = ([{**s, "data_s": round(_seconds(share), 3)} for s in stages]
                       + [{**s, "data_s": round(_seconds(runs), 3)} for s in more])
