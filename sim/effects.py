@@ -286,13 +286,21 @@ class ValveDeadzone(Effect):
 
 @dataclass(frozen=True)
 class ValveDelay(Effect):
-    """The chambers see the command late: a first-order lag of the effective opening.
+    """The chambers see the command late: a lag of the effective opening, with a top speed.
 
-    A share w of the opening lags with the time constant tau (w = 1: a pure lag, the
-    default; w < 1 a lead-lag). The state is the lagged part y = w u_lag, so that it
-    stays exactly zero at w = 0, the neutral value:
+    A share w of the opening lags with the time constant tau, its speed limited to about
+    1 / t_slew (the spool's full travel from centre to an end takes t_slew at its top speed).
+    The state is the lagged part y = w u_lag, so that it stays exactly zero at w = 0, the
+    neutral value:
 
-        dy/dt = (w u - y) / tau,      u_valve = (1 - w) u + y
+        r = (w u - y) / tau,    dy/dt = r / (1 + t_slew |r|),    u_valve = (1 - w) u + y
+
+    w = 1 is a pure lag (the default), w < 1 a lead-lag, w = 2 the all-pass
+    (1 - s tau) / (1 + s tau): the first-order Pade approximation of a dead time 2 tau (its
+    gain is 1 at every frequency for w in [0, 2]; at low frequencies every w delays by w tau).
+    t_slew = 0 is the linear lag; t_slew > 0 a rate-limited spool (with tau small: it moves at
+    its top speed until it nearly reaches the command). r / (1 + t_slew |r|) keeps a gradient
+    in t_slew at 0, so a fit can leave the linear lag.
 
     tau -> 0 would be singular; below about 1e-4 s the 1 ms step (refined to 31 us at
     most) no longer integrates the lag accurately, hence the lower bound.
@@ -301,26 +309,35 @@ class ValveDelay(Effect):
     name: ClassVar[str] = "valve_delay"
     subsystem: ClassVar[str] = "pneumatic"
     description: ClassVar[str] = "the chambers see the valve command late"
-    REVISION: ClassVar[int] = 2
+    REVISION: ClassVar[int] = 5
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "tau": ParamInfo("s", 1e-4, 0.2, "time constant of the valve opening"),
-        "share": ParamInfo("1", 0.0, 1.0, "share of the opening that lags (1: a pure lag)"),
+        "share": ParamInfo("1", 0.0, 2.0, "share of the opening that lags (1: a pure lag; 2: a dead time 2 tau)"),
+        "t_slew": ParamInfo("s", 0.0, 0.05, "time the opening takes from centre to an end at its top speed "
+                                            "(0: no speed limit)"),
     }
     STATES: ClassVar[tuple[str, ...]] = ("u_eff",)  # the lagged part w u_lag (u_lag at w = 1)
     NEUTRAL: ClassVar[dict[str, float]] = {"share": 0.0}
     # weak: the smallest lag the integrator resolves (already clearly visible); truths are
-    # pure lags (share 1), the share lets a candidate reach the nominal plant
-    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"tau": (1e-4, 0.02), "share": (1.0, 1.0)}
-    SHAPE: ClassVar[frozenset[str]] = frozenset({"share"})
+    # pure lags (share 1, no speed limit); share and t_slew let a candidate reach the nominal
+    # plant, a dead time and a rate-limited spool
+    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"tau": (1e-4, 0.02), "share": (1.0, 1.0),
+                                                           "t_slew": (0.0, 0.0)}
+    SHAPE: ClassVar[frozenset[str]] = frozenset({"share", "t_slew"})
     # the identification start: from above the truth (e.g. 5 ms for 1.4 ms) the fit can end
     # in a lead-lag local minimum (share ~0.7); from 1 ms it converged for 0.1 to 20 ms and
-    # to share = 0 on runs without a lag
+    # to share = 0 on runs without a lag. A dead time and a rate-limited spool lie in other
+    # basins: from the lag they end at a lead-lag (share ~0.2, tau 2-3 ms), from these starts
+    # at the dead time (0.2-1 ms of tau for 0.68 ms) and at the speed limit
+    STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"tau": 3e-4, "share": 2.0}, {"tau": 1e-4, "t_slew": 3e-3})
     tau: float = 0.001
     share: float = 1.0
+    t_slew: float = 0.0
 
     def on_command(self, sig, q, s) -> None:
         w, y = q["share"], s["u_eff"]
-        sig.deriv[self.key("u_eff")] = (w * sig.u - y) / q["tau"]
+        r = (w * sig.u - y) / q["tau"]
+        sig.deriv[self.key("u_eff")] = r / (1 + q["t_slew"] * ca.fabs(r))
         sig.u = sig.u * (1 - w) + y
 
 

@@ -90,6 +90,11 @@ SCREEN_GIVE_UP = 0.1
 SCREEN_GIVE_UP_AFTER = 4
 DATA_START_ITER = 20  # iterations per step of a screen from the data (calibrate.DATA_STARTS)
 STALLED = 2  # a nested screen that ends within this many iterations without a gain did not move
+# a pneumatic screen whose nested and default starts removed less than this share of its stage's
+# excess, where the stage stays above ALTERNATIVES_ABOVE x the noise, tries the effect's other
+# starts (Effect.STARTS: a valve's dead time lies in another basin than its lag)
+ALTERNATIVES_BELOW = 0.5
+ALTERNATIVES_ABOVE = 1.1
 STRONG_CORRELATION = 0.95  # |r| above which an effect parameter and a calibrated quantity trade off
 
 
@@ -185,7 +190,9 @@ def _screened(base: IdentifyResult, drive: str, effect: Effect, start: int | str
 def screen_candidate(args) -> list[Screen]:
     """One candidate in the stage that sees it, nested from that stage's nominal fit (`base`), and
     from the effect's defaults where the nested fit did not move (some effects never leave
-    their neutral value, stiction without a break-away force) or has none (heat exchange).
+    their neutral value, stiction without a break-away force) or has none (heat exchange); a
+    pneumatic one from its alternative starts too where these leave most of the stage's excess
+    (ALTERNATIVES_BELOW). The screen of the lowest TRAIN cost is kept.
     args: (name, base fit, runs, workers)."""
     name, base, runs, workers, file_cyl = args
     mechanical = EFFECTS[name].subsystem == "mechanical"
@@ -197,6 +204,9 @@ def screen_candidate(args) -> list[Screen]:
         out.append(_screen_fit(base, runs, drive, estimate, starts[0], 0, workers))
     if not out or (out[0].result is None or (out[0].gain < 1e-3 and out[0].iterations <= STALLED)):
         out.append(_screen_fit(base, runs, drive, estimate, starts[1], 1, workers))
+    if not mechanical and base.solver["residual_sigma"] > ALTERNATIVES_ABOVE \
+            and max((s.share for s in out if s.result is not None), default=0.0) < ALTERNATIVES_BELOW:
+        out += [_screen_fit(base, runs, drive, estimate, starts[k], k, workers) for k in range(2, len(starts))]
     from_data = DATA_STARTS.get(name) if mechanical else None
     if from_data is not None:
         opts = replace(_options(workers), max_iter=DATA_START_ITER)
