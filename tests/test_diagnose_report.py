@@ -106,7 +106,7 @@ def test_the_report_is_one_self_contained_file_with_the_verdict_and_every_candid
     assert re.search(r"The gap is best explained by <b>valve_delay</b> .*shrinks by \d+ % "
                      r"\([\d.]+ um → [\d.]+ um\); tau = 1\.41590 ms ± 0\.00019 ms", text)
     assert ("Its parameters: tau is the time constant of the valve opening; share is the share of the opening "
-            "that lags (1: a pure lag).") in text  # what tau and share mean
+            "that lags (1: a pure lag; 2: a dead time 2 tau).") in text  # what tau and share mean
     rows = re.findall(r"<tr[^>]*>.*?</tr>", text, re.S)
     for effect in ("valve_delay", "leakage", "mass", "stiction", "valve_delay+leakage"):
         assert any(f"<b>{effect}</b>" in r for r in rows), effect
