@@ -54,6 +54,32 @@ def test_the_screen_passes_the_clear_shares_of_both_stages_best_first():
     assert choose([_screen("leakage", 0.9, gain=0.0)], 0.2, 0.1, 3) == []  # no gain on the stage's cost
 
 
+def test_a_candidate_fit_left_unfinished_above_the_noise_is_fitted_again_from_the_nominal_calibration(monkeypatch):
+    """A candidate's whole-model fit that ran out of iterations above the noise crawled in a wrong
+    basin although it ended below the nominal calibration: once more from the nominal calibration
+    with the effect neutral, the lower cost kept; a converged one or one at the noise is kept as it is."""
+    from combined_reality.diagnose import calibrated
+
+    nominal = replace(_result(1.48, cost=1000.0), cylinder="nominal cylinder", nodes=np.zeros((4, 3)))
+    starts = []
+
+    def whole_model(cyl, runs, opts, say, start, nodes, effects, give_up_above=math.inf):
+        starts.append((start, [e.name for e in effects]))
+        return replace(_result(1.04, cost=500.0), solver={"residual_sigma": 1.04, "cost": 500.0,
+                                                            "status": "converged"}), []
+
+    monkeypatch.setattr(calibrated, "whole_model", whole_model)
+    neutral = (make_effect("friction_dynamics", {"share": 0.0}),)
+    for status, sigma, again in (("max_iterations", 1.46, True), ("line_search_failed", 1.46, True),
+                                 ("converged", 1.46, False), ("max_iterations", 1.1, False)):
+        staged = calibrated.WholeFit(result=replace(_result(sigma, cost=970.0), solver={
+            "residual_sigma": sigma, "cost": 970.0, "status": status}), start="staged")
+        starts.clear()
+        w = calibrated.nested(staged, None, [], nominal, neutral, 1)
+        assert starts == ([("nominal cylinder", ["friction_dynamics"])] if again else [])
+        assert (w.start, w.result.solver["cost"]) == (("nested", 500.0) if again else ("staged", 970.0))
+
+
 def test_a_calibration_above_the_noise_says_so_and_names_the_next_step():
     assert misfit_note(_result(1.2)) == ""
     text = misfit_note(_result(1.66))

@@ -72,7 +72,7 @@ from .verdict import decide, pair_need, ranked
 from .where import regions, whiteness
 
 __all__ = ["ABSORBED", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
-           "choose", "confounded", "diagnose_calibrated"]
+           "choose", "confounded", "diagnose_calibrated", "nested", "unfinished"]
 
 # effects that are a calibrated quantity under another name: not fitted beside the calibration
 ABSORBED = {"mass": ("mass",), "valve_deadzone": ("overlap_extend", "overlap_retract")}
@@ -266,12 +266,23 @@ def calibrate_staged(cyl: Cylinder, runs: Sequence[Run], staged: tuple, workers:
     return w
 
 
+def unfinished(res: IdentifyResult) -> bool:
+    """A whole-model fit that did not converge (it ran out of iterations, its line search failed)
+    and stays above the misfit level (CalibrateOptions.misfit x the noise): a crawl in a wrong
+    basin (a friction with memory from its screen's start: 6.3 x after 40 iterations, its restart
+    without the effect at 1.46 x), not the candidate's optimum."""
+    return res.solver["status"] != "converged" and res.solver["residual_sigma"] > CalibrateOptions.misfit
+
+
 def nested(w: WholeFit, cyl: Cylinder, runs: Sequence[Run], nominal: IdentifyResult, neutral: Sequence[Effect],
            workers: int, give_up: float = math.inf) -> WholeFit:
     """Where the candidate's fit failed or ended above the nominal calibration's TRAIN cost, once
     more from the nominal calibration (node states included) with the effects `neutral`: a
-    descent from there ends at or below it, so the candidate never fits TRAIN worse than `none`."""
-    if w.result is None or w.result.solver["cost"] > nominal.solver["cost"]:
+    descent from there ends at or below it, so the candidate never fits TRAIN worse than `none`.
+    Also where it did not converge and stays above the noise (unfinished): its staged start had
+    left it in a wrong basin, and the effect's own start from the nominal calibration is the
+    other one (the lower cost kept)."""
+    if w.result is None or w.result.solver["cost"] > nominal.solver["cost"] or unfinished(w.result):
         w.add(lambda: whole_model(cyl, runs, _options(workers), _quiet, nominal.cylinder, nominal.nodes,
                                   tuple(nominal.effects) + tuple(neutral), give_up_above=give_up), "nested")
     return w
