@@ -80,6 +80,29 @@ def test_a_candidate_fit_left_unfinished_above_the_noise_is_fitted_again_from_th
         assert (w.start, w.result.solver["cost"]) == (("nested", 500.0) if again else ("staged", 970.0))
 
 
+def test_a_screened_out_candidate_that_trades_off_against_a_calibrated_quantity_is_said(cyl_a):
+    """A Coulomb friction that differs by direction is a constant force while the piston slides:
+    its screen's a_coulomb trades off against the external force, and the diagnosis says so even
+    where the candidate is not calibrated as a whole; a pair is said once (the whole fit's first),
+    and a screen without a gain says nothing."""
+    from combined_reality.diagnose.calibrated import WholeFit, trade_offs
+
+    names = ["Fc", "external_force", "friction_asymmetry.a_coulomb", "friction_asymmetry.a_viscous"]
+    corr = np.eye(4)
+    corr[1, 2] = corr[2, 1] = 0.976
+    asym = make_effect("friction_asymmetry")
+    res = replace(_result(1.2, effects=(asym,)), params=dict.fromkeys(names), correlation=corr)
+    screen = Screen(effect="friction_asymmetry", stage="force balance in the whole model", gain=0.15, share=0.15,
+                    result=res)
+    want = [{"effect": "friction_asymmetry", "parameter": "a_coulomb", "quantity": "external_force", "r": 0.976}]
+    assert trade_offs([], [screen]) == want
+    assert trade_offs([WholeFit(result=None)], [replace(screen, gain=0.001)]) == []
+    corr2 = corr.copy()
+    corr2[1, 2] = corr2[2, 1] = -0.99
+    whole = WholeFit(result=replace(res, correlation=corr2))
+    assert [c["r"] for c in trade_offs([whole], [screen])] == [-0.99]
+
+
 def test_a_calibration_above_the_noise_says_so_and_names_the_next_step():
     assert misfit_note(_result(1.2)) == ""
     text = misfit_note(_result(1.66))

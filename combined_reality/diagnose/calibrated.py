@@ -49,7 +49,7 @@ import copy
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -72,7 +72,7 @@ from .verdict import decide, pair_need, ranked
 from .where import regions, whiteness
 
 __all__ = ["ABSORBED", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
-           "choose", "confounded", "diagnose_calibrated", "nested", "unfinished"]
+           "choose", "confounded", "diagnose_calibrated", "nested", "trade_offs", "unfinished"]
 
 # effects that are a calibrated quantity under another name: not fitted beside the calibration
 ABSORBED = {"mass": ("mass",), "valve_deadzone": ("overlap_extend", "overlap_retract")}
@@ -717,17 +717,34 @@ def _calibrated_pair(cyl, runs, valid, ranking, fitting: NominalFit, base_val, b
     return c
 
 
+def trade_offs(fits: Iterable[WholeFit], screens: Iterable[Screen]) -> list[dict]:
+    """The effect parameters that trade off against a calibrated quantity (confounded), each pair
+    once: from the calibrations as a whole, then from the screens that remove SCREEN_MIN_GAIN of
+    their stage's cost (a screened-out candidate may still be one the runs cannot tell from a
+    calibrated quantity: a Coulomb friction that differs by direction is a constant force while
+    the piston slides, r = 0.976 with the external force on a held-out rig)."""
+    out: list[dict] = []
+    seen: set[tuple[str, str, str]] = set()
+    results = [w.result for w in fits if w.result is not None]
+    results += [s.result for s in screens if s.result is not None and s.gain >= SCREEN_MIN_GAIN]
+    for res in results:
+        for e in res.effects:
+            for c in confounded(res, e.name):
+                if (c["effect"], c["parameter"], c["quantity"]) not in seen:
+                    seen.add((c["effect"], c["parameter"], c["quantity"]))
+                    out.append(c)
+    return out
+
+
 def _calibration_doc(file_cyl: Cylinder, nominal, found: dict, fits: dict, chosen: list[str], verdict: str) -> dict:
     """The diagnosis's `calibration`: the file's mis-set quantities as the model the verdict names
     calibrated them (the nominal calibration for none and unexplained), its TRAIN residual and
     what that says, the screens, the effects absorbed by calibrated quantities, and what the runs
-    cannot separate (an effect parameter that trades off against a calibrated quantity)."""
+    cannot separate (an effect parameter that trades off against a calibrated quantity: in a
+    calibration as a whole, else in a screen that removes SCREEN_MIN_GAIN of its stage's cost)."""
     fit = fits.get(verdict)
     named = fit.result if fit is not None and fit.result is not None else nominal.result
-    confounds: list[dict] = []
-    for w in fits.values():
-        for e in (w.result.effects if w.result is not None else ()):
-            confounds += [c for c in confounded(w.result, e.name) if c not in confounds]
+    confounds = trade_offs(fits.values(), found["screens"])
     return {
         "mis_set": mis_set_quantities(file_cyl, named.params),
         "model": verdict if named is not nominal.result else "none",
