@@ -54,6 +54,55 @@ def test_the_screen_passes_the_clear_shares_of_both_stages_best_first():
     assert choose([_screen("leakage", 0.9, gain=0.0)], 0.2, 0.1, 3) == []  # no gain on the stage's cost
 
 
+def test_a_candidate_fit_left_unfinished_above_the_noise_is_fitted_again_from_the_nominal_calibration(monkeypatch):
+    """A candidate's whole-model fit that ran out of iterations above the noise crawled in a wrong
+    basin although it ended below the nominal calibration: once more from the nominal calibration
+    with the effect neutral, the lower cost kept; a converged one or one at the noise is kept as it is."""
+    from combined_reality.diagnose import calibrated
+
+    nominal = replace(_result(1.48, cost=1000.0), cylinder="nominal cylinder", nodes=np.zeros((4, 3)))
+    starts = []
+
+    def whole_model(cyl, runs, opts, say, start, nodes, effects, give_up_above=math.inf):
+        starts.append((start, [e.name for e in effects]))
+        return replace(_result(1.04, cost=500.0), solver={"residual_sigma": 1.04, "cost": 500.0,
+                                                            "status": "converged"}), []
+
+    monkeypatch.setattr(calibrated, "whole_model", whole_model)
+    neutral = (make_effect("friction_dynamics", {"share": 0.0}),)
+    for status, sigma, again in (("max_iterations", 1.46, True), ("line_search_failed", 1.46, True),
+                                 ("converged", 1.46, False), ("max_iterations", 1.1, False)):
+        staged = calibrated.WholeFit(result=replace(_result(sigma, cost=970.0), solver={
+            "residual_sigma": sigma, "cost": 970.0, "status": status}), start="staged")
+        starts.clear()
+        w = calibrated.nested(staged, None, [], nominal, neutral, 1)
+        assert starts == ([("nominal cylinder", ["friction_dynamics"])] if again else [])
+        assert (w.start, w.result.solver["cost"]) == (("nested", 500.0) if again else ("staged", 970.0))
+
+
+def test_a_screened_out_candidate_that_trades_off_against_a_calibrated_quantity_is_said(cyl_a):
+    """A Coulomb friction that differs by direction is a constant force while the piston slides:
+    its screen's a_coulomb trades off against the external force, and the diagnosis says so even
+    where the candidate is not calibrated as a whole; a pair is said once (the whole fit's first),
+    and a screen without a gain says nothing."""
+    from combined_reality.diagnose.calibrated import WholeFit, trade_offs
+
+    names = ["Fc", "external_force", "friction_asymmetry.a_coulomb", "friction_asymmetry.a_viscous"]
+    corr = np.eye(4)
+    corr[1, 2] = corr[2, 1] = 0.976
+    asym = make_effect("friction_asymmetry")
+    res = replace(_result(1.2, effects=(asym,)), params=dict.fromkeys(names), correlation=corr)
+    screen = Screen(effect="friction_asymmetry", stage="force balance in the whole model", gain=0.15, share=0.15,
+                    result=res)
+    want = [{"effect": "friction_asymmetry", "parameter": "a_coulomb", "quantity": "external_force", "r": 0.976}]
+    assert trade_offs([], [screen]) == want
+    assert trade_offs([WholeFit(result=None)], [replace(screen, gain=0.001)]) == []
+    corr2 = corr.copy()
+    corr2[1, 2] = corr2[2, 1] = -0.99
+    whole = WholeFit(result=replace(res, correlation=corr2))
+    assert [c["r"] for c in trade_offs([whole], [screen])] == [-0.99]
+
+
 def test_a_calibration_above_the_noise_says_so_and_names_the_next_step():
     assert misfit_note(_result(1.2)) == ""
     text = misfit_note(_result(1.66))
@@ -114,6 +163,26 @@ def test_warm_nodes_of_the_chambers_drive_keep_an_added_state_from_the_data(cyl_
     warm = np.vstack([np.full((2, 5), 4e5), np.zeros((1, 5))])
     out = warm_nodes(plant, cyl_a, S, warm)
     assert np.all(out[:2] == 4e5) and np.all(out[2] == S[2])
+
+
+def test_a_force_balance_that_does_not_explain_the_run_hands_on_its_values_not_its_motion(cyl_a):
+    """The pressure drive can end far above the noise with node states that describe the misfit
+    (100 m/s on a reference-plant case at 223 x the noise): the command-driven model then starts
+    from its values, the chambers' pressures and the measured motion (warm_nodes takes the data
+    where a node state is NaN); within the noise its motion is handed on as before."""
+    from combined_reality.calibrate import joint_start
+
+    pneu = replace(_result(1.05), nodes=np.full((2, 5), 4e5), drive="chambers")
+    motion = np.vstack([np.full(5, 0.05), np.full(5, 99.9)])
+    for sigma, kept in ((2.1, True), (223.0, False)):
+        mech = replace(_result(sigma), nodes=motion, drive="pressure")
+        nodes = joint_start(cyl_a, mech, pneu)[1]
+        assert np.all(nodes[:2] == 4e5)
+        assert np.array_equal(nodes[2:], motion) if kept else np.all(np.isnan(nodes[2:]))
+    plant = plant_for(cyl_a, "command")
+    S = np.vstack([np.full((2, 5), 3e5), np.full((1, 5), 0.04), np.zeros((1, 5))])
+    out = warm_nodes(plant, cyl_a, S, nodes)
+    assert np.all(out[:2] == 4e5) and np.array_equal(out[2:4], S[2:4])
 
 
 def _record(truth, file_cyl, seed: int, program: str, duration: float, effects=()):

@@ -149,7 +149,9 @@ SEPARATES = {
     "supply_droop": ("the flow characteristic at large openings",
                      "sustained large openings (|u| above 0.5)", 0.5, "s"),
     "friction_asymmetry": ("the constant external force and the pressure sensors' offsets",
-                           "slow moves in both directions (5 to 50 mm/s)", 1.0, "s each way"),
+                           "slow moves in both directions (5 to 50 mm/s; a Coulomb level that differs by direction "
+                           "stays a constant force while sliding: only an external force known and held tells it "
+                           "apart)", 1.0, "s each way"),
     "friction_position": ("the friction's level (Fc, kp)", "moves over the whole stroke", 0.8, "of the stroke"),
     "stiction": ("the Coulomb friction Fc", "starts from rest in both directions", 10, "starts"),
     "friction_dynamics": ("the Coulomb and viscous friction", "reversals of the motion", 10, "reversals"),

@@ -49,7 +49,7 @@ import copy
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -72,7 +72,7 @@ from .verdict import decide, pair_need, ranked
 from .where import regions, whiteness
 
 __all__ = ["ABSORBED", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
-           "choose", "confounded", "diagnose_calibrated"]
+           "choose", "confounded", "diagnose_calibrated", "nested", "trade_offs", "unfinished"]
 
 # effects that are a calibrated quantity under another name: not fitted beside the calibration
 ABSORBED = {"mass": ("mass",), "valve_deadzone": ("overlap_extend", "overlap_retract")}
@@ -276,12 +276,23 @@ def calibrate_staged(cyl: Cylinder, runs: Sequence[Run], staged: tuple, workers:
     return w
 
 
+def unfinished(res: IdentifyResult) -> bool:
+    """A whole-model fit that did not converge (it ran out of iterations, its line search failed)
+    and stays above the misfit level (CalibrateOptions.misfit x the noise): a crawl in a wrong
+    basin (a friction with memory from its screen's start: 6.3 x after 40 iterations, its restart
+    without the effect at 1.46 x), not the candidate's optimum."""
+    return res.solver["status"] != "converged" and res.solver["residual_sigma"] > CalibrateOptions.misfit
+
+
 def nested(w: WholeFit, cyl: Cylinder, runs: Sequence[Run], nominal: IdentifyResult, neutral: Sequence[Effect],
            workers: int, give_up: float = math.inf) -> WholeFit:
     """Where the candidate's fit failed or ended above the nominal calibration's TRAIN cost, once
     more from the nominal calibration (node states included) with the effects `neutral`: a
-    descent from there ends at or below it, so the candidate never fits TRAIN worse than `none`."""
-    if w.result is None or w.result.solver["cost"] > nominal.solver["cost"]:
+    descent from there ends at or below it, so the candidate never fits TRAIN worse than `none`.
+    Also where it did not converge and stays above the noise (unfinished): its staged start had
+    left it in a wrong basin, and the effect's own start from the nominal calibration is the
+    other one (the lower cost kept)."""
+    if w.result is None or w.result.solver["cost"] > nominal.solver["cost"] or unfinished(w.result):
         w.add(lambda: whole_model(cyl, runs, _options(workers), _quiet, nominal.cylinder, nominal.nodes,
                                   tuple(nominal.effects) + tuple(neutral), give_up_above=give_up), "nested")
     return w
@@ -716,17 +727,34 @@ def _calibrated_pair(cyl, runs, valid, ranking, fitting: NominalFit, base_val, b
     return c
 
 
+def trade_offs(fits: Iterable[WholeFit], screens: Iterable[Screen]) -> list[dict]:
+    """The effect parameters that trade off against a calibrated quantity (confounded), each pair
+    once: from the calibrations as a whole, then from the screens that remove SCREEN_MIN_GAIN of
+    their stage's cost (a screened-out candidate may still be one the runs cannot tell from a
+    calibrated quantity: a Coulomb friction that differs by direction is a constant force while
+    the piston slides, r = 0.976 with the external force on a held-out rig)."""
+    out: list[dict] = []
+    seen: set[tuple[str, str, str]] = set()
+    results = [w.result for w in fits if w.result is not None]
+    results += [s.result for s in screens if s.result is not None and s.gain >= SCREEN_MIN_GAIN]
+    for res in results:
+        for e in res.effects:
+            for c in confounded(res, e.name):
+                if (c["effect"], c["parameter"], c["quantity"]) not in seen:
+                    seen.add((c["effect"], c["parameter"], c["quantity"]))
+                    out.append(c)
+    return out
+
+
 def _calibration_doc(file_cyl: Cylinder, nominal, found: dict, fits: dict, chosen: list[str], verdict: str) -> dict:
     """The diagnosis's `calibration`: the file's mis-set quantities as the model the verdict names
     calibrated them (the nominal calibration for none and unexplained), its TRAIN residual and
     what that says, the screens, the effects absorbed by calibrated quantities, and what the runs
-    cannot separate (an effect parameter that trades off against a calibrated quantity)."""
+    cannot separate (an effect parameter that trades off against a calibrated quantity: in a
+    calibration as a whole, else in a screen that removes SCREEN_MIN_GAIN of its stage's cost)."""
     fit = fits.get(verdict)
     named = fit.result if fit is not None and fit.result is not None else nominal.result
-    confounds: list[dict] = []
-    for w in fits.values():
-        for e in (w.result.effects if w.result is not None else ()):
-            confounds += [c for c in confounded(w.result, e.name) if c not in confounds]
+    confounds = trade_offs(fits.values(), found["screens"])
     return {
         "mis_set": mis_set_quantities(file_cyl, named.params),
         "model": verdict if named is not nominal.result else "none",

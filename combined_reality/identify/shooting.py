@@ -337,13 +337,13 @@ def shooting_residuals(S: np.ndarray, X: np.ndarray, Y: np.ndarray, mask: np.nda
 
 def warm_nodes(plant: Plant, cyl: Cylinder, S: np.ndarray, warm: np.ndarray) -> np.ndarray:
     """Node states of an earlier solution on the same runs and intervals (a warm start, e.g.
-    another model's): its drive states are taken, the states this plant adds start from
-    their initial values at those nodes."""
+    another model's): its drive states are taken (where one is NaN, S's from the data), the
+    states this plant adds start from their initial values at those nodes."""
     nb = 4 if plant.drive == "command" else 2
     if warm.ndim != 2 or warm.shape[1] != S.shape[1] or warm.shape[0] < nb:
         raise ValueError(f"warm-start nodes of shape {warm.shape} do not fit {S.shape[1]} intervals")
     out = S.copy()
-    out[:nb] = warm[:nb]
+    out[:nb] = np.where(np.isfinite(warm[:nb]), warm[:nb], S[:nb])
     # the chambers drive has no motion states (x, v are its inputs): its added states keep S's,
     # which run_layout took from the measured motion
     if plant.nx > nb and "x" in plant.state_names:
