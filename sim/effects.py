@@ -248,40 +248,56 @@ class Mass(Effect):
 
 @dataclass(frozen=True)
 class ValveDeadzone(Effect):
-    """The valve does not open until |u| passes the spool overlap d; beyond it the opening
-    grows linearly to full opening at |u| = 1 (rated conductance kept):
+    """The valve does not open until |u| passes the spool overlap d. Beyond it, a share
+    1 - g of the opening grows linearly from zero to full opening at |u| = 1 (a shifted
+    opening, rated conductance kept), a share g opens to the full command at once (a gate:
+    a valve whose electronics suppress small commands, a hard dead zone):
 
-        u_eff = (smax(u - d) - smax(-u - d)) / (1 - d)
+        u_eff = (1 - g) (smax(u - d) - smax(-u - d)) / (1 - d) + g u (step(u - d) + step(-u - d))
 
     smax(z) = max(z, 0) with the corner rounded by a parabola over |z| < e, e = d/10
-    (0 for z <= -e, (z + e)^2 / (4 e) between, z for z >= e): exactly closed for
-    |u| <= 0.9 d, continuously differentiable for Gauss-Newton, exactly u when d = 0.
+    (0 for z <= -e, (z + e)^2 / (4 e) between, z for z >= e), step(z) its derivative (0, then
+    (z + e) / (2 e), then 1) rounded once more by a cubic over the same width: exactly closed
+    for |u| <= 0.9 d, continuously differentiable for Gauss-Newton, exactly u when d = 0.
     """
 
     name: ClassVar[str] = "valve_deadzone"
     subsystem: ClassVar[str] = "pneumatic"
     description: ClassVar[str] = "the valve does not open until the command passes a threshold"
-    REVISION: ClassVar[int] = 2
+    REVISION: ClassVar[int] = 3
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "overlap": ParamInfo("1", 0.0, 0.3, "command at which the valve starts to open (spool overlap)"),
+        "gate": ParamInfo("1", 0.0, 1.0, "share of the opening that jumps to the command beyond the overlap "
+                                         "(0: the opening grows from zero; 1: a hard dead zone)"),
     }
     NEUTRAL: ClassVar[dict[str, float]] = {"overlap": 0.0}
-    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"overlap": (1.2e-5, 0.1)}
+    # truths are shifted openings (gate 0); gate lets a candidate reach a hard dead zone
+    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"overlap": (1.2e-5, 0.1), "gate": (0.0, 0.0)}
+    SHAPE: ClassVar[frozenset[str]] = frozenset({"gate"})
     SMOOTH: ClassVar[float] = 0.1  # rounding half-width as a fraction of the overlap (bump REVISION with it)
     # the default is the identification start: from a start far above the truth (in effect
-    # size) the multiple-shooting fit can stall in a local minimum of the first node state
-    STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"overlap": 0.03},)
+    # size) the multiple-shooting fit can stall in a local minimum of the first node state.
+    # A hard dead zone lies in another basin: from the shifted opening the fit shrinks the
+    # overlap towards zero, so a gate is started as one (a small overlap: the smallest shows)
+    STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"overlap": 0.03}, {"overlap": 0.005, "gate": 1.0})
     overlap: float = 1e-4
+    gate: float = 0.0
 
     def on_command(self, sig, q, s) -> None:
-        d = q["overlap"]
+        d, g = q["overlap"], q["gate"]
         e = self.SMOOTH * d
+        e_safe = ca.fmax(e, 1e-300)
 
         def smax(z):
-            rounded = (z + e) ** 2 / (4 * ca.fmax(e, 1e-300))
-            return ca.if_else(z >= e, z, ca.if_else(z <= -e, 0.0, rounded))
+            return ca.if_else(z >= e, z, ca.if_else(z <= -e, 0.0, (z + e) ** 2 / (4 * e_safe)))
 
-        sig.u = (smax(sig.u - d) - smax(-sig.u - d)) / (1 - d)
+        def step(z):
+            t = z / e_safe
+            return ca.if_else(z >= e, 1.0, ca.if_else(z <= -e, 0.0, 0.5 + 0.75 * t - 0.25 * t ** 3))
+
+        u = sig.u
+        shifted = (smax(u - d) - smax(-u - d)) / (1 - d)
+        sig.u = (1 - g) * shifted + g * u * (step(u - d) + step(-u - d))
 
 
 @dataclass(frozen=True)

@@ -487,3 +487,16 @@ def test_a_pair_that_stays_far_from_what_it_needs_on_train_gives_up_unvalidated(
     nominal.noise_cost = math.nan
     best_pair(*args)
     assert seen[-1] == pytest.approx(110.0 * (1 + DiagnoseOptions().min_train_gain))
+
+
+def test_an_absorbed_effect_is_screened_beside_the_calibration_only_in_the_form_it_cannot_take():
+    """The calibration estimates the valve's overlap itself, so a dead zone is screened only as a
+    gate (the full command beyond the overlap, a hard dead zone), from its neutral value and its
+    gate start; the moving mass is not screened; other candidates keep their starts."""
+    from combined_reality.diagnose.calibrated import calibrated_starts, screened_names
+    from combined_reality.diagnose.candidates import candidate_starts
+
+    gates = calibrated_starts("valve_deadzone")
+    assert [(e.overlap, e.gate) for e in gates] == [(0.0, 1.0), (0.005, 1.0)]
+    assert screened_names(list(EFFECTS)) == [n for n in EFFECTS if n != "mass"]
+    assert calibrated_starts("valve_delay") == candidate_starts("valve_delay")

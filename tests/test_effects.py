@@ -277,6 +277,21 @@ def test_deadzone_blocks_small_commands(cyl_a):
     assert 1e-3 < np.ptp(opened["x"]) < np.ptp(full["x"])
 
 
+def test_a_gated_deadzone_opens_to_the_full_command_beyond_the_overlap(cyl_a):
+    """gate 1, a hard dead zone: closed below the overlap, the nominal valve beyond it; a
+    share of gate in between opens partly at once (between the shifted and the gated valve)."""
+    d = 0.05
+    small = replay(cyl_a, [ValveDeadzone(d, gate=1.0)], np.full(300, 0.85 * d))
+    assert np.ptp(small["x"]) < 1e-6 and np.ptp(small["p1"]) < 50.0
+    u = np.full(300, 1.2 * d)
+    gated = {g: replay(cyl_a, [ValveDeadzone(d, gate=g)], u) for g in (0.0, 0.5, 1.0)}
+    full = replay(cyl_a, [], u)
+    for n in ("x", "p1", "p2"):
+        np.testing.assert_allclose(gated[1.0][n], full[n], rtol=0, atol=1e-9 if n == "x" else 1e-6)
+    travel = {g: np.ptp(r["x"]) for g, r in gated.items()}
+    assert travel[0.0] < 0.6 * travel[0.5] < 0.6 * travel[1.0]
+
+
 def test_leakage_reduces_the_pressure_difference(cyl_a):
     """Valve centred, piston held by friction: only the leak moves air, from high to low."""
     p1 = 3.0e5

@@ -39,7 +39,9 @@ on VALID; the nominal calibration is one of them (`none`), not the ground the ot
 
 Two effects of the vocabulary are quantities the calibration estimates under another name
 (ABSORBED: the moving mass, the valve's overlap): they are not fitted, and a mis-set mass or
-overlap says so. What a run cannot separate beyond that is read from the calibrated candidates'
+overlap says so. A form of one that the calibrated quantities cannot take (UNABSORBED_FORMS: a
+valve that opens to the full command beyond its overlap, a hard dead zone) is screened and
+calibrated like any candidate, in that form. What a run cannot separate beyond that is read from the calibrated candidates'
 correlations (an effect parameter that trades off against a calibrated quantity) and from the
 runs themselves (calibrate.separability: the motion that tells an effect from what it imitates).
 """
@@ -63,7 +65,7 @@ from ..files import Run
 from ..identify import IdentificationError, IdentifyResult, Validation, validate, validation_segments
 from ..parallel import run_jobs, workers_here
 from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, closes_gap, gain_over, has_nested_start,
-                         neutral_start, score_candidate)
+                         score_candidate)
 from .diagnosis import Diagnosis, mis_set_quantities
 from .fits import validate_candidate
 from .options import DiagnoseOptions
@@ -71,11 +73,15 @@ from .subsystems import regressor_correlations, subsystem_split
 from .verdict import decide, pair_need, ranked
 from .where import regions, whiteness
 
-__all__ = ["ABSORBED", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
+__all__ = ["ABSORBED", "UNABSORBED_FORMS", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
            "choose", "confounded", "diagnose_calibrated", "nested", "trade_offs", "unfinished"]
 
 # effects that are a calibrated quantity under another name: not fitted beside the calibration
 ABSORBED = {"mass": ("mass",), "valve_deadzone": ("overlap_extend", "overlap_retract")}
+# the shape values of an absorbed effect's form that the calibrated quantities cannot take: a gate
+# opens to the full command beyond its overlap, the calibrated characteristic from zero there (a
+# reference-plant hard dead zone of 0.004 left the calibrated model at 1.50 x the noise on VALID)
+UNABSORBED_FORMS = {"valve_deadzone": {"gate": 1.0}}
 SCREEN_ITER = 10  # Gauss-Newton iterations of a screen at most
 # a screen must remove this share of its stage's cost to be calibrated as a whole: a stage's
 # residual near the noise says little of a weak effect (a project-plant leak of 2.3e-5 of the
@@ -100,8 +106,27 @@ STRONG_CORRELATION = 0.95  # |r| above which an effect parameter and a calibrate
 
 def absorbed_note(name: str) -> str:
     qs = ABSORBED[name]
+    form = UNABSORBED_FORMS.get(name)
     return (f"{EFFECTS[name].description}: the calibration estimates this itself ({', '.join(qs)}); "
-            "a departure shows as a mis-set quantity, not as an effect")
+            "a departure shows as a mis-set quantity, not as an effect" + (
+                f" (but for its form {', '.join(f'{k} = {v:g}' for k, v in form.items())}, screened as a candidate)"
+                if form else ""))
+
+
+def calibrated_starts(name: str) -> list[Effect]:
+    """A candidate's starts beside the calibration (candidate_starts); an absorbed effect's only in
+    the form the calibration cannot take (UNABSORBED_FORMS), at its neutral value first."""
+    form = UNABSORBED_FORMS.get(name)
+    starts = candidate_starts(name)
+    if form is None:
+        return starts
+    return [replace(starts[0], **form)] + [e for e in starts[1:] if all(getattr(e, k) == v for k, v in form.items())]
+
+
+def screened_names(names: Iterable[str]) -> list[str]:
+    """The candidates screened beside the calibration: all but the absorbed ones, whose forms that
+    the calibration cannot take are screened all the same."""
+    return [n for n in names if n not in ABSORBED or n in UNABSORBED_FORMS]
 
 
 @dataclass
@@ -198,7 +223,7 @@ def screen_candidate(args) -> list[Screen]:
     mechanical = EFFECTS[name].subsystem == "mechanical"
     drive = "command" if mechanical else "chambers"
     estimate = MECHANICAL if mechanical else PNEUMATIC
-    starts = candidate_starts(name)
+    starts = calibrated_starts(name)
     out = []
     if has_nested_start(name):
         out.append(_screen_fit(base, runs, drive, estimate, starts[0], 0, workers))
@@ -346,7 +371,7 @@ def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[st
     if mech is None or pneu is None:
         raise IdentificationError("diagnose --calibrate needs both stages of the calibration")
     absorbed = {n: absorbed_note(n) for n in names if n in ABSORBED}
-    fitted = [n for n in names if n not in ABSORBED]
+    fitted = screened_names(names)
     pneumatic = [n for n in fitted if EFFECTS[n].subsystem != "mechanical"]
     mechanical = [n for n in fitted if EFFECTS[n].subsystem == "mechanical"]
     t1 = time.perf_counter()
@@ -374,20 +399,27 @@ def calibrated_candidates(cyl: Cylinder, runs: Sequence[Run], names: Sequence[st
 
 
 def _neutral(name: str) -> Effect:
-    return neutral_start(name)
+    return calibrated_starts(name)[0]
 
 
 def choose(screens: list[Screen], screen_min: float, screen_share: float, leaders: int) -> list[Screen]:
     """The screened candidates calibrated as a whole: those that remove at least `screen_min` of
     their stage's excess above the noise (and SCREEN_MIN_GAIN of its cost) and `screen_share` of
-    the best one's, the `leaders` that remove most of their stage's cost, that one first."""
+    the best one's, the `leaders` that remove most of their stage's cost, that one first, and the
+    best of the other stage last where the leaders all come from one."""
     ok = [s for s in screens if s.result is not None and s.gain >= SCREEN_MIN_GAIN and s.share >= screen_min]
     top = max((s.share for s in ok), default=0.0)
     # best first by the share of its stage's cost it removes: the share of the excess compares badly
     # across stages (a weak friction asymmetry: 42 % of the force balance's excess, -14.3 % of its
     # cost; supply droop 49 % of the valve and chambers' small excess, -1.2 % of its cost)
     ok = sorted((s for s in ok if s.share >= screen_share * top), key=lambda s: (-s.gain, -s.share))
-    return ok[:leaders]
+    chosen = ok[:leaders]
+    # where the leaders all come from one stage, the other stage's best comes last: a stage's
+    # misfit that the other stage causes gains there too (a hard dead zone took all the valve and
+    # chambers' excess, 4.4 % of its cost, while three friction screens took 7-15 % of the force
+    # balance's, driven by the valve's misfit through the model)
+    other = [s for s in ok[leaders:] if s.stage not in {c.stage for c in chosen}]
+    return chosen + other[:1] if len({c.stage for c in chosen}) == 1 else chosen
 
 
 # ------------------------------------------------------------------ the verdict among calibrated models
@@ -623,8 +655,8 @@ def _every_candidate(opts: DiagnoseOptions, found: dict, screens: dict[str, Scre
     top = max((s.share for s in screens.values() if s.result is not None), default=0.0)
     cands: list[Candidate] = []
     for name in opts.candidates:
-        if name in found["absorbed"]:
-            c = _unfitted(name, "absorbed", found["absorbed"][name])
+        if name in found["absorbed"] and name not in scored:
+            c = _unfitted(name, "absorbed", found["absorbed"][name], screens.get(name))
         elif name in scored:
             c = scored[name]
         elif closer is not None and any(s.effect == name for s in chosen):
