@@ -41,7 +41,8 @@ from sim.cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, VALVE_DIRECTIONS, Cy
 from sim.extension import Effect
 
 from ..files import Run
-from ..identify import Estimate, IdentificationError, IdentifyOptions, IdentifyResult, PriorRow, identify, validate
+from ..identify import (Estimate, IdentificationError, IdentifyOptions, IdentifyResult, PriorRow, identify, lower_cost,
+                        validate)
 from ..progress import stage_steps
 from .dead_band import dead_band_in_overlap, overlap_as_dead_band
 from .identifiability import Identifiability, assess
@@ -506,8 +507,7 @@ def breakaway_fit(start: Cylinder, runs: Sequence[Run], effect: Effect, options:
         excess = found["Fs_excess"] + f.Fc - law["Fc"]  # the same break-away force
         res = _from_breakaways(base.with_values(law), runs, replace(effect, Fs_excess=excess,
                                                                     v_stribeck=STRIBECK_START), options, say)
-        if best is None or res.solver["cost"] < best.solver["cost"]:
-            best = res
+        best = lower_cost(best, res)
         if best.solver["residual_sigma"] <= CRAWLING:
             break
     return best
@@ -522,7 +522,7 @@ def _from_breakaways(base: Cylinder, runs: Sequence[Run], effect: Effect, option
                      options, say, effects=(effect,), start_only=False, held=(effect.name,), restart=False)
     free = run_stage(f"the force balance with {effect.name}", held.cylinder, runs, "command", estimate, options, say,
                      effects=held.effects, start_only=False, restart=False)
-    return free if free.solver["cost"] <= held.solver["cost"] else held
+    return lower_cost(free, held)
 
 
 # effects with a start from the data: stick-slip leaves a fit from the defaults in a wrong basin

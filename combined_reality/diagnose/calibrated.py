@@ -41,9 +41,10 @@ Two effects of the vocabulary are quantities the calibration estimates under ano
 (ABSORBED: the moving mass, the valve's overlap): they are not fitted, and a mis-set mass or
 overlap says so. A form of one that the calibrated quantities cannot take (UNABSORBED_FORMS: a
 valve that opens to the full command beyond its overlap, a hard dead zone) is screened and
-calibrated like any candidate, in that form. What a run cannot separate beyond that is read from the calibrated candidates'
-correlations (an effect parameter that trades off against a calibrated quantity) and from the
-runs themselves (calibrate.separability: the motion that tells an effect from what it imitates).
+calibrated like any candidate, in that form. What a run cannot separate beyond that is read from
+the calibrated candidates' correlations (an effect parameter that trades off against a
+calibrated quantity) and from the runs themselves (calibrate.separability: the motion that tells
+an effect from what it imitates).
 """
 from __future__ import annotations
 

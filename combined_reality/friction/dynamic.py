@@ -29,7 +29,7 @@ from sim.friction_models import DIRECTIONS, FRICTION_MODELS, FrictionModel, make
 
 from ..files import Run
 from ..identify import (IdentificationError, IdentifyOptions, IdentifyResult, friction_from_newton, identify,
-                        not_determined, validate)
+                        lower_cost, not_determined, validate)
 from .fits import fit_model
 from .points import MapPoint
 from .specs import DYNAMIC_SPECS, FIT_SPECS, FitSpec, FrictionMapError
@@ -213,8 +213,7 @@ def identify_friction_model(cyl: Cylinder, runs: Sequence[Run], model: str | Fit
             failure = e
             continue
         res.solver["start"] = what
-        if best is None or res.solver["cost"] < best.solver["cost"]:
-            best = res
+        best = lower_cost(best, res)
     if best is None:
         raise failure
     if progress and len(starts) > 1:

@@ -16,7 +16,7 @@
 from .determined import not_determined, too_uncertain
 from .drives import DriveError, check_drive
 from .newton import equation_error_friction, friction_from_newton, scaled_lstsq
-from .offline import MISMATCH, Estimate, IdentifyOptions, IdentifyResult, identify
+from .offline import MISMATCH, Estimate, IdentifyOptions, IdentifyResult, identify, lower_cost
 from .online import MovingHorizonEstimator, OnlineEstimate, OnlineOptions
 from .preflight import Preflight, check_determinable, motion_summary, preflight
 from .shooting import UNITS, IdentificationError, PriorRow, at_bounds, sensor_noise
@@ -24,7 +24,7 @@ from .smoothing import derivative_kernels, savgol_kernels, velocity_estimate
 from .validation import Validation, validate, validation_gain, validation_segments
 
 __all__ = ["equation_error_friction", "friction_from_newton", "MISMATCH", "Estimate", "IdentifyOptions",
-           "IdentifyResult", "identify", "not_determined", "DriveError", "check_drive", "check_determinable",
+           "IdentifyResult", "identify", "lower_cost", "not_determined", "DriveError", "check_drive", "check_determinable",
            "motion_summary", "Preflight",
            "preflight", "MovingHorizonEstimator", "OnlineEstimate", "OnlineOptions", "UNITS", "IdentificationError",
            "PriorRow",

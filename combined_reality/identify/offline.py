@@ -216,6 +216,12 @@ class IdentifyResult:
         return out
 
 
+def lower_cost(kept: IdentifyResult | None, other: IdentifyResult) -> IdentifyResult:
+    """Of two fits of the same runs, the one of the lower TRAIN cost: `kept` on a tie, `other`
+    where none is kept yet (every "started again, the lowest cost kept" goes through here)."""
+    return other if kept is None or other.solver["cost"] < kept.solver["cost"] else kept
+
+
 # ------------------------------------------------------------------ problem layout
 
 # A run longer than this is fitted as pieces of at most this long, each from its own initial state,
@@ -261,7 +267,7 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     ended = {n: e.value for n, e in first.params.items()}
     again = _identify_once(cyl, runs, replace(options, restart_misfit=False, time_limit_s=left_s), effects, ended,
                            None, progress, prior)
-    kept = again if again.solver["cost"] < sol["cost"] else first
+    kept = lower_cost(first, again)
     for n, e in kept.params.items():
         e.initial = first.params[n].initial
     kept.solver = {**kept.solver, "iterations": sol["iterations"] + again.solver["iterations"],
