@@ -310,6 +310,23 @@ def heavy_a(cyl_a):
     return cyl_a.with_values({"mass": 1e8})
 
 
+def test_a_vent_empties_its_chamber_towards_the_atmosphere(cyl_a):
+    """Valve centred, piston held by friction (it creeps a few um as the forces change): a leak
+    out of the rod chamber (the rod seal) lets its pressure fall towards the atmosphere while the
+    cap chamber keeps its air, and the cap-side vent the other way round."""
+    u = np.zeros(300)
+    nominal = replay(cyl_a, [], u, p1=3.0e5)
+    assert np.ptp(nominal["p1"]) < 1.0 and np.ptp(nominal["p2"]) < 1.0
+    for vent, emptied, kept in (("vent_rod", "p2", "p1"), ("vent_cap", "p1", "p2")):
+        r = replay(cyl_a, [Leakage(0.0, **{vent: 1e-11})], u, p1=3.0e5)
+        assert np.ptp(r["x"]) < 1e-4
+        drop = r[emptied][0] - r[emptied][-1]
+        assert drop > 2e3 and drop > 10 * abs(r[kept][-1] - r[kept][0])
+        # the laminar law: the flow out grows with p^2 - pa^2, so the fall slows as the pressure drops
+        rate = -np.diff(r[emptied])
+        assert rate[10] > rate[-10] > 0
+
+
 def test_heat_transfer_pulls_pressure_back_after_filling(heavy_a):
     """Filling heats the cap chamber and emptying cools the rod chamber; with the valve
     closed the walls bring both back to the supply temperature: p1 sags, p2 recovers,

@@ -216,9 +216,9 @@ def _screened(base: IdentifyResult, drive: str, effect: Effect, start: int | str
 def screen_candidate(args) -> list[Screen]:
     """One candidate in the stage that sees it, nested from that stage's nominal fit (`base`), and
     from the effect's defaults where the nested fit did not move (some effects never leave
-    their neutral value, stiction without a break-away force) or has none (heat exchange); a
-    pneumatic one from its alternative starts too where these leave most of the stage's excess
-    (ALTERNATIVES_BELOW). The screen of the lowest TRAIN cost is kept.
+    their neutral value, stiction without a break-away force), ended above the stage's cost or
+    has none (heat exchange); a pneumatic one from its alternative starts too where these leave
+    most of the stage's excess (ALTERNATIVES_BELOW). The screen of the lowest TRAIN cost is kept.
     args: (name, base fit, runs, workers)."""
     name, base, runs, workers, file_cyl = args
     mechanical = EFFECTS[name].subsystem == "mechanical"
@@ -228,7 +228,10 @@ def screen_candidate(args) -> list[Screen]:
     out = []
     if has_nested_start(name):
         out.append(_screen_fit(base, runs, drive, estimate, starts[0], 0, workers))
-    if not out or (out[0].result is None or (out[0].gain < 1e-3 and out[0].iterations <= STALLED)):
+    # the defaults too where the nested fit did not move, or ended above its own start (a
+    # position-dependent friction from neutral: +157 % of the stage's cost, given up)
+    if not out or (out[0].result is None or (out[0].gain < 1e-3 and (out[0].iterations <= STALLED
+                                                                       or out[0].gain < 0))):
         out.append(_screen_fit(base, runs, drive, estimate, starts[1], 1, workers))
     if not mechanical and base.solver["residual_sigma"] > ALTERNATIVES_ABOVE \
             and max((s.share for s in out if s.result is not None), default=0.0) < ALTERNATIVES_BELOW:
