@@ -256,9 +256,9 @@ class ValveDeadzone(Effect):
         u_eff = (1 - g) (smax(u - d) - smax(-u - d)) / (1 - d) + g u (step(u - d) + step(-u - d))
 
     smax(z) = max(z, 0) with the corner rounded by a parabola over |z| < e, e = d/10
-    (0 for z <= -e, (z + e)^2 / (4 e) between, z for z >= e), step(z) its derivative (0, then
-    (z + e) / (2 e), then 1) rounded once more by a cubic over the same width: exactly closed
-    for |u| <= 0.9 d, continuously differentiable for Gauss-Newton, exactly u when d = 0.
+    (0 for z <= -e, (z + e)^2 / (4 e) between, z for z >= e), step(z) a step from 0 to 1 over
+    the same width (the cubic 1/2 + 3/4 z/e - 1/4 (z/e)^3 between): exactly closed for
+    |u| <= 0.9 d, continuously differentiable for Gauss-Newton, exactly u when d = 0.
     """
 
     name: ClassVar[str] = "valve_deadzone"
