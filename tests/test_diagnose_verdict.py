@@ -244,7 +244,8 @@ def test_candidate_fits_have_no_wall_clock_limit_and_the_nested_start_is_the_nom
     # no start did better than the nominal model: the candidate is that model, said in words
     floor = best_of_starts(out, nominal)[0]
     assert floor.status == "no_gain_on_train" and floor.train_cost == 100.0
-    assert floor.params == {"conductance": 0.0, "laminar": 0.0} and floor.friction == {}  # leakage's neutral values
+    assert floor.params == dict.fromkeys(EFFECTS["leakage"].NEUTRAL, 0.0)  # leakage's neutral values
+    assert floor.friction == {}
     assert "no start fitted TRAIN better than the nominal model" in floor.error
     assert "ended worse on TRAIN" in floor.error
 
