@@ -498,6 +498,6 @@ def test_an_absorbed_effect_is_screened_beside_the_calibration_only_in_the_form_
     from combined_reality.diagnose.candidates import candidate_starts
 
     gates = calibrated_starts("valve_deadzone")
-    assert [(e.overlap, e.gate) for e in gates] == [(0.0, 1.0), (0.005, 1.0), (0.015, 1.0), (0.04, 1.0)]
+    assert [(e.overlap, e.gate) for e in gates] == [(0.0, 1.0), (0.005, 1.0)]
     assert screened_names(list(EFFECTS)) == [n for n in EFFECTS if n != "mass"]
     assert calibrated_starts("valve_delay") == candidate_starts("valve_delay")
