@@ -213,6 +213,12 @@ def _screened(base: IdentifyResult, drive: str, effect: Effect, start: int | str
     return sc
 
 
+def _went_nowhere(s: Screen) -> bool:
+    """A nested screen that failed, did not move, or ended above its own start (a position-dependent
+    friction from neutral: +157 % of the stage's cost, given up): the defaults are tried too."""
+    return s.result is None or s.gain < 0 or (s.gain < 1e-3 and s.iterations <= STALLED)
+
+
 def screen_candidate(args) -> list[Screen]:
     """One candidate in the stage that sees it, nested from that stage's nominal fit (`base`), and
     from the effect's defaults where the nested fit did not move (some effects never leave
@@ -228,10 +234,7 @@ def screen_candidate(args) -> list[Screen]:
     out = []
     if has_nested_start(name):
         out.append(_screen_fit(base, runs, drive, estimate, starts[0], 0, workers))
-    # the defaults too where the nested fit did not move, or ended above its own start (a
-    # position-dependent friction from neutral: +157 % of the stage's cost, given up)
-    if not out or (out[0].result is None or (out[0].gain < 1e-3 and (out[0].iterations <= STALLED
-                                                                       or out[0].gain < 0))):
+    if not out or _went_nowhere(out[0]):
         out.append(_screen_fit(base, runs, drive, estimate, starts[1], 1, workers))
     if not mechanical and base.solver["residual_sigma"] > ALTERNATIVES_ABOVE \
             and max((s.share for s in out if s.result is not None), default=0.0) < ALTERNATIVES_BELOW:
@@ -422,8 +425,9 @@ def choose(screens: list[Screen], screen_min: float, screen_share: float, leader
     # misfit that the other stage causes gains there too (a hard dead zone took all the valve and
     # chambers' excess, 4.4 % of its cost, while three friction screens took 7-15 % of the force
     # balance's, driven by the valve's misfit through the model)
-    other = [s for s in ok[leaders:] if s.stage not in {c.stage for c in chosen}]
-    return chosen + other[:1] if len({c.stage for c in chosen}) == 1 else chosen
+    stages = {s.stage for s in chosen}
+    other = [s for s in ok[leaders:] if s.stage not in stages]
+    return chosen + other[:1] if len(stages) == 1 else chosen
 
 
 # ------------------------------------------------------------------ the verdict among calibrated models

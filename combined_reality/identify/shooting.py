@@ -1025,10 +1025,11 @@ def interval_residual_sigma(problem: "ShootingProblem", layouts: Sequence[RunLay
     if not problem.allows(S):
         return math.nan, 1.0
     kept: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-    room = [CHUNK_SENSITIVITIES]
+    room = CHUNK_SENSITIVITIES
 
     def state_sensitivities(a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(G, E) of intervals a..b-1 at (S, p)."""
+        nonlocal room
         if eqs.kept is not None:
             return eqs.kept
         if (a, b) in kept:
@@ -1039,9 +1040,9 @@ def interval_residual_sigma(problem: "ShootingProblem", layouts: Sequence[RunLay
         E = problem.span_residuals(S, sim[0], a, b)[0]
         GE = linearize((E, None, *sim), problem.out_idx, problem.wts, problem.mask[a:b], problem.M, problem.nx,
                        len(problem.out_idx), problem.nth)[0], E
-        if GE[0].size + E.size <= room[0]:
+        if GE[0].size + E.size <= room:
             kept[a, b] = GE
-            room[0] -= GE[0].size + E.size
+            room -= GE[0].size + E.size
         return GE
 
     raw2 = 0.0
