@@ -501,3 +501,48 @@ def test_an_absorbed_effect_is_screened_beside_the_calibration_only_in_the_form_
     assert [(e.overlap, e.gate) for e in gates] == [(0.0, 1.0), (0.005, 1.0)]
     assert screened_names(list(EFFECTS)) == [n for n in EFFECTS if n != "mass"]
     assert calibrated_starts("valve_delay") == candidate_starts("valve_delay")
+
+
+def test_on_a_gap_near_the_noise_an_effect_counts_only_where_its_parameters_leave_the_nominal_plant():
+    """An effect-free Norgren on the reference plant: the calibration leaves VALID at 1.23 x the
+    noise, a heat exchange at its bound with n 1.5 std from kappa takes it to 1.15 x (z 40). That
+    gain is the calibration's: the candidate does not count, the verdict is none. The same
+    candidate on a real gap, or one whose parameter lies far from its neutral value, counts."""
+    from types import SimpleNamespace
+
+    from combined_reality.diagnose.calibrated import _calibrated_verdict, _every_candidate, departure_z, shows_itself
+
+    opts = DiagnoseOptions(calibrate=True)
+    base_val = _val(1.225)
+    kappa = EFFECTS["heat_transfer"].NEUTRAL["n"]
+
+    def heat(n: float, nrms: float) -> Candidate:
+        v = _val(nrms, 1)  # the same measurement: the predictions differ by the residuals' difference
+        v = Validation(v.outputs, base_val.residual - v.residual, v.residual, v.segments, v.segment_cost, v.noise,
+                       v.status)
+        return Candidate("heat_transfer", shrink=0.1, rmse_x_validation=7e-6, status="converged",
+                         params={"h": 0.01, "n": n}, std={"h": 0.00725, "n": 1.86e-4},
+                         validation=v, calibration={"residual_sigma": 1.0501})
+
+    near = heat(kappa - 2.7e-4, 1.153)
+    assert departure_z(near) == pytest.approx(2.7e-4 / 1.86e-4, rel=1e-3)
+    assert not shows_itself(near, base_val, opts)
+    assert shows_itself(near, _val(2.0), opts)  # a gap above small_gap: VALID decides as before
+    assert shows_itself(heat(kappa - 0.2, 1.153), base_val, opts)  # a polytropic chamber, 1000 std away
+    # a pair's parameters are keyed by effect
+    pair = Candidate("leakage+heat_transfer", params={"leakage.laminar": 0.0, "heat_transfer.n": kappa - 0.2},
+                     std={"leakage.laminar": 1e-12, "heat_transfer.n": 1e-3})
+    assert departure_z(pair) == pytest.approx(200.0)
+    assert math.isnan(departure_z(Candidate("stiction", params={"Fs_excess": 0.1}, std={"Fs_excess": math.nan})))
+    assert shows_itself(Candidate("stiction", params={"Fs_excess": 0.1}, std={}), base_val, opts)  # cannot tell
+
+    nominal = SimpleNamespace(solver={"residual_sigma": 1.0526})
+    found = {"absorbed": {}}
+    cands = _every_candidate(opts, found, {}, [], {"heat_transfer": near}, None, "", nominal, base_val, 7.8e-6)
+    c = next(c for c in cands if c.effect == "heat_transfer")
+    assert c.z > opts.min_z and c.shrink_all > opts.min_shrink  # significant on VALID alone ...
+    assert not c.significant  # ... but not the effect's gain
+    assert "within 1.5 standard deviations of the nominal plant" in c.error
+    nom = SimpleNamespace(base=nominal, val=base_val, sigma=1.0526)
+    verdict, note = _calibrated_verdict(nom, None, None, {}, opts)
+    assert verdict == "none" and "fits TRAIN to 1.05 x" in note

@@ -473,6 +473,35 @@ def by_train(c: Candidate, nominal: IdentifyResult, opts: DiagnoseOptions, shrin
     return b >= opts.train_gap and explains >= opts.train_explains and (shrink or c.shrink_all > 0)
 
 
+def departure_z(c: Candidate) -> float:
+    """How far the candidate's effect lies from the nominal plant: the largest |value - neutral| /
+    std over its effects' NEUTRAL parameters (nan where no such parameter has a finite std)."""
+    zs = []
+    for name in c.effect.split("+"):
+        for k, neutral in EFFECTS[name].NEUTRAL.items():
+            key = k if k in c.params else f"{name}.{k}"
+            v, sd = c.params.get(key), c.std.get(key)
+            if v is not None and sd is not None and math.isfinite(sd) and sd > 0:
+                zs.append(abs(v - neutral) / sd)
+    return max(zs, default=math.nan)
+
+
+def shows_itself(c: Candidate, base_val: Validation, opts: DiagnoseOptions) -> bool:
+    """Whether a candidate's gain can be its effect's: always where the calibration without an
+    effect leaves a gap on VALID above `small_gap`; within it, only if the effect lies `min_z`
+    standard deviations from the nominal plant in one of its parameters (or cannot be told)."""
+    if base_val.normalized_rms() > opts.small_gap:
+        return True
+    z = departure_z(c)
+    return not z < opts.min_z
+
+
+def _at_nominal_words(c: Candidate, base_val: Validation, opts: DiagnoseOptions) -> str:
+    return (f"the calibration without an effect already fits VALID to {base_val.normalized_rms():.2f} x the noise "
+            f"(within {opts.small_gap:g}), and {c.effect} stays within {departure_z(c):.1f} standard deviations of "
+            f"the nominal plant (under {opts.min_z:g}): the gain on VALID is the calibration's, not the effect's")
+
+
 def _significant(c: Candidate, base_val, base_rmse: float, opts: DiagnoseOptions) -> bool:
     c = copy.copy(c)
     score_candidate(c, base_val, base_rmse, opts)
@@ -646,10 +675,12 @@ def _score_chosen(cyl: Cylinder, runs: Sequence[Run], valid: Run, chosen: list[S
         else:
             c = validate_candidate((c, nom.fitting, valid, opts, segments))
         scored[s.effect] = c
-        if c.validation is not None and closes_gap(c, base_val, base_rmse, opts):
+        if c.validation is None or not shows_itself(c, base_val, opts):
+            continue
+        if closes_gap(c, base_val, base_rmse, opts):
             return scored, c, "closed the gap on VALID to near the noise first"
         share = train_share(base, w.result)
-        if c.validation is not None and _significant(c, base_val, base_rmse, opts) and share >= opts.train_dominant:
+        if _significant(c, base_val, base_rmse, opts) and share >= opts.train_dominant:
             return scored, c, (f"explains {share:.0%} of what the calibration without an effect leaves on TRAIN "
                                "above the noise, and significantly improves VALID")
     return scored, None, ""
@@ -676,6 +707,8 @@ def _every_candidate(opts: DiagnoseOptions, found: dict, screens: dict[str, Scre
         score_candidate(c, base_val, base_rmse, opts)
         if by_train(c, base, opts):
             c.significant = True
+        if c.significant and not shows_itself(c, base_val, opts):
+            c.significant, c.error = False, _at_nominal_words(c, base_val, opts)
         cands.append(c)
     return cands
 

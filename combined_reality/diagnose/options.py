@@ -57,4 +57,10 @@ class DiagnoseOptions:
     # ... and by this share of the best candidate's cut (the screen): what imitates a sliver
     # of the misfit on TRAIN neither wins on VALID nor partners the winner
     screen_share: float = 0.1
+    # with calibrate: where the calibration without an effect already reaches VALID within this
+    # x the noise, a candidate counts only if one of its effect's parameters lies min_z of its
+    # standard deviations from the value that is the nominal plant (shows_itself): on so small
+    # a gap any added freedom takes a few percent (an effect-free Norgren on the reference plant:
+    # heat exchange at its bound, n 1.5 std from kappa, VALID 1.23 -> 1.15 x)
+    small_gap: float = 1.3
     workers: int = max(1, os.cpu_count() or 1)
