@@ -251,10 +251,8 @@ def calibrate(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions = Ca
                                       name="3/3 on all the data:")
             stages = ([{**s, "data_s": round(_seconds(share), 3)} for s in stages]
                       + [{**s, "data_s": round(_seconds(runs), 3)} for s in more])
-        cal = finish(cyl, runs, options, joint, mech, pneu, stages, t0)
-    if share is not None:
-        cal.start_share = (_seconds(share), _seconds(runs))
-    return cal
+        return finish(cyl, runs, options, joint, mech, pneu, stages, t0,
+                      None if share is None else (_seconds(share), _seconds(runs)))
 
 
 def _seconds(runs: Sequence[Run]) -> float:
@@ -438,13 +436,14 @@ def whole_model(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, s
 
 
 def finish(cyl: Cylinder, runs: Sequence[Run], options: CalibrateOptions, joint: IdentifyResult,
-           mech: IdentifyResult | None, pneu: IdentifyResult | None, stages: list[dict], t0: float) -> Calibration:
+           mech: IdentifyResult | None, pneu: IdentifyResult | None, stages: list[dict], t0: float,
+           start_share: tuple[float, float] | None = None) -> Calibration:
     """The calibration of a whole-model fit: the friction's std with the model error, what the
-    runs determine, the stages."""
+    runs determine, the stages (and the share of the data they started from)."""
     if mech is not None and mech.explains_run:
         joint.params.update(with_model_error(joint.params, mech.params))
     return Calibration(cylinder=joint.cylinder, result=joint, identifiability=assess(joint, runs), stages=stages,
-                       wall_s=time.perf_counter() - t0, misfit_above=options.misfit)
+                       wall_s=time.perf_counter() - t0, misfit_above=options.misfit, start_share=start_share)
 
 
 def _dead_band_moved(cyl: Cylinder, want: set[str], say: Callable[[str], None],
