@@ -433,16 +433,19 @@ class HeatTransfer(Effect):
     in the way the wall law says, shows as an exponent between 1 and kappa.
 
     h = 0 and n = kappa are the nominal (adiabatic) plant exactly; h -> infinity makes the
-    chambers isothermal at Ts. The pressure equations keep the nominal plant's convention (the
-    outflow leaves with the enthalpy of Ts); the temperatures do not, or they would drift
-    without bound over fill-exhaust cycles. With the valve closed the chamber mass
+    chambers isothermal at Ts. The energy balance takes Ti at least T_FLOOR Ts (a bound no air
+    in a chamber comes near): near h = 0 the outputs barely see the temperatures, so a fit of
+    node states may step them anywhere, and below 0 K the balance grows without bound. The
+    pressure equations keep the nominal plant's convention (the outflow leaves with the
+    enthalpy of Ts); the temperatures do not, or they would drift without bound over
+    fill-exhaust cycles. With the valve closed the chamber mass
     pi Vi / (R Ti) stays exactly constant.
     """
 
     name: ClassVar[str] = "heat_transfer"
     subsystem: ClassVar[str] = "pneumatic"
     description: ClassVar[str] = "chamber air exchanges heat with the walls (not adiabatic)"
-    REVISION: ClassVar[int] = 3
+    REVISION: ClassVar[int] = 5
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "h": ParamInfo("W/(m^2 K)", 0.01, 2000.0, "heat transfer coefficient between chamber air and wall"),
         "n": ParamInfo("1", 1.0, KAPPA, "polytropic exponent of the chamber pressure equations (kappa: adiabatic)"),
@@ -457,6 +460,7 @@ class HeatTransfer(Effect):
     # n lets a candidate cover an effective exponent
     STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"h": (0.8, 100.0), "n": (KAPPA, KAPPA)}
     SHAPE: ClassVar[frozenset[str]] = frozenset({"n"})
+    T_FLOOR: ClassVar[float] = 0.1  # the least chamber temperature the energy balance takes, x Ts
     h: float = 10.0
     n: float = KAPPA
 
@@ -472,11 +476,10 @@ class HeatTransfer(Effect):
         sig.dp1 = sig.dp1 * (q["n"] / KAPPA)
         sig.dp2 = sig.dp2 * (q["n"] / KAPPA)
         for i, Aw, dV in zip((1, 2), self.wall_areas(sig), (sig.A1 * v, -sig.A2 * v)):
-            th = s[f"theta{i}"]
+            r = ca.fmax(1 + s[f"theta{i}"], self.T_FLOOR)  # Ti / Ts
             p, V, mdot = getattr(sig, f"p{i}"), getattr(sig, f"V{i}"), getattr(sig, f"mdot{i}")
-            Q = -q["h"] * Aw * Ts * th  # W into the chamber air
+            Q = q["h"] * Aw * Ts * (1 - r)  # W into the chamber air
             setattr(sig, f"dp{i}", getattr(sig, f"dp{i}") + (KAPPA - 1) / V * Q)
-            r = 1 + th  # Ti / Ts
             T = Ts * r
             flow = R_AIR * (ca.fmax(mdot, 0.0) * (KAPPA * Ts - T) + (KAPPA - 1) * T * ca.fmin(mdot, 0.0))
             sig.deriv[self.key(f"theta{i}")] = r * ((flow + (KAPPA - 1) * Q) / (p * V) - (KAPPA - 1) * dV / V)

@@ -652,3 +652,21 @@ def test_identifier_finds_an_absent_effect_negligible(name, cyl_a, run_a):
         # below the barely visible strength; valve_delay: 1 % of the opening lags at most
         limit = 0.01 if p in cls.SHAPE else weak[p][0]
         assert abs(v - cls.NEUTRAL[p]) <= limit * (1 + 1e-9), (p, v, limit)
+
+
+def test_heat_transfer_near_its_bound_keeps_pressures_from_any_temperature_state(cyl_a):
+    """At h near its lower bound the outputs barely see the chamber temperatures, so a fit of
+    node states may step them anywhere: a validation segment of a reference-plant Norgren was
+    stepped to theta = -4 (below 0 K), its simulation blew up and the calibrated model (within
+    0.1 % of the truth) scored 50.9 x the noise instead of 1.04. From such a state the plant
+    stays finite and its pressures stay within the noise of those of the physical start."""
+    s_nom = [5.5e5, 2.0e5, 0.03, 0.0]
+    u = 0.3 * np.sin(np.linspace(0.0, 12.0, 1500))
+    effect = [HeatTransfer(h=0.01, n=1.22)]
+    sane = replay(cyl_a, effect, u, state0=s_nom + [0.0, 0.0])
+    wild = replay(cyl_a, effect, u, state0=s_nom + [-4.0, -4.0])
+    assert all(np.all(np.isfinite(wild[k])) for k in ("x", "p1", "p2"))
+    # the wall heat of a chamber at T_FLOOR Ts (the floor holds both states there) moves the
+    # pressures by a fraction of the sensor noise (300 Pa) over 1.5 s
+    assert np.max(np.abs(wild["p1"] - sane["p1"])) < 100.0
+    assert np.max(np.abs(wild["x"] - sane["x"])) < 2e-5  # a few times the sensor noise (5 um)
