@@ -658,7 +658,7 @@ def test_heat_transfer_near_its_bound_keeps_pressures_from_any_temperature_state
     """At h near its lower bound the outputs barely see the chamber temperatures, so a fit of
     node states may step them anywhere: a validation segment of a reference-plant Norgren was
     stepped to theta = -4 (below 0 K), its simulation blew up and the calibrated model (within
-    0.1 % of the truth) scored 50.9 x the noise instead of 1.04. From such a state the plant
+    0.1 % of the truth) scored 50.9 x the noise; with the floor, 1.10. From such a state the plant
     stays finite and its pressures stay within the noise of those of the physical start."""
     s_nom = [5.5e5, 2.0e5, 0.03, 0.0]
     u = 0.3 * np.sin(np.linspace(0.0, 12.0, 1500))
