@@ -81,3 +81,18 @@ def test_a_stored_run_of_a_changed_program_is_not_taken_for_a_new_one(cyl_a, mon
     before = cal.key(), mixed.key()
     monkeypatch.setitem(catalogue.REVISIONS, "calibration", catalogue.REVISIONS["calibration"] + 1)
     assert cal.key() != before[0] and mixed.key() == before[1]
+
+
+def test_times_of_cases_run_beside_others_are_said_not_to_be_this_machines(capsys):
+    """A case that ran with fewer workers than the machine's cores (--jobs > 1) shares the cores:
+    the summary says its time is not the target's measure; a case on every core is not named."""
+    def row(workers):
+        return {"effect": "none", "id": f"w{workers}", "verdict": "none", "found": "none",
+                "mis_set": {"departed": [], "listed": []}, "valid": {"named_nrms": 1.0},
+                "friction": {"errors": {}}, "floor": {}, "t_diagnose": 60.0, "t_calibrate": 10.0,
+                "workers": workers, "cores": 2}
+
+    gauntlet.summary([row(2), row(2)])
+    assert "ran beside other cases" not in capsys.readouterr().out
+    gauntlet.summary([row(2), row(1)])
+    assert "1 of these ran beside other cases" in capsys.readouterr().out
