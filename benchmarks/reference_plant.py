@@ -62,6 +62,7 @@ __all__ = ["Case", "Calibration", "SensorDepartures", "Effect", "Param", "EFFECT
            "FrictionSchedule", "make_effect",
            "forms_of", "parse_effect", "random_effect", "ValveShape", "Linear", "PowerLaw", "Smoothstep", "Logistic",
            "Progressive", "SHAPES", "make_shape", "random_shape", "Result", "simulate", "simulate_detailed",
+           "sensor_noise", "cached_runs", "cached_states",
            "substeps_for", "main"]
 
 # ------------------------------------------------------------------ constants of the physics
@@ -1490,7 +1491,10 @@ class Case:
     commands: None for a closed-loop experiment program of the project (`program`: mixed,
     steps, ramps, sines, calibration, ...; seeded, designed from the cylinder file), or the
     command held after each sample (open loop, one per sample). x0: start position (default mid-stroke); the piston starts at rest with
-    chamber 2 at half the supply span and chamber 1 balancing it.
+    chamber 2 at half the supply span and chamber 1 balancing it. start: the state at the start
+    instead, by the names of Result.states (those not given as at rest), and command_before the
+    command held over the first sample period (with `commands` and `start`: a stretch of another
+    run replayed from that run's true state).
     """
 
     cyl: Cylinder
@@ -1506,9 +1510,17 @@ class Case:
     x0: float | None = None  # m
     end_stiffness: float = K_END  # N/m
     end_damping: float = C_END  # N s/m
+    start: Mapping[str, float] | None = None  # state name -> value at the start (default: at rest)
+    command_before: float = 0.0  # the command held over the first sample period and before it
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "effects", tuple(self.effects))
+        if self.start is not None:
+            object.__setattr__(self, "start", {str(k): float(v) for k, v in self.start.items()})
+            if not all(math.isfinite(v) for v in self.start.values()):
+                raise ValueError(f"start: finite values needed, not {self.start}.")
+        if not (math.isfinite(self.command_before) and abs(self.command_before) <= 1.0):
+            raise ValueError(f"command_before must lie in [-1, 1], not {self.command_before!r}.")
         words = [e.WORD for e in self.effects]
         if len(set(words)) != len(words):
             raise ValueError(f"one form per effect word, not {words}.")
@@ -1556,6 +1568,9 @@ class Case:
             "sensors": self.sensors.to_json(),
             "commands": None if self.commands is None else self.commands.tolist(),
             "program": self.program, "x0": self.x0, "end_stiffness": self.end_stiffness, "end_damping": self.end_damping,
+            # only where set: the keys of the cached runs made before these existed stay as they were
+            **({"start": dict(self.start)} if self.start is not None else {}),
+            **({"command_before": self.command_before} if self.command_before else {}),
         }
 
     @classmethod
@@ -1568,7 +1583,8 @@ class Case:
                    sensors=SensorDepartures.from_json(d["sensors"]),
                    commands=None if cmd is None else np.asarray(cmd, float), program=d.get("program", "mixed"),
                    x0=d.get("x0"),
-                   end_stiffness=float(d.get("end_stiffness", K_END)), end_damping=float(d.get("end_damping", C_END)))
+                   end_stiffness=float(d.get("end_stiffness", K_END)), end_damping=float(d.get("end_damping", C_END)),
+                   start=d.get("start"), command_before=float(d.get("command_before", 0.0)))
 
     def key(self) -> str:
         """A content hash of the case (and of this module's physics revision, and of the closed-loop
@@ -1759,6 +1775,11 @@ class _Batch:
         self._init_form_states(Y)
         if self.lag_rows is not None:
             Y[self.lag_rows] = Y[0:2]
+        for j, c in enumerate(cases):
+            for name, value in (c.start or {}).items():
+                if name not in self.state_names:
+                    raise ValueError(f"start: no state {name!r} in this batch (states: {', '.join(self.state_names)}).")
+                Y[self.state_names.index(name), j] = value
         return Y
 
     def _init_form_states(self, Y):
@@ -1948,19 +1969,51 @@ def simulate(cases: Sequence[Case], substeps: int | Sequence[int | None] | None 
     return [r.run for r in simulate_detailed(cases, substeps, progress)]
 
 
+def sensor_noise(case: Case) -> np.ndarray:
+    """The noise the sensors add to the case's run: (samples, 3) for x, p1, p2, drawn from its seed
+    (zeros without noise)."""
+    if not case.noise:
+        return np.zeros((case.n_samples, 3))
+    sen = case.cyl.sensors
+    draw = np.random.default_rng(case.seed).standard_normal((case.n_samples, 3))
+    return draw * np.array([sen.position_noise, sen.pressure_noise, sen.pressure_noise])
+
+
 def cached_runs(cases: Sequence[Case], cache: Path | None) -> list[Run]:
     """The runs of `cases`, each simulated once and kept in `cache` as a run file named by the
-    case's content hash (Case.key): a benchmark rerun on changed code skips the simulation
-    (minutes per case). Without a cache, simulated."""
+    case's content hash (Case.key), with its true states beside it (cached_states): a benchmark
+    rerun on changed code skips the simulation (minutes per case). Without a cache, simulated."""
     if cache is None:
         return simulate(cases)
-    cache.mkdir(parents=True, exist_ok=True)
-    todo = [c for c in cases if not (cache / f"{c.key()}.csv").exists()]
-    if todo:
-        print(f"simulating {len(todo)} runs on the reference plant ...", file=sys.stderr, flush=True)
-        for case, run in zip(todo, simulate(todo)):
-            write_run(cache / f"{case.key()}.csv", run, comments=list(run.comments))
+    _simulate_into(cache, [c for c in cases if not (cache / f"{c.key()}.csv").exists()])
     return [read_run(cache / f"{c.key()}.csv") for c in cases]
+
+
+def cached_states(cases: Sequence[Case], cache: Path) -> list[dict[str, np.ndarray]]:
+    """The true states of the runs of `cases` (Result.states), kept in `cache` beside the runs;
+    a run stored without them is simulated again."""
+    _simulate_into(cache, [c for c in cases if not (cache / f"{c.key()}.states.npz").exists()])
+    out = []
+    for c in cases:
+        with np.load(cache / f"{c.key()}.states.npz") as z:
+            out.append({k: z[k] for k in z.files})
+    return out
+
+
+def _simulate_into(cache: Path, cases: list[Case]) -> None:
+    """Simulate `cases` and store each run and its true states in `cache`, each file written whole
+    (write_run is atomic; the states go to a temporary file renamed) so that an interrupted
+    benchmark leaves no half-written one."""
+    if not cases:
+        return
+    cache.mkdir(parents=True, exist_ok=True)
+    print(f"simulating {len(cases)} runs on the reference plant ...", file=sys.stderr, flush=True)
+    for res in simulate_detailed(cases, progress=lambda line: print(line, file=sys.stderr, flush=True)):
+        key = res.case.key()
+        tmp = cache / f"{key}.states.tmp.npz"
+        np.savez(tmp, **res.states)
+        tmp.replace(cache / f"{key}.states.npz")
+        write_run(cache / f"{key}.csv", res.run, comments=list(res.run.comments))
 
 
 def _simulate_batch(cases: list[Case], substeps: int | None, progress) -> list[Result]:
@@ -1974,6 +2027,7 @@ def _simulate_batch(cases: list[Case], substeps: int | None, progress) -> list[R
     max_delay = max([e.tau for c in cases for e in c.effects if isinstance(e, DelayTransport)] + [0.0])
     batch.U_off = int(math.ceil(max_delay / batch.dt)) + 2
     batch.U = np.zeros((batch.U_off + n_max + 2, n))
+    batch.U[:batch.U_off + 1] = [c.command_before for c in cases]
     Y = batch.initial_state(cases)
     programs = [None if c.commands is not None else _program(c) for c in cases]
     is_open = np.array([p is None for p in programs])
@@ -1983,10 +2037,7 @@ def _simulate_batch(cases: list[Case], substeps: int | None, progress) -> list[R
             open_loop[:lengths[j], j] = np.clip(c.commands, -1.0, 1.0)
     noise = np.zeros((n_max, 3, n))
     for j, c in enumerate(cases):
-        if c.noise:
-            sen = c.cyl.sensors
-            draw = np.random.default_rng(c.seed).standard_normal((lengths[j], 3))  # x, p1, p2 per sample
-            noise[:lengths[j], :, j] = draw * np.array([sen.position_noise, sen.pressure_noise, sen.pressure_noise])
+        noise[:lengths[j], :, j] = sensor_noise(c)
 
     states = np.empty((n_max, batch.nstate, n))
     meas = np.empty((n_max, 3, n))

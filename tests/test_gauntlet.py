@@ -96,3 +96,25 @@ def test_times_of_cases_run_beside_others_are_said_not_to_be_this_machines(capsy
     assert "ran beside other cases" not in capsys.readouterr().out
     gauntlet.summary([row(2), row(1)])
     assert "1 of these ran beside other cases" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_reference_effect_shows_by_how_much_its_replay_without_it_misses_valid(cyl_a, monkeypatch, tmp_path):
+    """The reference plant's visibility: VALID's segments replayed on the plant without the effect,
+    from the true states, with the departed file. Effect-free, the replay leaves just the noise (the
+    departures are replayed too); a strong leak is far from it; a leak of a thousandth of that is
+    barely visible, and counted apart."""
+    c = {"plant": "reference", "cylinder": "cyl_a_32x100", "effect": "leakage", "form": "piston", "draw": 0}
+    departure = ref.Calibration(conductance_pos=0.8, offset_p1=3000.0, moving_mass=1.3 * cyl_a.value("mass"))
+    floors = {}
+    for name, effect in (("none", None), ("strong", ref.LeakPiston(q_ref=3e-5)), ("faint", ref.LeakPiston(q_ref=3e-8))):
+        monkeypatch.setattr(gauntlet, "draw", lambda *_a, e=effect: (departure, e))
+        _, case = gauntlet.reference_cases(c, cyl_a, 3.0)
+        valid = ref.cached_runs([case], tmp_path)[0]
+        floors[name] = f = gauntlet.reference_floor(c, cyl_a, valid, 3.0, tmp_path)
+        assert f["noise_nrms"] == pytest.approx(1.0, abs=0.05)
+    assert floors["none"]["without_effect_nrms"] == pytest.approx(floors["none"]["noise_nrms"], rel=1e-3)
+    assert floors["strong"]["without_effect_nrms"] > 3 * floors["strong"]["noise_nrms"]
+    faint = {**c, "floor": floors["faint"]}
+    assert gauntlet.is_faint(faint) and not gauntlet.is_faint({**c, "floor": floors["strong"]})
+    assert not gauntlet.is_faint({**faint, "effect": "none"})

@@ -407,6 +407,29 @@ def test_cases_round_trip_through_json_and_rebuild_the_same_run(cyl):
     assert rp.Case(cyl.with_values({"Fc": 30.0}), 0.05, 4).key() != rp.Case(cyl, 0.05, 4).key()
 
 
+def test_a_stretch_replayed_from_its_true_state_is_the_same_stretch(cyl):
+    """A closed-loop run's stretch, simulated again open loop with its commands from the true
+    state before it (an effect's own states too), is that stretch exactly: what the gauntlet's
+    replays of VALID without the effect stand on. A state the batch lacks is refused."""
+    case = rp.Case(cyl, 0.6, SEED, effects=(rp.DynamicsDahl(),), noise=False)
+    run = rp.simulate_detailed([case])[0]
+    a, b = 250, 520
+    start = {name: v[a - 1] for name, v in run.states.items()}
+    assert "friction_dynamics.dahl.s" in start
+    part = rp.Case(cyl, (b - a) / case.rate, 0, effects=case.effects, noise=False, commands=run.run.u[a:b],
+                   start=start, command_before=run.run.u[a - 1])
+    again = rp.Case.from_json(json.loads(json.dumps(part.to_json())))
+    assert again.key() == part.key() != rp.Case(cyl, part.duration, 0, effects=case.effects, noise=False,
+                                                commands=run.run.u[a:b]).key()
+    replay = rp.simulate_detailed([again])[0]
+    for name in ("x", "v", "p1", "p2", "friction_dynamics.dahl.s"):
+        np.testing.assert_array_equal(replay.states[name], run.states[name][a:b])
+    with pytest.raises(ValueError, match="no state 'heat_transfer.wall.T1'"):
+        rp.simulate([replace(part, start={**start, "heat_transfer.wall.T1": 300.0})])
+    with pytest.raises(ValueError, match="command_before"):
+        rp.Case(cyl, 1.0, 1, command_before=1.5)
+
+
 def test_command_line_writes_a_run_the_project_reads(tmp_path, capsys):
     out, truth = tmp_path / "run.csv", tmp_path / "case.json"
     code = rp.main(["--config", str(DEFAULT_CYLINDER), "--duration", "0.05", "--seed", "2",
@@ -445,14 +468,20 @@ def test_cached_runs_are_simulated_once_and_read_back_as_simulated(cyl, tmp_path
     hash: a second call reads them back, to the run file's precision, without simulating."""
     cases = [rp.Case(cyl, 0.1, SEED), rp.Case(cyl, 0.1, SEED + 1)]
     first = rp.cached_runs(cases, tmp_path)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"{c.key()}.csv" for c in cases)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"{c.key()}{ext}" for c in cases
+                                                                 for ext in (".csv", ".states.npz"))
+    truth = rp.simulate_detailed(cases)
 
     def no_simulation(*_a, **_k):
         raise AssertionError("simulated again")
 
-    monkeypatch.setattr(rp, "simulate", no_simulation)
+    monkeypatch.setattr(rp, "simulate_detailed", no_simulation)
     again = rp.cached_runs(cases, tmp_path)
     for a, b in zip(first, again):
         for ch in ("t", "u", "x", "p1", "p2"):
             np.testing.assert_allclose(getattr(b, ch), getattr(a, ch), rtol=1e-9, atol=1e-12)
+    for res, states in zip(truth, rp.cached_states(cases, tmp_path)):  # the true states kept beside, exactly
+        assert set(states) == set(res.states)
+        for name, values in res.states.items():
+            np.testing.assert_array_equal(states[name], values)
     assert first[0].x[-1] != first[1].x[-1] or first[0].p1[-1] != first[1].p1[-1]  # two cases, two runs
