@@ -311,3 +311,30 @@ def test_mis_set_quantities_follow_the_headline(cyl_a):
     assert lines[0].startswith("The gap is best explained by valve_delay")
     assert lines[1].startswith("The cylinder file's valve, dead volumes, mass and sensor offsets were calibrated")
     assert "mis-set in the file: mass 1.036 kg → 0.7400 kg ± 0.0040 kg (-29 %)." in lines[1]
+
+
+def test_a_verdict_whose_fit_did_not_settle_says_its_values_are_not_the_rigs(cyl_a):
+    """The verdict's values are no measurement where its fit on TRAIN stopped before converging
+    above the noise (a reference-plant stiction: line search failed after 59 iterations at 15.4 x),
+    or converged far above it; a fit that settled near the noise gets no caveat."""
+    d = _diagnosis(cyl_a)
+    assert not any("TRAIN" in line and "rig's" in line for line in headline(d))  # as filed, converged
+    d.best.status, d.best.iterations = "line_search_failed", 59
+    d.best.calibration = {"residual_sigma": 15.39, "start": "staged"}
+    lines = headline(d)
+    assert ("Its fit on TRAIN stopped before converging (its line search failed after 59 iterations) at 15.4 × the "
+            "sensor noise on TRAIN: its values are where the fit stopped, not the rig's; the effect is named because "
+            "it predicts VALID best.") in lines
+    assert "stopped before converging" in render_report(d, plots={})
+    assert d.to_json()["verdict_caveat"].startswith("Its fit on TRAIN stopped before converging")
+    d.best.status = "converged"
+    assert any(line.startswith("Even with it, the calibrated model stays at 15.4 × the sensor noise on TRAIN")
+               for line in headline(d))
+    d.best.calibration["residual_sigma"] = 1.12  # settled near the noise: nothing to add
+    assert not any("TRAIN" in line and "rig's" in line for line in headline(d))
+    assert d.to_json()["verdict_caveat"] == ""
+    d.best.status = "max_iterations"  # ran out of iterations at the noise: its values are fine
+    assert not any("TRAIN" in line and "rig's" in line for line in headline(d))
+    d.best.calibration = None  # as filed, no residual to judge by: the stop is said
+    assert any(line.startswith("Its fit on TRAIN stopped before converging (it ran out of iterations after 59 "
+                               "iterations):") for line in headline(d))

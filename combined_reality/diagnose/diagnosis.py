@@ -38,6 +38,7 @@ from .candidates import NESTED_START, Candidate, NominalFit, candidate_starts, h
 from .fits import best_of_starts, fit_first, further_scored, further_starts, validate_screened
 from .options import DiagnoseOptions
 from .subsystems import regressor_correlations, subsystem_split
+from .text import fit_caveat
 from .verdict import best_pair, decide, ranked
 from .where import regions, whiteness
 
@@ -86,6 +87,7 @@ class Diagnosis:
             "baseline": self.baseline,
             "verdict": self.verdict,
             "verdict_note": self.verdict_note,
+            "verdict_caveat": fit_caveat(self.best) if self.best is not None else "",
             "calibration": self.calibration,
             "ranking": [c.to_json() for c in self.ranking],
             "pair": self.pair.to_json() if self.pair is not None else None,

@@ -9,11 +9,12 @@ from typing import Callable
 from sim.cylinder import PARAMETERS
 from sim.effects import EFFECTS
 
+from ..calibrate import CalibrateOptions
 from ..identify import at_bounds
 from ..report.text import finite, format_value, pct, sig, um
 
 __all__ = ["WITHIN_NOISE", "param_info", "at_its_bound", "params_text", "friction_text", "effect_description",
-           "headline", "subsystem_value", "z_text"]
+           "fit_caveat", "headline", "subsystem_value", "z_text"]
 
 
 def param_info(effect: str, name: str):
@@ -111,6 +112,9 @@ def _explained(d, before: float, nrms: float, strong, esc) -> list[str]:
     else:
         out.append(esc(f"Part of the gap remains: {sig(rest)} × the sensor noise over all outputs "
                        f"(it was {sig(nrms)} ×; 1 would be a perfect model)."))
+    caveat = fit_caveat(best)
+    if caveat:
+        out.append(esc(caveat))
     if d.verdict_note:
         out.append(esc("Why the pair: " + d.verdict_note + "."))
     others = [c.effect for c in d.ranking if c.significant and c.effect != best.effect]
@@ -121,6 +125,30 @@ def _explained(d, before: float, nrms: float, strong, esc) -> list[str]:
     if p is not None and p is not best:
         out.append(_pair_sentence(p, strong, esc))
     return out
+
+
+# how a fit on TRAIN that did not converge stopped, in words
+_STOPPED = {"max_iterations": "it ran out of iterations", "line_search_failed": "its line search failed",
+            "above_reference": "it was given up", "time_limit": "its time ran out"}
+
+
+def fit_caveat(c) -> str:
+    """A sentence where the verdict's values are no measurement of the rig: its fit on TRAIN
+    stopped before converging (where the calibration's residual says nothing, or stays above
+    CalibrateOptions.misfit x the noise), or ends that far above the noise all the same. The
+    effect is still the one that predicts VALID best; "" where the fit can be trusted."""
+    res = (c.calibration or {}).get("residual_sigma")
+    high = finite(res) and res > CalibrateOptions.misfit
+    level = f" at {sig(res)} × the sensor noise on TRAIN" if finite(res) else ""
+    if c.status != "converged" and (high or not finite(res)):
+        how = _STOPPED.get(c.status, c.status.replace("_", " "))
+        return (f"Its fit on TRAIN stopped before converging ({how} after {c.iterations} iterations){level}: "
+                "its values are where the fit stopped, not the rig's; the effect is named because it predicts "
+                "VALID best.")
+    if high:
+        return (f"Even with it, the calibrated model stays{level}: the effect's form or another effect leaves "
+                "part of the gap, so take its values as indicative, not as the rig's.")
+    return ""
 
 
 def _pair_sentence(p, strong, esc) -> str:
