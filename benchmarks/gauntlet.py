@@ -517,10 +517,11 @@ def main(argv=None) -> int:
             if args.out and (args.out / f"{case_id(c)}.json").exists()}
     todo = [c for c in cases if case_id(c) not in done]
     # the reference plant's runs at once (one vectorised simulation), before any case
-    pending = [rc for c in todo if c["plant"] == "reference"
-               for rc in reference_cases(c, load_cylinder(ROOT / "configs" / f"{c['cylinder']}.toml"), args.duration)]
-    if pending:
-        ref.cached_runs(pending, args.runs)
+    pairs = [reference_cases(c, load_cylinder(ROOT / "configs" / f"{c['cylinder']}.toml"), args.duration)
+             for c in todo if c["plant"] == "reference"]
+    if pairs:  # and VALID's true states, which the visibility replays start from (older caches lack them)
+        ref.cached_runs([rc for pair in pairs for rc in pair], args.runs)
+        ref.cached_states([valid for _, valid in pairs], args.runs)
     t_all = time.perf_counter()
     workers = max(1, (os.cpu_count() or 1) // max(1, args.jobs))
     jobs = [(c, args.duration, workers, args.runs, args.out) for c in todo]
