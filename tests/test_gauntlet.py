@@ -118,3 +118,31 @@ def test_a_reference_effect_shows_by_how_much_its_replay_without_it_misses_valid
     faint = {**c, "floor": floors["faint"]}
     assert gauntlet.is_faint(faint) and not gauntlet.is_faint({**c, "floor": floors["strong"]})
     assert not gauntlet.is_faint({**faint, "effect": "none"})
+
+
+@pytest.mark.slow
+def test_the_true_states_of_valid_are_simulated_with_the_runs_before_any_case(tmp_path, monkeypatch):
+    """A run cache from before the true states were kept (CSV only) gets VALID's states in the one
+    batch before the cases, not a simulation of its own inside each case."""
+    args = ["--plant", "reference", "--cases", "leakage:piston", "--cylinders", "cyl_a_32x100", "--duration", "0.2",
+            "--runs", str(tmp_path)]
+
+    class FirstCase(Exception):
+        pass
+
+    def first_case(*_a, **_k):
+        raise FirstCase
+
+    monkeypatch.setattr(gauntlet, "run_case", first_case)
+    with pytest.raises(FirstCase):
+        gauntlet.main(args)
+    for npz in tmp_path.glob("*.states.npz"):
+        npz.unlink()  # the cache as an older gauntlet left it
+    batches = []
+    simulate = ref.simulate_detailed
+    monkeypatch.setattr(ref, "simulate_detailed", lambda cases, *a, **k: batches.append(
+        [c.program for c in cases]) or simulate(cases, *a, **k))
+    with pytest.raises(FirstCase):
+        gauntlet.main(args)
+    assert batches == [["mixed"]]  # VALID alone, once, before the first case
+    assert len(list(tmp_path.glob("*.states.npz"))) == 1
