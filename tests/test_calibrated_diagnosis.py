@@ -264,3 +264,21 @@ def test_separability_names_what_a_run_lacks_to_tell_an_effect_from_calibrated_q
     assert "leakage" not in rows and "valve_delay" not in rows
     assert rows["friction_asymmetry"]["amount"] == 0.0 and "both directions" in rows["friction_asymmetry"]["needs"]
     assert rows["supply_droop"]["amount"] == 0.0
+
+
+def test_a_gate_takes_over_the_overlap_the_calibration_gave_the_characteristic(cyl_a):
+    """The hard dead zone the calibration cannot take starts from the nominal calibration with its
+    overlap handed over: the gate's overlap at the larger calibrated overlap, the characteristic's
+    overlaps lowered by as much; where the calibration holds no overlap, there is nothing to hand."""
+    from combined_reality.diagnose.calibrated import handed_over
+
+    cyl = cyl_a.with_values({"overlap_extend": 0.016, "overlap_retract": 0.014})
+    nodes = np.ones((4, 3))
+    nominal = replace(_result(1.44), cylinder=cyl, nodes=nodes)
+    start, start_nodes, effects = handed_over("valve_deadzone", nominal)
+    assert (start.value("overlap_extend"), start.value("overlap_retract")) == (0.0, 0.0)
+    assert start.value("mass") == cyl.value("mass") and start_nodes is nodes
+    (gate,) = effects
+    assert (gate.name, gate.overlap, gate.gate) == ("valve_deadzone", 0.016, 1.0)
+    closed = cyl_a.with_values({"overlap_extend": 0.0, "overlap_retract": 0.0})
+    assert handed_over("valve_deadzone", replace(nominal, cylinder=closed)) is None

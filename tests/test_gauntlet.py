@@ -146,3 +146,26 @@ def test_the_true_states_of_valid_are_simulated_with_the_runs_before_any_case(tm
         gauntlet.main(args)
     assert batches == [["mixed"]]  # VALID alone, once, before the first case
     assert len(list(tmp_path.glob("*.states.npz"))) == 1
+
+
+@pytest.mark.slow
+def test_a_hard_dead_zone_the_calibration_took_into_the_overlap_is_named(tmp_path):
+    """A gauntlet case: the reference plant's valve stays shut up to 0.02 and then opens to the full
+    command, on a Norgren cylinder whose file is off. The calibration takes the dead zone into its
+    overlaps (the valve and chambers fit to the noise with the motion measured, so the gate's screen
+    gains nothing) and leaves the whole model at 1.44 x the noise; the gate calibrated with that
+    overlap handed over is named, with the truth's overlap."""
+    from combined_reality.diagnose import DiagnoseOptions, diagnose
+
+    c = {"plant": "reference", "cylinder": "ind3_norgren_40x250", "effect": "valve_deadzone", "form": "hard",
+         "draw": 0}
+    cyl = gauntlet.load_cylinder(gauntlet.ROOT / "configs" / "ind3_norgren_40x250.toml")
+    truth = gauntlet.draw(c, cyl)[1]
+    train, valid = gauntlet.case_runs(c, cyl, 20.0, tmp_path)
+    d = diagnose(cyl, train, valid, DiagnoseOptions(calibrate=True, workers=1, candidates=(
+        "valve_deadzone", "valve_delay", "leakage", "mass"))).to_json()
+    assert d["verdict"] == "valve_deadzone", d["verdict_note"]
+    row = next(r for r in d["ranking"] if r["effect"] == "valve_deadzone")
+    assert row["calibration"]["start"] == "handed-over"
+    assert row["params"]["overlap"] == pytest.approx(truth.d, rel=0.05) and row["params"]["gate"] > 0.9
+    assert row["normalized_rms_validation"] < 0.7 * d["baseline"]["normalized_rms"]
