@@ -44,10 +44,10 @@ valve that opens to the full command beyond its overlap, a hard dead zone) is sc
 calibrated like any candidate, in that form. Its screen may not see it: with the motion measured,
 the calibrated overlap imitates it. So where no candidate explains the gap and the calibration
 without an effect stays above the misfit level on TRAIN, that form is calibrated as a whole once
-more from that calibration, with the overlap handed over to it (handed_over). What a run cannot separate beyond that is read from
-the calibrated candidates' correlations (an effect parameter that trades off against a
-calibrated quantity) and from the runs themselves (calibrate.separability: the motion that tells
-an effect from what it imitates).
+more from that calibration, with the overlap handed over to it (handed_over). What a run cannot
+separate beyond that is read from the calibrated candidates' correlations (an effect parameter
+that trades off against a calibrated quantity) and from the runs themselves
+(calibrate.separability: the motion that tells an effect from what it imitates).
 """
 from __future__ import annotations
 
@@ -77,8 +77,9 @@ from .subsystems import regressor_correlations, subsystem_split
 from .verdict import decide, pair_need, ranked
 from .where import regions, whiteness
 
-__all__ = ["ABSORBED", "HANDED_OVER", "UNABSORBED_FORMS", "Screen", "WholeFit", "absorbed_note", "calibrated_candidates",
-           "choose", "confounded", "diagnose_calibrated", "handed_over", "nested", "trade_offs", "unfinished"]
+__all__ = ["ABSORBED", "HANDED_OVER", "UNABSORBED_FORMS", "Screen", "WholeFit", "absorbed_note",
+           "calibrated_candidates", "choose", "confounded", "diagnose_calibrated", "handed_over", "nested",
+           "trade_offs", "unfinished"]
 
 # effects that are a calibrated quantity under another name: not fitted beside the calibration
 ABSORBED = {"mass": ("mass",), "valve_deadzone": ("overlap_extend", "overlap_retract")}
@@ -732,8 +733,8 @@ def _score_handed_over(cyl: Cylinder, runs: Sequence[Run], valid: Run, screens: 
                        scored: dict[str, Candidate], fits: dict[str, WholeFit], nom: _Nominal, segments,
                        opts: DiagnoseOptions, say: Callable[[str], None]) -> None:
     """Where no scored candidate explains the gap (_explains) and the calibration without an effect
-    stays above the misfit level on TRAIN (CalibrateOptions.misfit x the noise): each absorbed effect's
-    unabsorbed form calibrated as a whole from that calibration with what it absorbed handed over
+    stays above the misfit level on TRAIN (CalibrateOptions.misfit x the noise): each absorbed
+    effect's unabsorbed form calibrated as a whole from that calibration with what it absorbed handed over
     (handed_over), and scored (into `scored` and `fits`). Its screen cannot see such a form: with
     the motion measured, the calibrated characteristic imitates it (a reference-plant gate of
     0.0199: the valve and chambers at 1.02 x the noise, the gate's screen without gain; the whole
@@ -744,8 +745,9 @@ def _score_handed_over(cyl: Cylinder, runs: Sequence[Run], valid: Run, screens: 
         start = handed_over(name, nom.base) if name in opts.candidates else None
         if start is None:
             continue
-        say(f"calibrating the whole model with {name} in the form the calibration cannot take "
-            f"({', '.join(f'{k} = {v:g}' for k, v in UNABSORBED_FORMS[name].items())}), what it absorbed handed over ...")
+        form = ", ".join(f"{k} = {v:g}" for k, v in UNABSORBED_FORMS[name].items())
+        say(f"calibrating the whole model with {name} in the form the calibration cannot take ({form}), what it "
+            "absorbed handed over ...")
         w = fits.get(name) or WholeFit()
         w.add(lambda: whole_model(cyl, runs, _options(opts.workers), _quiet, *start), "handed-over")
         fits[name] = nested(w, cyl, runs, nom.base, (_neutral(name),), opts.workers)
