@@ -568,7 +568,8 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     t5 = time.perf_counter()
     nom = _nominal_validated(cyl, runs, valid, found, joint, stages, first, segments, opts, say)
     scored, closer, why = _score_chosen(cyl, runs, valid, chosen, found["base"], fits, nom, segments, opts, say)
-    if closer is None and not any(_explains(c, nom, opts) for c in scored.values()):
+    if closer is None and not any(_judged(copy.copy(c), nom.val, nom.rmse, nom.base, opts).significant
+                                  for c in scored.values()):
         _score_handed_over(cyl, runs, valid, screens, scored, fits, nom, segments, opts, say)
     t6 = time.perf_counter()
     cands = _every_candidate(opts, found, screens, chosen, scored, closer, why, nom.base, nom.val, nom.rmse)
@@ -683,14 +684,14 @@ def _score_chosen(cyl: Cylinder, runs: Sequence[Run], valid: Run, chosen: list[S
             say(f"calibrating the whole model with {s.effect} ...")
             fits[s.effect] = calibrate_staged(cyl, runs, staged_start(s, base_fit), opts.workers)
         w = nested(fits[s.effect], cyl, runs, nom.base, (_neutral(s.effect),), opts.workers)
-        c = scored[s.effect] = _scored(s.effect, w, s, nom, valid, segments, opts, say)
+        c = scored[s.effect] = _validated_fit(s.effect, w, s, nom, valid, segments, opts, say)
         why = _ends_scoring(c, w, nom, opts)
         if why:
             return scored, c, why
     return scored, None, ""
 
 
-def _scored(name: str, w: WholeFit, screen: Screen | None, nom: _Nominal, valid: Run, segments,
+def _validated_fit(name: str, w: WholeFit, screen: Screen | None, nom: _Nominal, valid: Run, segments,
             opts: DiagnoseOptions, say: Callable[[str], None]) -> Candidate:
     """A candidate calibrated as a whole, validated where it fits TRAIN better than `none`."""
     if w.result is None:
@@ -722,17 +723,10 @@ def _ends_scoring(c: Candidate, w: WholeFit, nom: _Nominal, opts: DiagnoseOption
     return ""
 
 
-def _explains(c: Candidate, nom: _Nominal, opts: DiagnoseOptions) -> bool:
-    """Whether a scored candidate improves VALID significantly (or counts by TRAIN, by_train) in a
-    way that can be its effect's."""
-    return (c.validation is not None and shows_itself(c, nom.val, opts)
-            and (_significant(c, nom.val, nom.rmse, opts) or by_train(c, nom.base, opts)))
-
-
 def _score_handed_over(cyl: Cylinder, runs: Sequence[Run], valid: Run, screens: dict[str, Screen],
                        scored: dict[str, Candidate], fits: dict[str, WholeFit], nom: _Nominal, segments,
                        opts: DiagnoseOptions, say: Callable[[str], None]) -> None:
-    """Where no scored candidate explains the gap (_explains) and the calibration without an effect
+    """Where no scored candidate counts (_judged significant) and the calibration without an effect
     stays above the misfit level on TRAIN (CalibrateOptions.misfit x the noise): each absorbed
     effect's unabsorbed form calibrated as a whole from that calibration with what it absorbed handed over
     (handed_over), and scored (into `scored` and `fits`). Its screen cannot see such a form: with
@@ -748,10 +742,12 @@ def _score_handed_over(cyl: Cylinder, runs: Sequence[Run], valid: Run, screens: 
         form = ", ".join(f"{k} = {v:g}" for k, v in UNABSORBED_FORMS[name].items())
         say(f"calibrating the whole model with {name} in the form the calibration cannot take ({form}), what it "
             "absorbed handed over ...")
-        w = fits.get(name) or WholeFit()
+        w = fits.get(name) or WholeFit()  # a chosen screen's fit keeps its starts, the lowest cost kept
         w.add(lambda: whole_model(cyl, runs, _options(opts.workers), _quiet, *start), "handed-over")
-        fits[name] = nested(w, cyl, runs, nom.base, (_neutral(name),), opts.workers)
-        scored[name] = _scored(name, fits[name], screens.get(name), nom, valid, segments, opts, say)
+        if not any(st.get("start") == "nested" for st in w.stages):
+            w = nested(w, cyl, runs, nom.base, (_neutral(name),), opts.workers)
+        fits[name] = w
+        scored[name] = _validated_fit(name, fits[name], screens.get(name), nom, valid, segments, opts, say)
 
 
 def _every_candidate(opts: DiagnoseOptions, found: dict, screens: dict[str, Screen], chosen: list[Screen],
@@ -772,13 +768,21 @@ def _every_candidate(opts: DiagnoseOptions, found: dict, screens: dict[str, Scre
         else:
             sc = screens.get(name)
             c = _unfitted(name, "screened_out", _screen_words(sc, opts, top) if sc is not None else "not screened", sc)
-        score_candidate(c, base_val, base_rmse, opts)
-        if by_train(c, base, opts):
-            c.significant = True
-        if c.significant and not shows_itself(c, base_val, opts):
-            c.significant, c.error = False, _at_nominal_words(c, base_val, opts)
-        cands.append(c)
+        cands.append(_judged(c, base_val, base_rmse, base, opts))
     return cands
+
+
+def _judged(c: Candidate, base_val: Validation, base_rmse: float, base: IdentifyResult,
+            opts: DiagnoseOptions) -> Candidate:
+    """`c` scored against the calibration without an effect (`base`, `base_val`), in place:
+    significant by VALID or by TRAIN (by_train), and only where the gain can be its effect's
+    (shows_itself)."""
+    score_candidate(c, base_val, base_rmse, opts)
+    if by_train(c, base, opts):
+        c.significant = True
+    if c.significant and not shows_itself(c, base_val, opts):
+        c.significant, c.error = False, _at_nominal_words(c, base_val, opts)
+    return c
 
 
 def _calibrated_verdict(nom: _Nominal, best: Candidate | None, pair: Candidate | None, fits: dict[str, WholeFit],
