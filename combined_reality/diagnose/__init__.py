@@ -15,7 +15,7 @@ effect causes it, how far it shrinks once that effect is added.
 - report: the self-contained HTML report (`diagnose.report.write_report`; imports matplotlib)
 - rerun: the diagnosis on Rerun's time line (`diagnose.rerun.log_diagnosis`; imports rerun)
 """
-from .calibrated import ABSORBED, diagnose_calibrated
+from .calibrated import ABSORBED, Absorption, diagnose_calibrated
 from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, explained_share, has_nested_start,
                          neutral_start)
 from .diagnosis import Diagnosis, diagnose_as_filed
@@ -26,7 +26,7 @@ from .subsystems import equation_errors, regressor_correlations, subsystem_split
 from .verdict import decide
 from .where import MIN_REGION_FRACTION, operating_regions, regions, whiteness
 
-__all__ = ["ABSORBED", "MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",
+__all__ = ["ABSORBED", "Absorption", "MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",
            "best_of_starts", "candidate_starts", "decide", "diagnose", "diagnose_as_filed", "diagnose_calibrated",
            "equation_errors", "explained_share", "fit_candidate", "further_starts", "has_nested_start", "neutral_start",
            "operating_regions", "regions", "regressor_correlations", "subsystem_split", "whiteness"]

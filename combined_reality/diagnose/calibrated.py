@@ -39,7 +39,7 @@ on VALID; the nominal calibration is one of them (`none`), not the ground the ot
 
 Two effects of the vocabulary are quantities the calibration estimates under another name
 (ABSORBED: the moving mass, the valve's overlap): they are not fitted, and a mis-set mass or
-overlap says so. A form of one that the calibrated quantities cannot take (UNABSORBED_FORMS: a
+overlap says so. A form of one that the calibrated quantities cannot take (Absorption.form: a
 valve that opens to the full command beyond its overlap, a hard dead zone) is screened and
 calibrated like any candidate, in that form. Its screen may not see it: with the motion measured,
 the calibrated overlap imitates it. So where no candidate explains the gap and the calibration
@@ -55,7 +55,7 @@ import copy
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -77,19 +77,27 @@ from .subsystems import regressor_correlations, subsystem_split
 from .verdict import decide, pair_need, ranked
 from .where import regions, whiteness
 
-__all__ = ["ABSORBED", "HANDED_OVER", "UNABSORBED_FORMS", "Screen", "WholeFit", "absorbed_note",
+__all__ = ["ABSORBED", "Absorption", "Screen", "WholeFit", "absorbed_note",
            "calibrated_candidates", "choose", "confounded", "diagnose_calibrated", "handed_over", "nested",
            "trade_offs", "unfinished"]
 
-# effects that are a calibrated quantity under another name: not fitted beside the calibration
-ABSORBED = {"mass": ("mass",), "valve_deadzone": ("overlap_extend", "overlap_retract")}
-# the shape values of an absorbed effect's form that the calibrated quantities cannot take: a gate
-# opens to the full command beyond its overlap, the calibrated characteristic from zero there (a
-# reference-plant hard dead zone of 0.004 left the calibrated model at 1.50 x the noise on VALID)
-UNABSORBED_FORMS = {"valve_deadzone": {"gate": 1.0}}
-# the parameter of that form that takes over what the calibration absorbed (handed_over): a gate's
-# overlap, from the calibrated characteristic's overlaps
-HANDED_OVER = {"valve_deadzone": "overlap"}
+@dataclass(frozen=True)
+class Absorption:
+    """An effect that is a calibrated quantity under another name: not fitted beside the
+    calibration. `form`: the shape values of its form that the calibrated quantities cannot take
+    (screened as a candidate in that form); `handed_to`: that form's parameter that takes over
+    what the calibration absorbed (handed_over)."""
+
+    quantities: tuple[str, ...]
+    form: Mapping[str, float] | None = None
+    handed_to: str | None = None
+
+
+# a gate opens to the full command beyond its overlap, the calibrated characteristic from zero there
+# (a reference-plant hard dead zone of 0.004 left the calibrated model at 1.50 x the noise on
+# VALID); the gate's overlap takes over the calibrated characteristic's overlaps
+ABSORBED = {"mass": Absorption(("mass",)),
+            "valve_deadzone": Absorption(("overlap_extend", "overlap_retract"), {"gate": 1.0}, "overlap")}
 SCREEN_ITER = 10  # Gauss-Newton iterations of a screen at most
 # a screen must remove this share of its stage's cost to be calibrated as a whole: a stage's
 # residual near the noise says little of a weak effect (a project-plant leak of 2.3e-5 of the
@@ -113,8 +121,7 @@ STRONG_CORRELATION = 0.95  # |r| above which an effect parameter and a calibrate
 
 
 def absorbed_note(name: str) -> str:
-    qs = ABSORBED[name]
-    form = UNABSORBED_FORMS.get(name)
+    qs, form = ABSORBED[name].quantities, ABSORBED[name].form
     return (f"{EFFECTS[name].description}: the calibration estimates this itself ({', '.join(qs)}); "
             "a departure shows as a mis-set quantity, not as an effect" + (
                 f" (but for its form {', '.join(f'{k} = {v:g}' for k, v in form.items())}, screened as a candidate)"
@@ -123,8 +130,8 @@ def absorbed_note(name: str) -> str:
 
 def calibrated_starts(name: str) -> list[Effect]:
     """A candidate's starts beside the calibration (candidate_starts); an absorbed effect's only in
-    the form the calibration cannot take (UNABSORBED_FORMS), at its neutral value first."""
-    form = UNABSORBED_FORMS.get(name)
+    the form the calibration cannot take (Absorption.form), at its neutral value first."""
+    form = ABSORBED[name].form if name in ABSORBED else None
     starts = candidate_starts(name)
     if form is None:
         return starts
@@ -134,7 +141,7 @@ def calibrated_starts(name: str) -> list[Effect]:
 def screened_names(names: Iterable[str]) -> list[str]:
     """The candidates screened beside the calibration: all but the absorbed ones, whose forms that
     the calibration cannot take are screened all the same."""
-    return [n for n in names if n not in ABSORBED or n in UNABSORBED_FORMS]
+    return [n for n in names if n not in ABSORBED or ABSORBED[n].form]
 
 
 @dataclass
@@ -339,10 +346,10 @@ def nested(w: WholeFit, cyl: Cylinder, runs: Sequence[Run], nominal: IdentifyRes
 
 def handed_over(name: str, nominal: IdentifyResult) -> tuple[Cylinder, np.ndarray | None, tuple[Effect, ...]] | None:
     """An absorbed effect's unabsorbed form started from the nominal calibration with what that
-    calibration absorbed handed to it (HANDED_OVER): a gate's overlap at the larger of the
+    calibration absorbed handed to it (Absorption.handed_to): a gate's overlap at the larger of the
     calibrated overlaps, the characteristic's overlaps lowered by as much (to zero). None where
     the calibration absorbed nothing (no overlap)."""
-    quantities, param = ABSORBED[name], HANDED_OVER[name]
+    quantities, param = ABSORBED[name].quantities, ABSORBED[name].handed_to
     values = {q: nominal.cylinder.value(q) for q in quantities}
     d = max(values.values())
     if not d > 0:
@@ -735,11 +742,11 @@ def _score_handed_over(cyl: Cylinder, runs: Sequence[Run], valid: Run, screens: 
     model at 1.44 x, 1.09 x with the overlap handed to the gate)."""
     if nom.sigma <= CalibrateOptions.misfit:
         return
-    for name in HANDED_OVER:
+    for name in (n for n, a in ABSORBED.items() if a.handed_to):
         start = handed_over(name, nom.base) if name in opts.candidates else None
         if start is None:
             continue
-        form = ", ".join(f"{k} = {v:g}" for k, v in UNABSORBED_FORMS[name].items())
+        form = ", ".join(f"{k} = {v:g}" for k, v in ABSORBED[name].form.items())
         say(f"calibrating the whole model with {name} in the form the calibration cannot take ({form}), what it "
             "absorbed handed over ...")
         w = fits.get(name) or WholeFit()  # a chosen screen's fit keeps its starts, the lowest cost kept
@@ -911,7 +918,7 @@ def _calibration_doc(file_cyl: Cylinder, nominal, found: dict, fits: dict, chose
                     "given_up": nominal.result.solver["status"] == "above_reference"},
         "screens": [s.to_json() for s in found["screens"]],
         "calibrated_with": chosen,
-        "absorbed": [{"effect": n, "quantities": list(ABSORBED[n]), "note": t} for n, t in found["absorbed"].items()],
+        "absorbed": [{"effect": n, "quantities": list(ABSORBED[n].quantities), "note": t} for n, t in found["absorbed"].items()],
         "confounded": confounds,
         "wall_s": round(nominal.wall_s, 3), "steps_s": found["wall_s"],
     }
