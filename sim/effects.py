@@ -514,7 +514,8 @@ class SupplyDroop(Effect):
     the square root of the pressure drop and chokes below the critical ratio, so a small
     draw sags the supply much less, and a large one much more, than a linear resistance
     would. The linear resistance this replaces (revision 1) left a reference-plant supply line
-    at 18.9 x the noise on VALID and a reservoir refilled through an orifice at 34.6 x.
+    at 18.9 x the noise on VALID and a reservoir refilled through an orifice at 34.6 x (this
+    law: 5.37 and 1.18).
     droop = 0 is the nominal plant exactly.
     """
 
