@@ -37,7 +37,7 @@ import casadi as ca
 import numpy as np
 
 from .extension import Effect, ParamInfo, make_from, parse_spec, seal_friction_reference
-from .flow import KAPPA, R_AIR, choked_flow, flow_function, mass_flow
+from .flow import KAPPA, R_AIR, R_LAM, choked_flow, flow_function, mass_flow
 
 __all__ = ["EFFECTS", "Effect", "ParamInfo", "make_effect", "parse_effect_spec", "seal_friction_reference",
            "FRICTION_CHANGES", "FrictionChange", "make_friction_change", "Stiction", "FrictionAsymmetry", "FrictionPosition", "FrictionDynamics", "Mass", "ValveDeadzone",
@@ -505,8 +505,13 @@ class SupplyDroop(Effect):
     the valve draws. The relative sag s of the valve's supply pressure is a state:
 
         ps_valve = ps (1 - s)
-        ds/dt = droop / tau * (mdot_supply - mdot_line(s)) / mdot_ref,   mdot_ref = C ps rho0 sqrt(T0/Ts)
-        mdot_line(s) = mdot_ref (1 - droop) phi(1 - s) / phi(1 - droop)
+        ds/dt = (droop mdot_supply / mdot_ref - (1 - droop) k phi(1 - s)) / tau,   k = droop / phi(1 - droop)
+        mdot_ref = C ps rho0 sqrt(T0/Ts)
+
+    (the line's flow is mdot_ref (1 - droop) phi(1 - s) / phi(1 - droop); phi is linear in its
+    laminar end, so k is a constant for droop below 1 - R_LAM, droop = 0 included: there the sag
+    relaxes to zero with tau, as it must, or a fit's node states would make it a free supply
+    pressure of every shooting interval)
 
     droop is the relative sag at the valve's full-open choked draw, steady (s = droop there,
     tested); tau is the line's time constant (at the start of a full draw the sag grows at
@@ -522,7 +527,7 @@ class SupplyDroop(Effect):
     name: ClassVar[str] = "supply_droop"
     subsystem: ClassVar[str] = "pneumatic"
     description: ClassVar[str] = "supply pressure sags while air is drawn"
-    REVISION: ClassVar[int] = 2
+    REVISION: ClassVar[int] = 3
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "droop": ParamInfo("1", 0.0, 0.8, "relative supply sag at the valve's full-open choked draw"),
         "tau": ParamInfo("s", 1e-3, 5.0, "time constant of the supply line and its volume"),
@@ -531,9 +536,6 @@ class SupplyDroop(Effect):
     NEUTRAL: ClassVar[dict[str, float]] = {"droop": 0.0}
     STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"droop": (0.003, 0.3), "tau": (0.01, 0.2)}
     SHAPE: ClassVar[frozenset[str]] = frozenset({"tau"})
-    # the line's conductance follows from the droop; below this droop it is held (the
-    # state's rate vanishes with the droop itself)
-    DROOP_FLOOR: ClassVar[float] = 1e-6
     droop: float = 0.1
     tau: float = 0.05
 
@@ -543,8 +545,10 @@ class SupplyDroop(Effect):
     def on_flows(self, sig, q, s) -> None:
         mdot_ref = choked_flow(sig.C, sig.par["supply_pressure"], sig.T)
         d = q["droop"]
-        line = (1 - d) * flow_function(1 - s["sag"], sig.b) / flow_function(1 - ca.fmax(d, self.DROOP_FLOOR), sig.b)
-        sig.deriv[self.key("sag")] = d / q["tau"] * (sig.mdot_supply / mdot_ref - line)
+        dk = ca.fmax(d, 1 - R_LAM)  # k is the same below the laminar end's droop
+        k = dk / flow_function(1 - dk, sig.b)
+        line = (1 - d) * k * flow_function(1 - s["sag"], sig.b)
+        sig.deriv[self.key("sag")] = (d * sig.mdot_supply / mdot_ref - line) / q["tau"]
 
 
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (

@@ -412,6 +412,24 @@ def test_supply_droop_sags_while_drawing(heavy_a):
     assert 0.005 < quarter["supply_droop.sag"][50] < 0.025
 
 
+@pytest.mark.parametrize("droop", [0.0, 1e-9, 0.003])
+def test_a_sag_relaxes_with_tau_however_small_the_droop(heavy_a, droop):
+    """A sag away from its balance relaxes to it with the time constant tau even at droop 0:
+    a fit's node states cannot make the sag a free supply pressure of each shooting interval."""
+    plant = build_plant("command", [SupplyDroop(droop=droop, tau=0.02)])
+    sags = {}
+    for s0 in (0.004, 0.05):
+        state0 = plant.initial_state(heavy_a, 0.05, 3e5, 3e5)
+        state0[plant.state_names.index("supply_droop.sag")] = s0
+        sags[s0] = replay(heavy_a, [SupplyDroop(droop=droop, tau=0.02)], np.zeros(61), state0=state0)["supply_droop.sag"]
+    # within the laminar end of the line's law (a drop below 0.5 %): exponentially, 20 ms = tau
+    assert sags[0.004][20] == pytest.approx(0.004 * np.exp(-1), rel=0.02)
+    assert sags[0.004][60] == pytest.approx(0.004 * np.exp(-3), rel=0.05)
+    # a deeper sag refills more slowly than that: the restriction's flow grows with the root
+    # of the drop, not in proportion to it
+    assert 0.05 * np.exp(-1) < sags[0.05][20] < 0.05 and sags[0.05][60] < sags[0.05][20]
+
+
 def test_friction_asymmetry_of_a_seal_pressed_from_one_side(cyl_a):
     """a_side: the pressure term depends on which chamber is pressurised, not on the direction:
     kp (1 + a) with the cap side above the rod side, kp (1 - a) the other way; friction
