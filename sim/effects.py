@@ -9,8 +9,10 @@ vocabulary; docs/effects.md gives every equation, parameter and realistic streng
 Conventions shared by all effects:
 - NEUTRAL holds parameter values at which the effect vanishes exactly: the plant then
   computes the nominal trajectory to rounding (states an effect adds stay at zero, or
-  never feed back). heat_transfer's (h = 0) lies just below its identification bound
-  (see there).
+  never feed back). A state that feeds back also relaxes to zero there: a fit's node states
+  start it anywhere, and one that held its value would be a free input of every shooting
+  interval (supply_droop's sag). heat_transfer's (h = 0) lies just below its identification
+  bound (see there).
 - Defaults are the identification start of a candidate: weak to medium values from which
   the fit converges both to a medium truth and to the neutral value.
 - STRENGTH maps every drawn parameter to a realistic (weak, strong) range. Weak is "barely
