@@ -399,15 +399,12 @@ class Leakage(Effect):
         "orifice_rod": ParamInfo("m^3/(s Pa)", 0.0, 1e-7, "sonic conductance from the rod-end chamber to the "
                                                            "atmosphere (a worn rod seal, a loose fitting)"),
     }
-    NEUTRAL: ClassVar[dict[str, float]] = {"conductance": 0.0, "laminar": 0.0, "vent_cap": 0.0, "vent_rod": 0.0,
-                                           "orifice_cap": 0.0, "orifice_rod": 0.0}
+    NEUTRAL: ClassVar[dict[str, float]] = dict.fromkeys(PARAMS, 0.0)  # every path closed
     # relative to the valve: weak 7e-6 Cmax, strong 2 % of Cmax (a worn seal, litres per minute)
     STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"conductance": (7e-6, 0.02)}
-    UNDRAWN: ClassVar[dict[str, str]] = {n: "conductance" for n in ("laminar", "vent_cap", "vent_rod", "orifice_cap",
-                                                                     "orifice_rod")}
-    SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {
-        n: ("valve_conductance", "valve_conductance")
-        for n in ("conductance", "laminar", "vent_cap", "vent_rod", "orifice_cap", "orifice_rod")}
+    UNDRAWN: ClassVar[dict[str, str]] = {n: "conductance" for n in PARAMS if n != "conductance"}
+    SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = dict.fromkeys(
+        PARAMS, ("valve_conductance", "valve_conductance"))
     conductance: float = 2e-10
     # truths (random, typical) leak through an orifice; a candidate fits every path
     laminar: float = 0.0
