@@ -52,29 +52,40 @@ __all__ = ["EFFECTS", "Effect", "ParamInfo", "make_effect", "parse_effect_spec",
 class Stiction(Effect):
     """Breakaway friction above the Coulomb level at low speed (Stribeck curve).
 
-    Ff += Fs_excess * exp(-(v / v_stribeck)^2) * tanh(v / v_smooth)
+    Ff += Fs_excess * exp(-|v / v_stribeck|^exponent) * tanh(v / v_smooth)
+
+    exponent 2 is the Gaussian decay (the default, and every drawn truth), 1 the exponential;
+    the published seals lie between 0.5 and 2 (Armstrong-Helouvry's generalised Stribeck
+    curve). |v / v_stribeck|^exponent is computed from (v / v_stribeck)^2 + 1e-12 so that
+    its derivatives stay finite at rest for an exponent below 1.
     """
 
     name: ClassVar[str] = "stiction"
     subsystem: ClassVar[str] = "mechanical"
     FRICTION: ClassVar[str | None] = "reshapes"
     description: ClassVar[str] = "breakaway friction above the Coulomb level at low speed"
+    REVISION: ClassVar[int] = 2
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "Fs_excess": ParamInfo("N", 0.0, 1e4, "static minus Coulomb friction"),
         "v_stribeck": ParamInfo("m/s", 1e-4, 1.0, "Stribeck velocity"),
+        "exponent": ParamInfo("1", 0.5, 2.5, "exponent of the Stribeck decay (2: Gaussian, 1: exponential)"),
     }
     NEUTRAL: ClassVar[dict[str, float]] = {"Fs_excess": 0.0}
-    # weak: 0.45 N; strong: static friction twice the seal level
-    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"Fs_excess": (0.45, 1.0), "v_stribeck": (0.003, 0.02)}
-    SHAPE: ClassVar[frozenset[str]] = frozenset({"v_stribeck"})
+    # weak: 0.45 N; strong: static friction twice the seal level; truths are Gaussian
+    STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"Fs_excess": (0.45, 1.0), "v_stribeck": (0.003, 0.02),
+                                                           "exponent": (2.0, 2.0)}
+    SHAPE: ClassVar[frozenset[str]] = frozenset({"v_stribeck", "exponent"})
+    FREED_LAST: ClassVar[frozenset[str]] = frozenset({"exponent"})
     SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {"Fs_excess": (None, "seal_friction")}
     STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"Fs_excess": 2.0, "v_stribeck": 0.004},)
     Fs_excess: float = 10.0
     v_stribeck: float = 0.01
+    exponent: float = 2.0
 
     def on_friction(self, sig, q, s) -> None:
         v = sig.v
-        sig.Ff = sig.Ff + q["Fs_excess"] * ca.exp(-((v / q["v_stribeck"]) ** 2)) * ca.tanh(v / sig.par["v_smooth"])
+        decay = ca.exp(-(((v / q["v_stribeck"]) ** 2 + 1e-12) ** (0.5 * q["exponent"])))
+        sig.Ff = sig.Ff + q["Fs_excess"] * decay * ca.tanh(v / sig.par["v_smooth"])
 
 
 @dataclass(frozen=True)

@@ -252,8 +252,36 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     `initial` overrides start values, `nodes` warm-starts the node states (another model's
     solution on the same runs), `prior` adds prior knowledge of the parameters. A fit that ends
     above the noise is restarted once (options.restart_misfit), and the better one returned;
-    a parameter the drive cannot estimate is refused (DriveError)."""
+    a parameter the drive cannot estimate is refused (DriveError). An effect's FREED_LAST
+    parameters are held at their start until the rest has converged, then freed from there."""
     check_drive(options.drive, options.estimate)
+    last = tuple(f"{e.name}.{n}" for e in effects for n in e.FREED_LAST if f"{e.name}.{n}" in options.estimate)
+    if not last:
+        return _identify_restarted(cyl, runs, options, effects, initial, nodes, progress, prior)
+    t_start = time.perf_counter()
+    held = _identify_restarted(cyl, runs, replace(options, estimate=tuple(n for n in options.estimate if n not in last)),
+                               effects, initial, nodes, progress, prior)
+    if progress:
+        progress(f"  residual {held.solver['residual_sigma']:.2f} x the noise with {', '.join(last)} held: "
+                 "freed from there")
+    left_s = options.time_limit_s - (time.perf_counter() - t_start)
+    freed = _identify_restarted(cyl, runs, replace(options, time_limit_s=left_s), effects,
+                                {**(initial or {}), **{n: e.value for n, e in held.params.items()}},
+                                held.nodes, progress, prior)
+    for n, e in freed.params.items():
+        if n in held.params:
+            e.initial = held.params[n].initial
+    freed.solver = {**freed.solver, "iterations": held.solver["iterations"] + freed.solver["iterations"],
+                    "wall_s": round(time.perf_counter() - t_start, 4),
+                    "held_first": {"parameters": list(last), "status": held.solver["status"],
+                                   "residual_sigma": held.solver["residual_sigma"]}}
+    return freed
+
+
+def _identify_restarted(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions, effects: Sequence[Effect],
+                        initial: Mapping[str, float] | None, nodes: np.ndarray | None,
+                        progress: Callable[[str], None] | None, prior: Sequence[PriorRow]) -> IdentifyResult:
+    """One fit, restarted once from where it ended if it ends above the noise."""
     t_start = time.perf_counter()
     first = _identify_once(cyl, runs, options, effects, initial, nodes, progress, prior)
     sol = first.solver
