@@ -325,14 +325,16 @@ class ValveDelay(Effect):
     The state is the lagged part y = w u_lag, so that it stays exactly zero at w = 0, the
     neutral value:
 
-        r = (w u - y) / tau,    dy/dt = r / (1 + t_slew |r|),    u_valve = (1 - w) u + y
+        r = (w u - y) / tau,    dy/dt = r (1 - exp(-t_slew |r|)) / (t_slew |r|),    u_valve = (1 - w) u + y
 
     w = 1 is a pure lag (the default), w < 1 a lead-lag, w = 2 the all-pass
     (1 - s tau) / (1 + s tau): the first-order Pade approximation of a dead time 2 tau (its
     gain is 1 at every frequency for w in [0, 2]; at low frequencies every w delays by w tau).
     t_slew = 0 is the linear lag; t_slew > 0 a rate-limited spool (with tau small: it moves at
-    its top speed until it nearly reaches the command). r / (1 + t_slew |r|) keeps a gradient
-    in t_slew at 0, so a fit can leave the linear lag.
+    its top speed until it nearly reaches the command). The factor (1 - exp(-z)) / z of
+    z = t_slew |r| is 1 - z / 2 near 0, so t_slew keeps a gradient at 0 and a fit can leave the
+    linear lag; at large z the speed reaches 1 / t_slew exponentially (revision 5's
+    1 / (1 + z) only as 1 / z, so its spool crept into the command).
 
     tau -> 0 would be singular; below about 1e-4 s the 1 ms step (refined to 31 us at
     most) no longer integrates the lag accurately, hence the lower bound.
@@ -341,7 +343,7 @@ class ValveDelay(Effect):
     name: ClassVar[str] = "valve_delay"
     subsystem: ClassVar[str] = "pneumatic"
     description: ClassVar[str] = "the chambers see the valve command late"
-    REVISION: ClassVar[int] = 5
+    REVISION: ClassVar[int] = 6
     PARAMS: ClassVar[dict[str, ParamInfo]] = {
         "tau": ParamInfo("s", 1e-4, 0.2, "time constant of the valve opening"),
         "share": ParamInfo("1", 0.0, 2.0, "share of the opening that lags (1: a pure lag; 2: a dead time 2 tau)"),
@@ -369,7 +371,10 @@ class ValveDelay(Effect):
     def on_command(self, sig, q, s) -> None:
         w, y = q["share"], s["u_eff"]
         r = (w * sig.u - y) / q["tau"]
-        sig.deriv[self.key("u_eff")] = r / (1 + q["t_slew"] * ca.fabs(r))
+        z = q["t_slew"] * ca.fabs(r)
+        # (1 - exp(-z)) / z, its series below 1e-6 (where the quotient loses its digits)
+        speed_share = ca.if_else(z < 1e-6, 1 - 0.5 * z, -ca.expm1(-z) / ca.fmax(z, 1e-6))
+        sig.deriv[self.key("u_eff")] = r * speed_share
         sig.u = sig.u * (1 - w) + y
 
 
