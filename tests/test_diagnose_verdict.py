@@ -194,6 +194,23 @@ def test_two_effects_that_together_close_the_gap_are_the_verdict():
     assert decide(_val(3.0), best, pair, DiagnoseOptions())[0] == "unexplained"
 
 
+def test_a_pair_whose_partner_ends_at_its_neutral_value_is_the_first_effect():
+    """stiction fitted alone stops at 42 % of the gap; with mass it reaches 98 %, the mass at
+    -7.5e-5 +- 4.7e-5: no mass, a better stiction fit."""
+    best = _cand("stiction", 7.6)  # 42 % of a 10 x noise gap
+    pair = _cand("stiction+mass", 1.5)
+    pair.params, pair.std = {"stiction.Fs_excess": 14.2, "mass.delta": -7.5e-5}, {"stiction.Fs_excess": 0.05,
+                                                                                 "mass.delta": 4.7e-5}
+    verdict, note = decide(_val(10.0), best, pair, DiagnoseOptions())
+    assert verdict == "stiction"
+    assert "neutral value" in note and "99%" in note  # (100 - 1.5^2) / (100 - 1)
+    # the same pair with a mass that departs (5 std) is two effects
+    pair.params["mass.delta"] = -2.4e-4
+    assert decide(_val(10.0), best, pair, DiagnoseOptions())[0] == "stiction+mass"
+    # and without the pair the single effect alone explains too little
+    assert decide(_val(10.0), best, None, DiagnoseOptions())[0] == "unexplained"
+
+
 def test_no_significant_candidate_is_none_when_the_nominal_model_fits_and_unexplained_when_it_does_not():
     assert decide(_val(1.1), None, None, DiagnoseOptions()) == ("none", "")
     verdict, note = decide(_val(3.0), None, None, DiagnoseOptions())
