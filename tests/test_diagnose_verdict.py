@@ -527,7 +527,8 @@ def test_on_a_gap_near_the_noise_an_effect_counts_only_where_its_parameters_leav
     candidate on a real gap, or one whose parameter lies far from its neutral value, counts."""
     from types import SimpleNamespace
 
-    from combined_reality.diagnose.calibrated import _calibrated_verdict, _every_candidate, departure_z, shows_itself
+    from combined_reality.diagnose.calibrated import _calibrated_verdict, _every_candidate, shows_itself
+    from combined_reality.diagnose.candidates import departure_z
 
     opts = DiagnoseOptions(calibrate=True)
     base_val = _val(1.225)

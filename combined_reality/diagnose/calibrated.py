@@ -68,8 +68,8 @@ from ..calibrate import (CALIBRATED, DATA_STARTS, MECHANICAL, PNEUMATIC, Calibra
 from ..files import Run
 from ..identify import IdentificationError, IdentifyResult, Validation, validate, validation_segments
 from ..parallel import run_jobs, workers_here
-from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, closes_gap, gain_over, has_nested_start,
-                         score_candidate)
+from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, closes_gap, departure_z, gain_over,
+                         has_nested_start, score_candidate)
 from .diagnosis import Diagnosis, mis_set_quantities
 from .fits import validate_candidate
 from .options import DiagnoseOptions
@@ -500,19 +500,6 @@ def by_train(c: Candidate, nominal: IdentifyResult, opts: DiagnoseOptions, shrin
     b, r = nominal.solver["residual_sigma"], cal["residual_sigma"]
     explains = (b * b - r * r) / (b * b - 1.0) if b > 1.0 else 0.0
     return b >= opts.train_gap and explains >= opts.train_explains and (shrink or c.shrink_all > 0)
-
-
-def departure_z(c: Candidate) -> float:
-    """How far the candidate's effect lies from the nominal plant: the largest |value - neutral| /
-    std over its effects' NEUTRAL parameters (nan where no such parameter has a finite std)."""
-    zs = []
-    for name in c.effect.split("+"):
-        for k, neutral in EFFECTS[name].NEUTRAL.items():
-            key = k if k in c.params else f"{name}.{k}"
-            v, sd = c.params.get(key), c.std.get(key)
-            if v is not None and sd is not None and math.isfinite(sd) and sd > 0:
-                zs.append(abs(v - neutral) / sd)
-    return max(zs, default=math.nan)
 
 
 def shows_itself(c: Candidate, base_val: Validation, opts: DiagnoseOptions) -> bool:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -149,3 +150,17 @@ def closes_gap(c: Candidate, base: Validation, base_rmse_x: float, opts: Diagnos
 def near_noise(c: Candidate, opts: DiagnoseOptions) -> bool:
     """A scored candidate that is significant and leaves VALID within `closed_gap` x the noise."""
     return bool(c.significant and c.validation.normalized_rms() < opts.closed_gap)
+
+
+def departure_z(c: Candidate, effects: Sequence[str] | None = None) -> float:
+    """How far the candidate's effect lies from the nominal plant: the largest |value - neutral| /
+    std over its effects' NEUTRAL parameters (nan where no such parameter has a finite std);
+    `effects`: only these of a pair's."""
+    zs = []
+    for name in effects if effects is not None else c.effect.split("+"):
+        for k, neutral in EFFECTS[name].NEUTRAL.items():
+            key = k if k in c.params else f"{name}.{k}"
+            v, sd = c.params.get(key), c.std.get(key)
+            if v is not None and sd is not None and math.isfinite(sd) and sd > 0:
+                zs.append(abs(v - neutral) / sd)
+    return max(zs, default=math.nan)

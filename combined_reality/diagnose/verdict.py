@@ -5,10 +5,9 @@ from __future__ import annotations
 import math
 from typing import Callable
 
-from sim.effects import EFFECTS
-
 from ..identify import IdentifyOptions, Validation
-from .candidates import NESTED_START, Candidate, NominalFit, explained_share, gain_over, neutral_start, score_candidate
+from .candidates import (NESTED_START, Candidate, NominalFit, departure_z, explained_share, gain_over, neutral_start,
+                         score_candidate)
 from .fits import fit_candidate
 from .options import DiagnoseOptions
 
@@ -32,11 +31,7 @@ PARTNER_ABSENT_STD = 2.0
 
 def partner_absent(pair: Candidate) -> bool:
     """Whether the pair's second effect ended at its neutral value (PARTNER_ABSENT_STD)."""
-    name = pair.effect.split("+")[-1]
-    neutral = [(f"{name}.{k}", v) for k, v in EFFECTS[name].NEUTRAL.items()] if name in EFFECTS else []
-    return bool(neutral) and all(
-        k in pair.params and math.isfinite(pair.std.get(k, math.nan))
-        and abs(pair.params[k] - v) <= PARTNER_ABSENT_STD * pair.std[k] for k, v in neutral)
+    return departure_z(pair, pair.effect.split("+")[1:]) <= PARTNER_ABSENT_STD
 
 
 def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
