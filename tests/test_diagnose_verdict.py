@@ -196,18 +196,27 @@ def test_two_effects_that_together_close_the_gap_are_the_verdict():
 
 def test_a_pair_whose_partner_ends_at_its_neutral_value_is_the_first_effect():
     """stiction fitted alone stops at 42 % of the gap; with mass it reaches 98 %, the mass at
-    -7.5e-5 +- 4.7e-5: no mass, a better stiction fit."""
-    best = _cand("stiction", 7.6)  # 42 % of a 10 x noise gap
+    -7.5e-5 +- 4.7e-5: no mass, a better stiction fit, which takes stiction's place."""
+    from combined_reality.diagnose.verdict import fold_absent_partner
+
+    best, other = _cand("stiction", 7.6), _cand("mass", 9.8)  # 42 % of a 10 x noise gap alone
     pair = _cand("stiction+mass", 1.5)
-    pair.params, pair.std = {"stiction.Fs_excess": 14.2, "mass.delta": -7.5e-5}, {"stiction.Fs_excess": 0.05,
-                                                                                 "mass.delta": 4.7e-5}
-    verdict, note = decide(_val(10.0), best, pair, DiagnoseOptions())
-    assert verdict == "stiction"
-    assert "neutral value" in note and "99%" in note  # (100 - 1.5^2) / (100 - 1)
+    pair.params = {"stiction.Fs_excess": 14.2, "mass.delta": -7.5e-5}
+    pair.std = {"stiction.Fs_excess": 0.05, "mass.delta": 4.7e-5}
+    ranking, left, note = fold_absent_partner([best, other], pair)
+    assert left is None and [c.effect for c in ranking] == ["stiction", "mass"] and ranking[1] is other
+    assert ranking[0].params == {"Fs_excess": 14.2} and ranking[0].std == {"Fs_excess": 0.05}
+    assert ranking[0].validation is pair.validation and "neutral value" in note
+    assert decide(_val(10.0), ranking[0], left, DiagnoseOptions()) == ("stiction", "")
     # the same pair with a mass that departs (5 std) is two effects
     pair.params["mass.delta"] = -2.4e-4
-    assert decide(_val(10.0), best, pair, DiagnoseOptions())[0] == "stiction+mass"
-    # and without the pair the single effect alone explains too little
+    ranking, left, note = fold_absent_partner([best, other], pair)
+    assert left is pair and ranking[0] is best and note == ""
+    assert decide(_val(10.0), best, left, DiagnoseOptions())[0] == "stiction+mass"
+    # a pair that is not significantly better is not folded, and the single effect alone explains
+    # too little
+    pair.params["mass.delta"], pair.significant = -7.5e-5, False
+    assert fold_absent_partner([best, other], pair)[1] is pair
     assert decide(_val(10.0), best, None, DiagnoseOptions())[0] == "unexplained"
 
 

@@ -74,7 +74,7 @@ from .diagnosis import Diagnosis, mis_set_quantities
 from .fits import validate_candidate
 from .options import DiagnoseOptions
 from .subsystems import regressor_correlations, subsystem_split
-from .verdict import decide, pair_need, ranked
+from .verdict import decide, fold_absent_partner, pair_need, ranked
 from .where import regions, whiteness
 
 __all__ = ["ABSORBED", "Absorption", "Screen", "WholeFit", "absorbed_note",
@@ -569,10 +569,14 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     cands = _every_candidate(opts, found, screens, chosen, scored, closer, why, nom.base, nom.val, nom.rmse)
     ranking, best = ranked(cands, say)
 
-    pair = None
+    pair, folded = None, ""
     if opts.pair and best is not None:
         pair = _calibrated_pair(cyl, runs, valid, ranking, nom.fitting, nom.val, nom.rmse, segments, opts, say, fits)
+        ranking, pair, folded = fold_absent_partner(ranking, pair)
+        best = ranking[0]
     verdict, verdict_note = _calibrated_verdict(nom, best, pair, fits, opts)
+    if folded and verdict == best.effect:
+        verdict_note = verdict_note or folded
     if verdict_note:
         say(f"  verdict {verdict}: {verdict_note}")
     shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None

@@ -2,6 +2,7 @@
 pair, and the rules that name an effect, a pair, `none` or `unexplained`."""
 from __future__ import annotations
 
+import copy
 import math
 from typing import Callable
 
@@ -34,6 +35,22 @@ def partner_absent(pair: Candidate) -> bool:
     return departure_z(pair, pair.effect.split("+")[1:]) <= PARTNER_ABSENT_STD
 
 
+def fold_absent_partner(ranking: list[Candidate], pair: Candidate | None) -> tuple[list[Candidate], Candidate | None, str]:
+    """A significant pair whose partner ended at its neutral value (partner_absent) is its first
+    effect fitted better: that fit, as the first effect, takes the first effect's place in the
+    ranking, and there is no pair. The ranking, the pair left, and a note where it was folded."""
+    if pair is None or not pair.significant or pair.validation is None or not partner_absent(pair):
+        return ranking, pair, ""
+    first, partner = pair.effect.split("+", 1)
+    folded = copy.copy(pair)
+    folded.effect = first
+    folded.params = {k.split(".", 1)[1]: x for k, x in pair.params.items() if k.startswith(first + ".")}
+    folded.std = {k.split(".", 1)[1]: x for k, x in pair.std.items() if k.startswith(first + ".")}
+    note = (f"{first} as fitted together with {partner}, which ends at its neutral value there (within "
+            f"{PARTNER_ABSENT_STD:g} standard deviations): {first}'s fit alone stopped short")
+    return [folded if c.effect == first else c for c in ranking], None, note
+
+
 def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
            opts: DiagnoseOptions) -> tuple[str, str]:
     """The verdict and, where it is not simply the best single effect, why.
@@ -45,8 +62,8 @@ def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
     - the pair `a+b`: it is significantly better than the best single effect, which alone
       leaves a gap above `closed_gap`, and it closes the gap (to `closed_gap`) or together they
       explain `explained` of the gap and the second effect `pair_rest` of what the first leaves;
-      a pair whose second effect ended at its neutral value (partner_absent) is the first
-      effect, which then counts with what the pair explains;
+      (a pair whose second effect ended at its neutral value is folded into the first effect
+      before: fold_absent_partner);
     - `unexplained`: the best candidate (or pair) improves VALID significantly but leaves most
       of a gap that is well above the noise (a weak winner is no diagnosis);
     - otherwise the best single effect."""
@@ -59,14 +76,6 @@ def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
         return "none", ""
     share = explained_share(base, best.validation)
     left = best.validation.normalized_rms()
-    note = ""
-    if pair is not None and pair.significant and left > opts.closed_gap and partner_absent(pair):
-        partner = pair.effect.split("+")[1]
-        share, left = max(share, explained_share(base, pair.validation)), pair.validation.normalized_rms()
-        note = (f"{best.effect} explains {share:.0%} of the gap when fitted together with {partner}, which ends at "
-                f"its neutral value there: the gain is {best.effect}'s own, better fitted (its fit alone stopped "
-                "short)")
-        pair = None
     if pair is not None and pair.significant and left > opts.closed_gap:
         pshare = explained_share(base, pair.validation)
         # the second effect must itself explain most of what the first leaves, not a sliver
@@ -81,7 +90,7 @@ def decide(base: Validation, best: Candidate | None, pair: Candidate | None,
                                f"nominal model misses VALID by {nb:.2f} x the sensor noise over all outputs, "
                                f"{best.effect} by {left:.2f} x): the gap's cause is not in the vocabulary, or "
                                "several effects combine")
-    return best.effect, note
+    return best.effect, ""
 
 
 def best_pair(nominal: NominalFit, train, valid, ranking, base_val, base_rmse, segments, opts,
