@@ -84,7 +84,7 @@ class Effect:
     # shapes a fit holds at their start until the other parameters have converged and frees
     # from there (nested, so the freed fit starts at the held one's optimum): free from the
     # start they wander with the rest (stiction's exponent: 76 iterations to 1.08 x the
-    # noise instead of 15 to 1.00)
+    # noise instead of 16 to 0.999 when held first)
     FREED_LAST: ClassVar[frozenset[str]] = frozenset()
 
     def param_names(self) -> tuple[str, ...]:
