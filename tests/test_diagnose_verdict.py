@@ -197,7 +197,7 @@ def test_two_effects_that_together_close_the_gap_are_the_verdict():
 def test_a_pair_whose_partner_ends_at_its_neutral_value_is_the_first_effect():
     """stiction fitted alone stops at 42 % of the gap; with mass it reaches 98 %, the mass at
     -7.5e-5 +- 4.7e-5: no mass, a better stiction fit, which takes stiction's place."""
-    from combined_reality.diagnose.verdict import fold_absent_partner
+    from combined_reality.diagnose.verdict import fold_absent_partner, with_fold_note
 
     best, other = _cand("stiction", 7.6), _cand("mass", 9.8)  # 42 % of a 10 x noise gap alone
     pair = _cand("stiction+mass", 1.5)
@@ -208,6 +208,11 @@ def test_a_pair_whose_partner_ends_at_its_neutral_value_is_the_first_effect():
     assert ranking[0].params == {"Fs_excess": 14.2} and ranking[0].std == {"Fs_excess": 0.05}
     assert ranking[0].validation is pair.validation and "neutral value" in note
     assert decide(_val(10.0), ranking[0], left, DiagnoseOptions()) == ("stiction", "")
+    # the verdict that names the folded effect says why; another note or verdict keeps its own
+    assert with_fold_note("stiction", "", ranking[0], note) == note
+    assert with_fold_note("stiction", "own", ranking[0], note) == "own"
+    assert with_fold_note("unexplained", "gap", ranking[0], note) == "gap"
+    assert with_fold_note("stiction", "", best, "") == ""
     # the same pair with a mass that departs (5 std) is two effects
     pair.params["mass.delta"] = -2.4e-4
     ranking, left, note = fold_absent_partner([best, other], pair)

@@ -506,3 +506,32 @@ def test_correlations_are_coefficients_or_not_defined():
     assert r[0, 1] == pytest.approx(0.5) and r[0, 0] == r[1, 1] == 1.0
     assert np.isnan(r[0, 2]) and np.isnan(r[2, 0])  # 3 / sqrt(4e-300): beyond 1
     assert np.isnan(r[3]).all() and np.isnan(r[:, 3]).all()  # variance 0: undetermined
+
+
+def test_a_parameter_freed_last_is_freed_from_a_held_fit_that_is_not_restarted(cyl_a, run_a, monkeypatch):
+    """With stiction's exponent freed last, a fit that ends above the noise runs 3 times: held
+    (not restarted: it is only the start of the next), freed from the held values and node
+    states, and the freed fit restarted once with node states afresh."""
+    from combined_reality.identify import offline
+    from sim.effects import Stiction
+
+    calls = []
+
+    def fake_once(cyl, runs, options, effects, initial, nodes, progress, prior):
+        calls.append((options.estimate, options.restart_misfit, dict(initial or {}), nodes))
+        params = {n: offline.Estimate(n, 1.0 + len(calls), 0.1, "", (initial or {}).get(n, 0.5))
+                  for n in options.estimate}
+        return offline.IdentifyResult(params, {}, [], {"status": "converged", "residual_sigma": 4.0,
+                                                       "cost": 10.0 - len(calls), "iterations": 5},
+                                      cyl, tuple(effects), options.drive, nodes=np.full((4, 3), len(calls)))
+
+    monkeypatch.setattr(offline, "_identify_once", fake_once)
+    estimate = ("Fc", "Fv", "kp", "stiction.Fs_excess", "stiction.v_stribeck", "stiction.exponent")
+    res = identify(cyl_a, [run_a], IdentifyOptions(estimate=estimate), effects=[Stiction()])
+    assert len(calls) == 3
+    held, freed, again = calls
+    assert "stiction.exponent" not in held[0] and "stiction.exponent" in freed[0]
+    assert freed[2]["Fc"] == 2.0 and freed[3] is not None and freed[3][0, 0] == 1  # from the held fit
+    assert again[1] is False and again[3] is None  # the restart: node states afresh
+    assert res.solver["held_first"]["parameters"] == ["stiction.exponent"]
+    assert res.solver["restart"]["kept"] == "restart" and res.solver["iterations"] == 15

@@ -74,7 +74,7 @@ from .diagnosis import Diagnosis, mis_set_quantities
 from .fits import validate_candidate
 from .options import DiagnoseOptions
 from .subsystems import regressor_correlations, subsystem_split
-from .verdict import decide, fold_absent_partner, pair_need, ranked
+from .verdict import decide, fold_absent_partner, pair_need, ranked, with_fold_note
 from .where import regions, whiteness
 
 __all__ = ["ABSORBED", "Absorption", "Screen", "WholeFit", "absorbed_note",
@@ -575,8 +575,7 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
         ranking, pair, folded = fold_absent_partner(ranking, pair)
         best = ranking[0]
     verdict, verdict_note = _calibrated_verdict(nom, best, pair, fits, opts)
-    if folded and verdict == best.effect:
-        verdict_note = verdict_note or folded
+    verdict_note = with_fold_note(verdict, verdict_note, best, folded)
     if verdict_note:
         say(f"  verdict {verdict}: {verdict_note}")
     shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None

@@ -39,7 +39,7 @@ from .fits import best_of_starts, fit_first, further_scored, further_starts, val
 from .options import DiagnoseOptions
 from .subsystems import regressor_correlations, subsystem_split
 from .text import fit_caveat
-from .verdict import best_pair, decide, fold_absent_partner, ranked
+from .verdict import best_pair, decide, fold_absent_partner, ranked, with_fold_note
 from .where import regions, whiteness
 
 
@@ -200,8 +200,7 @@ def diagnose_as_filed(cyl: Cylinder, train: Run, valid: Run, options: DiagnoseOp
         ranking, pair, folded = fold_absent_partner(ranking, pair)
         best = ranking[0]
     verdict, verdict_note = decide(base_val, best, pair, opts)
-    if folded and verdict == best.effect:
-        verdict_note = verdict_note or folded
+    verdict_note = with_fold_note(verdict, verdict_note, best, folded)
     if verdict_note:
         say(f"  verdict {verdict}: {verdict_note}")
     shown = pair if pair is not None and verdict == pair.effect else best if verdict != "unexplained" else None

@@ -38,7 +38,10 @@ def partner_absent(pair: Candidate) -> bool:
 def fold_absent_partner(ranking: list[Candidate], pair: Candidate | None) -> tuple[list[Candidate], Candidate | None, str]:
     """A significant pair whose partner ended at its neutral value (partner_absent) is its first
     effect fitted better: that fit, as the first effect, takes the first effect's place in the
-    ranking, and there is no pair. The ranking, the pair left, and a note where it was folded."""
+    ranking, and there is no pair. The ranking, the pair left, and a note where it was folded.
+    The folded candidate keeps the pair's model (effects, cylinder, nodes: the partner at its
+    fitted, neutral value), so that it validates and simulates as fitted; only its name,
+    params and std are the first effect's."""
     if pair is None or not pair.significant or pair.validation is None or not partner_absent(pair):
         return ranking, pair, ""
     first, partner = pair.effect.split("+", 1)
@@ -49,6 +52,12 @@ def fold_absent_partner(ranking: list[Candidate], pair: Candidate | None) -> tup
     note = (f"{first} as fitted together with {partner}, which ends at its neutral value there (within "
             f"{PARTNER_ABSENT_STD:g} standard deviations): {first}'s fit alone stopped short")
     return [folded if c.effect == first else c for c in ranking], None, note
+
+
+def with_fold_note(verdict: str, note: str, best: Candidate, folded: str) -> str:
+    """The verdict's note: the fold's (fold_absent_partner) where the verdict names the folded
+    effect and says nothing else."""
+    return note or folded if folded and verdict == best.effect else note
 
 
 def decide(base: Validation, best: Candidate | None, pair: Candidate | None,

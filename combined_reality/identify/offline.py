@@ -253,13 +253,16 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     solution on the same runs), `prior` adds prior knowledge of the parameters. A fit that ends
     above the noise is restarted once (options.restart_misfit), and the better one returned;
     a parameter the drive cannot estimate is refused (DriveError). An effect's FREED_LAST
-    parameters are held at their start until the rest has converged, then freed from there."""
+    parameters are held at their start until the rest has converged (not restarted), then freed
+    from there (restarted if options.restart_misfit)."""
     check_drive(options.drive, options.estimate)
     last = tuple(f"{e.name}.{n}" for e in effects for n in e.FREED_LAST if f"{e.name}.{n}" in options.estimate)
     if not last:
         return _identify_restarted(cyl, runs, options, effects, initial, nodes, progress, prior)
     t_start = time.perf_counter()
-    held = _identify_restarted(cyl, runs, replace(options, estimate=tuple(n for n in options.estimate if n not in last)),
+    # the held fit is a start for the freed one, which may restart: restarting both could fit 4 times
+    held = _identify_restarted(cyl, runs, replace(options, estimate=tuple(n for n in options.estimate if n not in last),
+                                                  restart_misfit=False),
                                effects, initial, nodes, progress, prior)
     if progress:
         progress(f"  residual {held.solver['residual_sigma']:.2f} x the noise with {', '.join(last)} held: "
