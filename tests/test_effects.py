@@ -572,30 +572,47 @@ def test_static_friction_effects_oppose_motion_everywhere(effect, cyl_a):
 
 
 def test_stiction_decays_with_its_exponent_and_stays_smooth_at_rest(cyl_a):
-    """The Stribeck term is Fs_excess exp(-|v / v_stribeck|^exponent) tanh(v / v_s): Gaussian at
-    exponent 2, exponential at 1; its derivatives stay finite at rest for an exponent below 1."""
+    """The Stribeck term is (Fs_excess + pressure_excess kp |p1 - p2|) exp(-|v / v_stribeck|^exponent)
+    tanh(v / v_s): Gaussian at exponent 2, exponential at 1, growing with the pressure
+    difference; its derivatives stay finite at rest for an exponent below 1."""
     import casadi as ca
 
     plant, nominal = build_plant("pressure", [Stiction()]), build_plant("pressure")
     names, pn = plant.param_names, nominal.parameter_vector(cyl_a)
     x, pressures, v_s = 0.05, [4e5, 3e5], cyl_a.friction.v_smooth
 
-    def params(exponent):
+    def params(exponent, pressure_excess=0.0, tail=0.0):
         p = plant.parameter_vector(cyl_a)
-        for n, value in (("Fs_excess", 8.0), ("v_stribeck", 0.006), ("exponent", exponent)):
+        for n, value in (("Fs_excess", 8.0), ("v_stribeck", 0.006), ("exponent", exponent),
+                         ("pressure_excess", pressure_excess), ("tail", tail)):
             p[names.index(f"stiction.{n}")] = value
         return p
 
-    for exponent in (2.0, 1.0, 0.5):
-        for v in (-0.02, -0.004, 1e-4, 0.003, 0.006, 0.015):
-            excess = float(plant.friction([x, v], pressures, params(exponent))) - float(nominal.friction([x, v], pressures, pn))
-            want = 8.0 * math.exp(-abs(v / 0.006) ** exponent) * math.tanh(v / v_s)
-            assert excess == pytest.approx(want, rel=1e-9, abs=1e-9), (exponent, v)
+    def decay(z, tail):
+        return math.exp(-z) if tail == 0 else (1 + tail * z) ** (-1 / tail)
+
+    pressure_friction = cyl_a.friction.kp * 1e5
+    for exponent, pressure_excess, tail in ((2.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.5, 0.0, 0.0), (2.0, 0.7, 0.0),
+                                            (2.0, 0.0, 1.0), (1.5, 0.0, 1e-4), (2.0, 0.0, 2.0)):
+        for v in (-0.02, -0.004, 1e-4, 0.003, 0.006, 0.015, 0.3):
+            excess = (float(plant.friction([x, v], pressures, params(exponent, pressure_excess, tail)))
+                      - float(nominal.friction([x, v], pressures, pn)))
+            want = ((8.0 + pressure_excess * pressure_friction) * decay(abs(v / 0.006) ** exponent, tail)
+                    * math.tanh(v / v_s))
+            assert excess == pytest.approx(want, rel=1e-8, abs=1e-9), (exponent, pressure_excess, tail, v)
+    # tail 1, exponent 2: Hess and Soom's rational curve
+    assert (float(plant.friction([x, 0.012], pressures, params(2.0, 0.0, 1.0)))
+            - float(nominal.friction([x, 0.012], pressures, pn))) == pytest.approx(
+        8.0 / (1 + 2.0 ** 2) * math.tanh(0.012 / v_s), rel=1e-9)
     # at rest and at exponent 0.5 the force and its derivatives are finite
     s, pr = ca.SX.sym("s", 2), ca.SX.sym("p", len(names))
     F = plant.friction(s, ca.DM(pressures), pr)
     J = ca.Function("J", [s, pr], [ca.jacobian(F, ca.vertcat(s, pr))])
     assert np.all(np.isfinite(np.asarray(J([x, 0.0], params(0.5)))))
+    # and at tail 0 and 1, at rest and moving: the series and the logarithm meet smoothly
+    for tail in (0.0, 1.0):
+        for v in (0.0, 0.005):
+            assert np.all(np.isfinite(np.asarray(J([x, v], params(2.0, 0.5, tail))))), (tail, v)
 
 
 @pytest.mark.parametrize("effect", [FrictionAsymmetry(0.5, -0.5), FrictionPosition(0.8, 1.5, 0.5, 0.05),
@@ -710,12 +727,40 @@ def test_stiction_candidate_finds_an_exponential_decay_from_its_defaults(cyl_a):
     run = simulate_run(cyl_a, 20.0, seed=4, effects=[truth])
     est = ("Fc", "Fv", "kp") + tuple(f"stiction.{p}" for p in Stiction.PARAMS)
     res = identify(cyl_a, [run], IdentifyOptions(estimate=est), effects=[Stiction()])
-    assert res.solver["held_first"]["parameters"] == ["stiction.exponent"]
+    assert res.solver["held_first"]["parameters"] == ["stiction.exponent", "stiction.pressure_excess",
+                                                      "stiction.tail"]
     assert res.solver["held_first"]["residual_sigma"] > 1.05  # the Gaussian alone leaves a misfit
     assert res.solver["status"] == "converged" and res.solver["residual_sigma"] < 1.02
     assert res.params["stiction.exponent"].value == pytest.approx(1.0, rel=0.03)
     assert res.params["stiction.v_stribeck"].value == pytest.approx(truth.v_stribeck, rel=0.03)
     assert res.params["stiction.Fs_excess"].value == pytest.approx(truth.Fs_excess, rel=0.03)
+
+
+@pytest.mark.slow
+def test_stiction_candidate_finds_a_rational_decay_that_grows_with_the_pressure(cyl_a):
+    """A medium stiction of Hess and Soom's rational law (tail 1) whose excess is partly the
+    pressure friction's (pressure_excess 0.5: 0.5 kp|p1 - p2| above Fs_excess at rest), fitted
+    from the candidate's defaults (Gaussian, no pressure term): both held until the rest has
+    converged, then freed, they end within 10 % of the truth and the fit at the noise. (The
+    held fit's line search fails at 10.9 x the noise on a stick-slip branch; the freed fit's
+    restart with node states afresh crawls there for 48 iterations, hence max_iter 60.)"""
+    from combined_reality.simulation import simulate_run
+    from combined_reality.identify import IdentifyOptions, identify
+
+    truth = dataclasses.replace(Stiction.typical(cyl_a, RECOVERY_LEVEL), pressure_excess=0.5, tail=1.0)
+    run = simulate_run(cyl_a, 20.0, seed=4, effects=[truth])
+    est = ("Fc", "Fv", "kp") + tuple(f"stiction.{p}" for p in Stiction.PARAMS)
+    res = identify(cyl_a, [run], IdentifyOptions(estimate=est, max_iter=60), effects=[Stiction()])
+    print(f"\nheld {res.solver['held_first']}; " + ", ".join(
+        f"{n}={e.value:.5g}+-{e.std:.2g}" for n, e in res.params.items()) + f"; sigma {res.solver['residual_sigma']:.3f} "
+          f"{res.solver['status']} {res.solver['iterations']} it {res.solver.get('restart')}")
+    assert res.solver["held_first"]["residual_sigma"] > 1.05  # the Gaussian constant excess leaves a misfit
+    assert res.solver["status"] == "converged" and res.solver["residual_sigma"] < 1.02
+    assert res.params["stiction.pressure_excess"].value == pytest.approx(0.5, rel=0.1)
+    assert res.params["stiction.tail"].value == pytest.approx(1.0, rel=0.1)
+    assert res.params["stiction.exponent"].value == pytest.approx(2.0, rel=0.1)
+    assert res.params["stiction.Fs_excess"].value == pytest.approx(truth.Fs_excess, rel=0.1)
+    assert res.params["stiction.v_stribeck"].value == pytest.approx(truth.v_stribeck, rel=0.05)
 
 
 @pytest.mark.slow

@@ -69,7 +69,7 @@ from ..files import Run
 from ..identify import IdentificationError, IdentifyResult, Validation, validate, validation_segments
 from ..parallel import run_jobs, workers_here
 from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, closes_gap, departure_z, gain_over,
-                         has_nested_start, score_candidate)
+                         has_nested_start, held_alternatives, score_candidate)
 from .diagnosis import Diagnosis, mis_set_quantities
 from .fits import validate_candidate
 from .options import DiagnoseOptions
@@ -194,7 +194,7 @@ def _excess_share(base: IdentifyResult, cost: float) -> float:
 
 
 def _screen_fit(base: IdentifyResult, runs: Sequence[Run], drive: str, estimate: tuple[str, ...], effect: Effect,
-                start: int, workers: int) -> Screen:
+                start: int | str, workers: int) -> Screen:
     opts = replace(_options(workers), max_iter=SCREEN_ITER)
     give_up = base.solver["cost"] - max(SCREEN_GIVE_UP * _excess(base), 0.5 * SCREEN_MIN_GAIN * base.solver["cost"])
     return _screened(base, drive, effect, start, lambda: run_stage(
@@ -234,8 +234,8 @@ def _went_nowhere(s: Screen) -> bool:
 
 
 def screen_candidate(args) -> list[Screen]:
-    """One candidate in the stage that sees it, nested from that stage's nominal fit (`base`), and
-    from the effect's defaults where the nested fit did not move (some effects never leave
+    """One candidate in the stage that sees it, nested from that stage's nominal fit (`base`) (also
+    with each alternative's held shapes: held_alternatives), and from the effect's defaults where the nested fit did not move (some effects never leave
     their neutral value, stiction without a break-away force), ended above the stage's cost or
     has none (heat exchange); a pneumatic one from its alternative starts too where these leave
     most of the stage's excess (ALTERNATIVES_BELOW). The screen of the lowest TRAIN cost is kept.
@@ -248,6 +248,7 @@ def screen_candidate(args) -> list[Screen]:
     out = []
     if has_nested_start(name):
         out.append(_screen_fit(base, runs, drive, estimate, starts[0], 0, workers))
+        out += [_screen_fit(base, runs, drive, estimate, e, label, workers) for label, e in held_alternatives(name)]
     if not out or _went_nowhere(out[0]):
         out.append(_screen_fit(base, runs, drive, estimate, starts[1], 1, workers))
     if not mechanical and base.solver["residual_sigma"] > ALTERNATIVES_ABOVE \

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -87,6 +87,20 @@ def candidate_starts(name: str) -> list[Effect]:
     file (start 1), then its alternatives."""
     cls = EFFECTS[name]
     return [neutral_start(name), make_effect(name)] + [make_effect(name, s) for s in cls.STARTS]
+
+
+def held_alternatives(name: str) -> list[tuple[str, Effect]]:
+    """The nested start (neutral strength) with the held shapes (FREED_LAST) of each alternative
+    start that sets them, as (label, start): a held shape does not move until the rest has
+    converged, so each of its basins needs a start of its own (a rational Stribeck curve is not
+    reached from the exponential one)."""
+    cls, neutral = EFFECTS[name], neutral_start(name)
+    out = []
+    for s in cls.STARTS:
+        held = {p: v for p, v in s.items() if p in cls.FREED_LAST}
+        if held:
+            out.append(("nested, " + ", ".join(f"{p}={v:g}" for p, v in held.items()), replace(neutral, **held)))
+    return out
 
 
 @dataclass

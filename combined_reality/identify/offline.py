@@ -256,7 +256,8 @@ def identify(cyl: Cylinder, runs: Sequence[Run], options: IdentifyOptions = Iden
     parameters are held at their start until the rest has converged (not restarted), then freed
     from there (restarted if options.restart_misfit)."""
     check_drive(options.drive, options.estimate)
-    last = tuple(f"{e.name}.{n}" for e in effects for n in e.FREED_LAST if f"{e.name}.{n}" in options.estimate)
+    last = tuple(f"{e.name}.{n}" for e in effects for n in e.PARAMS
+                 if n in e.FREED_LAST and f"{e.name}.{n}" in options.estimate)
     if not last:
         return _identify_restarted(cyl, runs, options, effects, initial, nodes, progress, prior)
     t_start = time.perf_counter()
