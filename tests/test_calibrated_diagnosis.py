@@ -98,6 +98,33 @@ def test_a_candidate_fit_left_unfinished_above_the_noise_is_fitted_again_from_th
         assert (w.start, w.result.solver["cost"]) == (("nested", 500.0) if again else ("staged", 970.0))
 
 
+def test_a_held_shape_is_screened_from_each_of_its_basins_and_the_lowest_cost_kept(monkeypatch):
+    """Stiction's decay shapes are held until the rest converges, so its screen starts nested
+    twice: with the exponential tail (0) and the rational one (1, an alternative start's); the
+    lower TRAIN cost is the screen. An effect without held shapes screens once."""
+    from combined_reality.diagnose import calibrated
+
+    seen = []
+
+    def screen_fit(base, runs, drive, estimate, effect, start, workers):
+        seen.append((start, getattr(effect, "tail", None), getattr(effect, "Fs_excess", None)))
+        cost = 10.0 if getattr(effect, "tail", 0.0) == 1.0 else 50.0
+        return Screen(effect=effect.name, stage="force balance in the whole model", start=start, status="converged",
+                      iterations=5, result=replace(_result(1.0, cost=cost), solver={"cost": cost, "residual_sigma": 1.0,
+                                                                                    "status": "converged"}))
+
+    monkeypatch.setattr(calibrated, "_screen_fit", screen_fit)
+    monkeypatch.setattr(calibrated, "_went_nowhere", lambda s: False)
+    monkeypatch.setattr(calibrated, "DATA_STARTS", {})  # the break-away start: its own test
+    base = _result(3.0, cost=100.0)
+    [best] = calibrated.screen_candidate(("stiction", base, [], 1, None))
+    assert seen == [(0, 0.0, 0.0), ("nested, tail=1", 1.0, 0.0)]
+    assert best.start == "nested, tail=1"
+    seen.clear()
+    calibrated.screen_candidate(("friction_asymmetry", base, [], 1, None))
+    assert [s[0] for s in seen] == [0]
+
+
 def test_a_screened_out_candidate_that_trades_off_against_a_calibrated_quantity_is_said(cyl_a):
     """A Coulomb friction that differs by direction is a constant force while the piston slides:
     its screen's a_coulomb trades off against the external force, and the diagnosis says so even
