@@ -99,9 +99,10 @@ def test_a_candidate_fit_left_unfinished_above_the_noise_is_fitted_again_from_th
 
 
 def test_a_held_shape_is_screened_from_each_of_its_basins_and_the_lowest_cost_kept(monkeypatch):
-    """Stiction's decay shapes are held until the rest converges, so its screen starts nested
-    twice: with the exponential tail (0) and the rational one (1, an alternative start's); the
-    lower TRAIN cost is the screen. An effect without held shapes screens once."""
+    """Stiction's decay shapes are held until the rest converges, so its screen starts nested and
+    from the break-aways twice each: with the exponential tail (0) and the rational one (1, an
+    alternative start's); the lowest TRAIN cost is the screen. An effect without held shapes
+    screens once."""
     from combined_reality.diagnose import calibrated
 
     seen = []
@@ -115,11 +116,20 @@ def test_a_held_shape_is_screened_from_each_of_its_basins_and_the_lowest_cost_ke
 
     monkeypatch.setattr(calibrated, "_screen_fit", screen_fit)
     monkeypatch.setattr(calibrated, "_went_nowhere", lambda s: False)
-    monkeypatch.setattr(calibrated, "DATA_STARTS", {})  # the break-away start: its own test
+    data = []
+
+    def from_data(cyl, runs, start, opts, say, file_cyl):
+        data.append((start.tail, start.Fs_excess))
+        cost = 5.0 if start.tail == 1.0 else 20.0
+        return replace(_result(1.0, cost=cost, effects=(start,)),
+                       solver={"cost": cost, "residual_sigma": 1.0, "status": "converged", "iterations": 9})
+
+    monkeypatch.setattr(calibrated, "DATA_STARTS", {"stiction": from_data})
     base = _result(3.0, cost=100.0)
     [best] = calibrated.screen_candidate(("stiction", base, [], 1, None))
-    assert seen == [(0, 0.0, 0.0), ("nested, tail=1", 1.0, 0.0)]
-    assert best.start == "nested, tail=1"
+    assert seen == [(0, 0.0, 0.0), ("0, tail=1", 1.0, 0.0)]
+    assert data == [(0.0, 10.0), (1.0, 10.0)]  # the break-aways from the defaults, both tails
+    assert best.start == "data, tail=1" and best.result.solver["cost"] == 5.0
     seen.clear()
     calibrated.screen_candidate(("friction_asymmetry", base, [], 1, None))
     assert [s[0] for s in seen] == [0]

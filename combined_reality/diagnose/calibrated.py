@@ -69,7 +69,7 @@ from ..files import Run
 from ..identify import IdentificationError, IdentifyResult, Validation, validate, validation_segments
 from ..parallel import run_jobs, workers_here
 from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, closes_gap, departure_z, gain_over,
-                         has_nested_start, held_alternatives, score_candidate)
+                         has_nested_start, held_shapes, score_candidate, shapes_label)
 from .diagnosis import Diagnosis, mis_set_quantities
 from .fits import validate_candidate
 from .options import DiagnoseOptions
@@ -234,21 +234,25 @@ def _went_nowhere(s: Screen) -> bool:
 
 
 def screen_candidate(args) -> list[Screen]:
-    """One candidate in the stage that sees it, nested from that stage's nominal fit (`base`) (also
-    with each alternative's held shapes: held_alternatives), and from the effect's defaults where the nested fit did not move (some effects never leave
+    """One candidate in the stage that sees it, nested from that stage's nominal fit (`base`), and
+    from the effect's defaults where the nested fit did not move (some effects never leave
     their neutral value, stiction without a break-away force), ended above the stage's cost or
     has none (heat exchange); a pneumatic one from its alternative starts too where these leave
-    most of the stage's excess (ALTERNATIVES_BELOW). The screen of the lowest TRAIN cost is kept.
+    most of the stage's excess (ALTERNATIVES_BELOW); the nested start and the one from the data
+    also with each alternative's held shapes (held_shapes). The screen of the lowest TRAIN cost
+    is kept.
     args: (name, base fit, runs, workers)."""
     name, base, runs, workers, file_cyl = args
     mechanical = EFFECTS[name].subsystem == "mechanical"
     drive = "command" if mechanical else "chambers"
     estimate = MECHANICAL if mechanical else PNEUMATIC
     starts = calibrated_starts(name)
+    held = held_shapes(name)
     out = []
     if has_nested_start(name):
         out.append(_screen_fit(base, runs, drive, estimate, starts[0], 0, workers))
-        out += [_screen_fit(base, runs, drive, estimate, e, label, workers) for label, e in held_alternatives(name)]
+        out += [_screen_fit(base, runs, drive, estimate, replace(starts[0], **h), f"0, {shapes_label(h)}", workers)
+                for h in held]
     if not out or _went_nowhere(out[0]):
         out.append(_screen_fit(base, runs, drive, estimate, starts[1], 1, workers))
     if not mechanical and base.solver["residual_sigma"] > ALTERNATIVES_ABOVE \
@@ -257,8 +261,9 @@ def screen_candidate(args) -> list[Screen]:
     from_data = DATA_STARTS.get(name) if mechanical else None
     if from_data is not None:
         opts = replace(_options(workers), max_iter=DATA_START_ITER)
-        out.append(_screened(base, drive, starts[1], "data", lambda: from_data(
-            base.cylinder, runs, starts[1], opts, _quiet, file_cyl)))
+        for label, e in [("data", starts[1])] + [(f"data, {shapes_label(h)}", replace(starts[1], **h)) for h in held]:
+            out.append(_screened(base, drive, e, label, lambda e=e: from_data(base.cylinder, runs, e, opts, _quiet,
+                                                                            file_cyl)))
     ok = [s for s in out if s.result is not None]
     if not ok:
         return out[:1]

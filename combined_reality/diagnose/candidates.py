@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -89,18 +89,16 @@ def candidate_starts(name: str) -> list[Effect]:
     return [neutral_start(name), make_effect(name)] + [make_effect(name, s) for s in cls.STARTS]
 
 
-def held_alternatives(name: str) -> list[tuple[str, Effect]]:
-    """The nested start (neutral strength) with the held shapes (FREED_LAST) of each alternative
-    start that sets them, as (label, start): a held shape does not move until the rest has
-    converged, so each of its basins needs a start of its own (a rational Stribeck curve is not
-    reached from the exponential one)."""
-    cls, neutral = EFFECTS[name], neutral_start(name)
-    out = []
-    for s in cls.STARTS:
-        held = {p: v for p, v in s.items() if p in cls.FREED_LAST}
-        if held:
-            out.append(("nested, " + ", ".join(f"{p}={v:g}" for p, v in held.items()), replace(neutral, **held)))
-    return out
+def held_shapes(name: str) -> list[dict[str, float]]:
+    """The values of the held shapes (FREED_LAST) of each alternative start that sets them: a
+    held shape does not move until the rest has converged, so each of its basins needs starts
+    of its own (a rational Stribeck curve is not reached from the exponential one)."""
+    cls = EFFECTS[name]
+    return [held for s in cls.STARTS if (held := {p: v for p, v in s.items() if p in cls.FREED_LAST})]
+
+
+def shapes_label(held: dict[str, float]) -> str:
+    return ", ".join(f"{p}={v:g}" for p, v in held.items())
 
 
 @dataclass
