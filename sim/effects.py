@@ -87,7 +87,10 @@ class Stiction(Effect):
     UNDRAWN: ClassVar[dict[str, str]] = {"pressure_excess": "Fs_excess"}
     SHAPE: ClassVar[frozenset[str]] = frozenset({"v_stribeck", "exponent", "tail"})
     FREED_LAST: ClassVar[frozenset[str]] = frozenset({"exponent", "pressure_excess", "tail"})
-    SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {"Fs_excess": (None, "seal_friction")}
+    # pressure_excess (undrawn) at Fs_excess's strengths as a share of the pressure friction at
+    # 2 bar: weak 0.45 N of it, strong as much again as it
+    SCALED: ClassVar[dict[str, tuple[str | None, str | None]]] = {"Fs_excess": (None, "seal_friction"),
+                                                                 "pressure_excess": ("per_pressure_friction", None)}
     # the rational curve (tail 1) is a basin of its own: from tail 0 a strong one (the
     # benchmark plant's, 32 mm) ended at 20 x the noise on TRAIN, tail 0 and exponent 2.5
     STARTS: ClassVar[tuple[dict[str, float], ...]] = ({"Fs_excess": 2.0, "v_stribeck": 0.004}, {"tail": 1.0})
