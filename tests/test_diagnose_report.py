@@ -7,6 +7,7 @@ import re
 import numpy as np
 import pytest
 
+from combined_reality.cli.diagnose import format_summary
 from combined_reality.diagnose import Candidate, DiagnoseOptions, Diagnosis, regions, whiteness
 from combined_reality.diagnose.report import render_report, write_report
 from combined_reality.diagnose.text import headline, params_text
@@ -338,3 +339,56 @@ def test_a_verdict_whose_fit_did_not_settle_says_its_values_are_not_the_rigs(cyl
     d.best.calibration = None  # as filed, no residual to judge by: the stop is said
     assert any(line.startswith("Its fit on TRAIN stopped before converging (it ran out of iterations after 59 "
                                "iterations):") for line in headline(d))
+
+
+def _high_flow_miss(cyl, train_goes_there: bool) -> Diagnosis:
+    """The verdict's model misses VALID by several times the noise where the valve opens past
+    0.5 (a quarter of VALID's samples); TRAIN has the same commands, or stays below 0.5."""
+    d = _diagnosis(cyl)
+    rng = np.random.default_rng(1)
+    t = d.valid.t
+    small = 0.3 * np.cos(2 * np.pi * 0.7 * t)
+    u = np.where(t % 1.0 < 0.25, np.where(small >= 0, 0.8, -0.8), small)
+    d.valid = Run(t=t, u=u, x=d.valid.x, p1=d.valid.p1, p2=d.valid.p2)
+    d.train = Run(t=t, u=u if train_goes_there else small, x=d.train.x, p1=d.train.p1, p2=d.train.p2)
+    miss = np.where(np.abs(u) > 0.5, rng.normal(0, 4e-5, N), rng.normal(0, 5e-6, N))
+    d.best.validation = _validation(d.valid, miss, 300.0, rng)
+    return d
+
+
+def test_a_model_that_misses_valid_where_train_did_not_go_says_so(cyl_a):
+    """Beyond trusted_valid x the noise on VALID the shown model's predictions carry a caveat
+    naming the regime where its error gathers, with the shares of VALID's and TRAIN's samples
+    there: too little in TRAIN is the runs' fault, as much as VALID the model's."""
+    d = _high_flow_miss(cyl_a, train_goes_there=False)
+    doc = d.to_json()["prediction"]
+    assert doc["model"] == "valve_delay" and doc["normalized_rms"] > d.options.trusted_valid
+    (row,) = [r for r in doc["regions"] if r["where"] == "high flow (|u| > 0.5)"]
+    assert row["concentration"] > 2 and row["train_fraction"] == 0.0 and not row["taught"]
+    assert 0.2 < row["valid_fraction"] < 0.3
+    lines = headline(d)
+    (said,) = [line for line in lines if line.startswith("Do not take its predictions for the rig's")]
+    assert "the model with valve_delay still misses VALID by" in said
+    assert "high flow (|u| > 0.5)" in said and "TRAIN 0.0%" in said and "TRAIN showed the model too little" in said
+    assert doc["caveat"] == said
+    assert f"prediction: {said}" in format_summary(d.to_json(), 1.0).splitlines()  # the console says it too
+    # TRAIN went there as much as VALID: the model lacks something, not the runs
+    d = _high_flow_miss(cyl_a, train_goes_there=True)
+    (row,) = [r for r in d.prediction()["regions"] if r["where"] == "high flow (|u| > 0.5)"]
+    assert row["taught"] and abs(row["train_fraction"] - row["valid_fraction"]) < 0.01
+    said = d.prediction()["caveat"]
+    assert "which TRAIN showed as much as VALID: the model still lacks something there" in said
+    assert "too little" not in said
+    # within trusted_valid: nothing to add
+    d = _diagnosis(cyl_a)
+    assert d.prediction()["caveat"] == "" and d.prediction()["regions"] == []
+    assert not any(line.startswith("Do not take") for line in headline(d))
+    # verdict none: the nominal model is the one shown, unexplained shows none
+    d = _high_flow_miss(cyl_a, train_goes_there=False)
+    d.verdict, d.base_validation = "none", d.best.validation
+    d.ranking[0].significant = False
+    assert d.best is None and d.prediction()["model"] == "none"
+    assert any(line.startswith("Do not take its predictions for the rig's: the model without an effect")
+               for line in headline(d))
+    d.verdict = "unexplained"
+    assert d.prediction() is None and d.to_json()["prediction"] is None

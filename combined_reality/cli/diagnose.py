@@ -112,6 +112,9 @@ def format_summary(result: dict, horizon_s: float) -> str:
                f"{e['found']}" for e in cal.get("not_separated", [])),
              *([f"calibration: {cal['misfit']}"] if cal.get("misfit") else []),
              f"verdict: {result['verdict']}" + (f" ({result['verdict_note']})" if result.get("verdict_note") else ""),
+             *([f"caveat: {result['verdict_caveat']}"] if result.get("verdict_caveat") else []),
+             *([f"prediction: {(result.get('prediction') or {})['caveat']}"]
+               if (result.get("prediction") or {}).get("caveat") else []),
              f"{'effect':20s} {'shrink':>8s} {'all out':>8s} {'z':>6s} {'rmse_x [um]':>12s}  parameters"]
     for c in result["ranking"]:
         if not math.isfinite(c["shrink"]):  # not validated: say why instead of nan%

@@ -24,9 +24,9 @@ from .fits import best_of_starts, fit_candidate, further_starts
 from .options import DiagnoseOptions
 from .subsystems import equation_errors, regressor_correlations, subsystem_split
 from .verdict import decide
-from .where import MIN_REGION_FRACTION, operating_regions, regions, whiteness
+from .where import MIN_REGION_FRACTION, operating_regions, regions, untaught_regions, whiteness
 
 __all__ = ["ABSORBED", "Absorption", "MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",
            "best_of_starts", "candidate_starts", "decide", "diagnose", "diagnose_as_filed", "diagnose_calibrated",
            "equation_errors", "explained_share", "fit_candidate", "further_starts", "has_nested_start", "neutral_start",
-           "operating_regions", "regions", "regressor_correlations", "subsystem_split", "whiteness"]
+           "operating_regions", "regions", "regressor_correlations", "subsystem_split", "untaught_regions", "whiteness"]

@@ -38,9 +38,9 @@ from .candidates import NESTED_START, Candidate, NominalFit, candidate_starts, h
 from .fits import best_of_starts, fit_first, further_scored, further_starts, validate_screened
 from .options import DiagnoseOptions
 from .subsystems import regressor_correlations, subsystem_split
-from .text import fit_caveat
+from .text import fit_caveat, prediction_caveat
 from .verdict import best_pair, decide, fold_absent_partner, ranked, with_fold_note
-from .where import regions, whiteness
+from .where import regions, untaught_regions, whiteness
 
 
 @dataclass
@@ -74,6 +74,27 @@ class Diagnosis:
         return next((c for c in self.ranking if c.effect == self.verdict), None)
 
     @property
+    def shown_validation(self) -> Validation | None:
+        """VALID as the model the verdict shows predicts it: the verdict's candidate, the nominal
+        model for `none`; None for `unexplained`."""
+        if self.best is not None:
+            return self.best.validation
+        return self.base_validation if self.verdict == "none" else None
+
+    def prediction(self) -> dict | None:
+        """How far the shown model's predictions can be trusted: its normalized RMS on VALID, and
+        beyond options.trusted_valid x the noise the regimes where its error gathers
+        (untaught_regions) and the caveat in words ("" within it); None for `unexplained`."""
+        val = self.shown_validation
+        if val is None:
+            return None
+        nrms = val.normalized_rms()
+        within = self.options.trusted_valid
+        where = [] if nrms <= within else untaught_regions(self.cylinder, self.train, self.valid, val)
+        return {"model": self.verdict, "normalized_rms": nrms, "trusted_within": within, "regions": where,
+                "caveat": "" if nrms <= within else prediction_caveat(self, nrms, where)}
+
+    @property
     def runner(self) -> Candidate | None:
         """The best significant candidate, also when the verdict is `unexplained`."""
         return next((c for c in self.ranking if c.significant), None)
@@ -88,6 +109,7 @@ class Diagnosis:
             "verdict": self.verdict,
             "verdict_note": self.verdict_note,
             "verdict_caveat": fit_caveat(self.best) if self.best is not None else "",
+            "prediction": self.prediction(),
             "calibration": self.calibration,
             "ranking": [c.to_json() for c in self.ranking],
             "pair": self.pair.to_json() if self.pair is not None else None,

@@ -63,4 +63,8 @@ class DiagnoseOptions:
     # a gap any added freedom takes a few percent (an effect-free Norgren on the reference plant:
     # heat exchange at its bound, n 1.5 std from kappa, VALID 1.23 -> 1.15 x)
     small_gap: float = 1.3
+    # the model the verdict shows (the nominal one for `none`) predicts VALID within this x the
+    # noise, or its predictions carry a caveat (prediction_caveat): where its error lies, and
+    # whether TRAIN showed it that regime
+    trusted_valid: float = 2.0
     workers: int = max(1, os.cpu_count() or 1)

@@ -14,7 +14,7 @@ from ..identify import at_bounds
 from ..report.text import finite, format_value, pct, sig, um
 
 __all__ = ["WITHIN_NOISE", "param_info", "at_its_bound", "params_text", "friction_text", "effect_description",
-           "fit_caveat", "headline", "subsystem_value", "z_text"]
+           "fit_caveat", "headline", "prediction_caveat", "subsystem_value", "z_text"]
 
 
 def param_info(effect: str, name: str):
@@ -115,6 +115,9 @@ def _explained(d, before: float, nrms: float, strong, esc) -> list[str]:
     caveat = fit_caveat(best)
     if caveat:
         out.append(esc(caveat))
+    told = d.prediction()
+    if told and told["caveat"]:
+        out.append(esc(told["caveat"]))
     if d.verdict_note:
         out.append(esc("Why the pair: " + d.verdict_note + "."))
     others = [c.effect for c in d.ranking if c.significant and c.effect != best.effect]
@@ -149,6 +152,36 @@ def fit_caveat(c) -> str:
         return (f"Even with it, the calibrated model stays{level}: the effect's form or another effect leaves "
                 "part of the gap, so take its values as indicative, not as the rig's.")
     return ""
+
+
+def prediction_caveat(d, nrms: float, where: list[dict]) -> str:
+    """The sentence for a shown model that misses VALID beyond DiagnoseOptions.trusted_valid x the
+    noise (`nrms`): its predictions are no match there, and where its error gathers (`where`:
+    where.untaught_regions), split into the regimes TRAIN showed it too little of (the runs'
+    fault, a TRAIN that goes there helps) and those TRAIN showed as much as VALID (the model's
+    fault: something is still missing there)."""
+    model = "calibrated model" if getattr(d, "calibration", None) is not None else "model"
+    who = (f"the {model} without an effect" if d.best is None
+           else f"the {model} with {d.best.effect}")
+    text = (f"Do not take its predictions for the rig's: {who} still misses VALID by {sig(nrms)} × the sensor noise "
+            f"over all outputs (a model that matches stays within {sig(d.options.trusted_valid)} ×)")
+
+    def listed(rows: list[dict], with_train: bool) -> str:
+        return ", ".join(f"{r['where']} ({sig(r['concentration'], 2)} × its share of the samples"
+                         + (f"; VALID spends {r['valid_fraction']:.1%} of its samples there, TRAIN {r['train_fraction']:.1%}"
+                            if with_train else "") + ")" for r in rows[:2])
+
+    untaught = [r for r in where if not r["taught"]]
+    taught = [r for r in where if r["taught"]]
+    if untaught:
+        text += (f"; its position error gathers at {listed(untaught, True)}: TRAIN showed the model too little of "
+                 "that, so what decides it there is not calibrated (a TRAIN run that goes there more, a longer "
+                 "calibration run, would pin it)")
+    if taught:
+        text += (f"{'; also' if untaught else '; its position error gathers'} at {listed(taught, False)}, which TRAIN "
+                 "showed as much as VALID: the model still lacks something there (another form of the effect, or "
+                 "an effect outside the candidates)")
+    return text + "."
 
 
 def _pair_sentence(p, strong, esc) -> str:
@@ -204,6 +237,9 @@ def _no_effect(d, noise_x: float, before: float, nrms: float, strong, esc) -> li
                        f"position ({sig(nrms)} × the sensor noise over all outputs), and none of the "
                        f"{len(tried)} candidates tried removes a significant part of it (verdict ") + strong("none")
                    + esc("). See where the error lies below, and consider effects that were not tried."))
+    told = d.prediction()
+    if told and told["caveat"]:
+        out.append(esc(told["caveat"]))
     if tried:
         out.append(esc("Candidates tried: " + ", ".join(tried) + "."))
     screened = [c.effect for c in d.ranking if c.status == "no_gain_on_train"]

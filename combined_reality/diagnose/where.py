@@ -72,6 +72,42 @@ def regions(cyl: Cylinder, run: Run, base: Validation, best: Validation | None =
     return sorted(out, key=lambda r: (r["fraction_of_samples"] < MIN_REGION_FRACTION, -r["concentration"]))
 
 
+# a regime holding this many times its share of the samples' squared position error on VALID is
+# where the model fails (untaught_regions)
+FAILS_CONCENTRATION = 2.0
+
+
+def untaught_regions(cyl: Cylinder, train: Run, valid: Run, val: Validation) -> list[dict]:
+    """The operating regimes (not the time spans: TRAIN has its own) where `val`'s position error
+    on VALID is concentrated (FAILS_CONCENTRATION, in at least MIN_REGION_FRACTION of the
+    samples), each with its share of VALID's samples and of TRAIN's: {where, concentration,
+    share_of_error, valid_fraction, train_fraction, taught}, most concentrated first. `taught` is
+    False where TRAIN holds under half VALID's share of the regime: there the calibration saw too
+    little of what VALID asks of the model."""
+    r = val.residual[val.outputs.index("x")]
+    ok = np.isfinite(r)
+    e2 = np.where(ok, r, 0.0) ** 2
+    total = float(e2.sum())
+    if total <= 0:
+        return []
+    seen = operating_regions(cyl, train)
+    out = []
+    for where, m in operating_regions(cyl, valid).items():
+        if where.startswith("time:"):
+            continue
+        m = m & ok
+        frac = float(m.sum()) / max(int(ok.sum()), 1)
+        if frac < MIN_REGION_FRACTION:
+            continue
+        share = float(e2[m].sum()) / total
+        if share / frac < FAILS_CONCENTRATION:
+            continue
+        trained = float(seen[where].mean()) if train.n else 0.0
+        out.append({"where": where, "concentration": share / frac, "share_of_error": share, "valid_fraction": frac,
+                    "train_fraction": trained, "taught": bool(trained >= 0.5 * frac)})
+    return sorted(out, key=lambda row: -row["concentration"])
+
+
 def whiteness(resid: np.ndarray, lags: int = 20, decimate: int = 10) -> dict:
     """Ljung-Box statistic of a residual (decimated, to 10 ms at 1 kHz, where sensor noise no
     longer dominates) and its first autocorrelation; `white` at the 0.1 % level."""
