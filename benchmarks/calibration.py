@@ -98,7 +98,7 @@ def one_case(args) -> dict:
     t0 = time.perf_counter()
     identify(cyl, [train], IdentifyOptions())
     t_id = time.perf_counter() - t0
-    val = validation_figures(cal.cylinder, valid)
+    val = validation_figures(cal.cylinder, valid, train=[train])
     truth = truth_values(train_case)
     est = {n: e for n, e in cal.result.params.items()}
     v = cal.cylinder.valve

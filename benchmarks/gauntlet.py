@@ -253,7 +253,7 @@ def run_case(c: dict, duration: float, workers: int, cache: Path | None) -> dict
     t0 = time.perf_counter()
     cal = calibrate(cyl, [train])
     t_cal = time.perf_counter() - t0
-    cal_valid = validation_figures(cal.cylinder, valid)
+    cal_valid = validation_figures(cal.cylinder, valid, train=[train])
     built = len(cached_model_code())  # what the diagnosis builds first counts in its time, not calibrate's
     t0 = time.perf_counter()
     dg = diagnose(cyl, train, valid, DiagnoseOptions(calibrate=True, workers=workers))
@@ -437,6 +437,14 @@ def summary(rows: list[dict]) -> None:
         print(f"VALID within {TARGETS['valid']:g} x the noise where the verdict is right: {ok}/{len(scored)} "
               f"(worst {max(r['valid']['named_nrms'] for r in scored):.2f}); within {TARGETS['valid']:g} x the "
               f"truth's own score where that is above the noise: {sum(within_target(r) for r in scored)}/{len(scored)}")
+        beyond = [r for r in scored if r["valid"]["named_nrms"] > TARGETS["valid"]]
+        told = [r for r in beyond if (r["diagnosis"].get("prediction") or {}).get("caveat")]
+        untaught = [r for r in told if any(not g["taught"] for g in r["diagnosis"]["prediction"]["regions"])]
+        if beyond:
+            print(f"  beyond it, the diagnosis says its predictions are no match in {len(told)}/{len(beyond)}"
+                  + (f" (older results carry no such field: {len(beyond) - len(told)})" if len(told) < len(beyond)
+                     else "") + f"; naming a regime TRAIN showed too little of in {len(untaught)}: "
+                  + ", ".join(r["id"] for r in untaught))
 
     plain = [r for r in rows if r["effect"] not in RESHAPES_FRICTION]
     if plain:

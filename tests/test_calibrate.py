@@ -100,6 +100,7 @@ def test_calibration_recovers_every_departed_quantity_and_the_friction(truth, ca
         for k in measured:
             assert getattr(valve, f"flow_{d}")[k] == pytest.approx(getattr(truth.valve, f"flow_{d}")[k],
                                                                    rel=0.05), (d, k)
+    assert doc["validation"]["normalized_rms"] < 2 and doc["validation"]["caveat"] == ""  # VALID matches: no caveat
     # honest uncertainties: the truth lies within 3 std of most estimates
     z = [abs(e["value"] - truth.value(n)) / e["std"] for n, e in params.items()
          if e["std"] > 0 and math.isfinite(e["std"]) and coverage.get(n, 1.0) > 0.003]
@@ -341,3 +342,39 @@ def test_the_calibration_report_renders_in_a_browser(calibrated, tmp_path):
                  ["The calibrated values against the cylinder file's", "The valve characteristic per direction",
                   "Not determined, and what to record", "The stages", "Measured and simulated: train.csv",
                   "The calibrated model on VALID"])
+
+
+def test_a_calibrated_model_that_misses_valid_where_train_did_not_go_says_so(cyl_a):
+    """validation_figures beyond TRUSTED_VALID x the noise: a caveat naming the regime where the
+    error gathers and how much of it TRAIN (all its runs) held (synthetic validation: no fits)."""
+    from combined_reality.calibrate import validation_figures
+    from combined_reality.identify import TRUSTED_VALID, Validation
+
+    n, rng = 4000, np.random.default_rng(3)
+    t = np.arange(n) * 1e-3
+    small = 0.3 * np.cos(2 * np.pi * 0.7 * t)
+    u = np.where(t % 1.0 < 0.25, np.where(small >= 0, 0.8, -0.8), small)  # past 0.5 a quarter of the time
+    x = 0.05 + 0.03 * np.sin(2 * np.pi * 0.7 * t)
+    p = np.full(n, 4e5)
+    valid = Run(t=t, u=u, x=x, p1=p, p2=p)
+    noise = np.array([5e-6, 300.0, 300.0])
+    resid = np.vstack([np.where(np.abs(u) > 0.5, 4e-5, 5e-6) * rng.standard_normal(n),
+                       300.0 * rng.standard_normal(n), 300.0 * rng.standard_normal(n)])
+    cost = np.array([float(np.sum((resid[:, a:a + 1000] / noise[:, None]) ** 2)) for a in range(0, n, 1000)])
+    val = Validation(("x", "p1", "p2"), np.vstack([x, p, p]) - resid, resid, [(a, a + 1000) for a in range(0, n, 1000)],
+                     cost, noise, "converged")
+    low, high = Run(t=t, u=small, x=x, p1=p, p2=p), valid
+    figures = validation_figures(cyl_a, valid, val=val, train=[low, low])
+    assert figures["normalized_rms"] > TRUSTED_VALID == figures["trusted_within"]
+    (row,) = [r for r in figures["regions"] if r["where"] == "high flow (|u| > 0.5)"]
+    assert row["train_fraction"] == 0.0 and not row["taught"] and 0.2 < row["valid_fraction"] < 0.3
+    said = figures["caveat"]
+    assert said.startswith("Do not take its predictions for the rig's: the calibrated model still misses VALID by")
+    assert "high flow (|u| > 0.5)" in said and "TRAIN 0.0%" in said and "TRAIN showed the model too little" in said
+    # one of two TRAIN runs goes there: half VALID's share, taught
+    (row,) = [r for r in validation_figures(cyl_a, valid, val=val, train=[low, high])["regions"]
+              if r["where"] == "high flow (|u| > 0.5)"]
+    assert row["train_fraction"] == pytest.approx(row["valid_fraction"] / 2) and row["taught"]
+    # without TRAIN the caveat stands, without regions
+    figures = validation_figures(cyl_a, valid, val=val)
+    assert figures["regions"] == [] and figures["caveat"].endswith("(a model that matches stays within 2 ×).")

@@ -24,7 +24,7 @@ from ..report.figures import new_figure, png_bytes
 from ..report.html import escape, img_tag, write_html_and_plots
 from ..report.text import sig, um
 from .identifiability import MIN_COVERAGE, grouped
-from .stages import Calibration
+from .stages import Calibration, validation_figures
 
 __all__ = ["write_calibration_report"]
 
@@ -166,6 +166,8 @@ def write_calibration_report(cal: Calibration, start: Cylinder, runs: Sequence[R
     if validation is not None:
         box.append(f"On VALID, a run no fit saw: {validation.normalized_rms():.2f} × the sensor noise (position RMSE "
                    f"{um(validation.rmse('x'))}).")
+        if valid is not None and (caveat := validation_figures(cal.cylinder, valid, val=validation, train=runs)["caveat"]):
+            box.append(caveat)
     lacking = grouped(cal.identifiability.undetermined)
     if cal.start_share is not None:
         box.append(f"The stages started from {cal.start_share[0]:.0f} s of the {cal.start_share[1]:.0f} s of data "

@@ -41,8 +41,8 @@ from sim.cylinder import FLOW_CHARACTERISTIC, OPENING_GRID, VALVE_DIRECTIONS, Cy
 from sim.extension import Effect
 
 from ..files import Run
-from ..identify import (Estimate, IdentificationError, IdentifyOptions, IdentifyResult, PriorRow, identify, lower_cost,
-                        validate)
+from ..identify import (TRUSTED_VALID, Estimate, IdentificationError, IdentifyOptions, IdentifyResult, PriorRow,
+                        identify, lower_cost, misses_valid, untaught_regions, validate)
 from ..progress import stage_steps
 from .dead_band import dead_band_in_overlap, overlap_as_dead_band
 from .identifiability import Identifiability, assess
@@ -169,14 +169,19 @@ def misfit_note(result: IdentifyResult, above: float = CalibrateOptions.misfit) 
 
 
 def validation_figures(cyl: Cylinder, valid: Run, horizon_s: float = 1.0, val=None,
-                       effects: Sequence[Effect] = ()) -> dict:
+                       effects: Sequence[Effect] = (), train: Sequence[Run] = ()) -> dict:
     """The calibrated model (with `effects`, where it was calibrated with some) scored on a run no
     fit saw: open-loop segments of about `horizon_s` from initial states fitted per segment (as
-    the diagnosis scores); `val`: that validation, where it was made already."""
+    the diagnosis scores); `val`: that validation, where it was made already. Beyond
+    TRUSTED_VALID x the noise, `caveat` says that its predictions are no match and, given the
+    calibration's runs (`train`), where its error gathers (`regions`: untaught_regions)."""
     val = val if val is not None else validate(cyl, tuple(effects), valid, horizon_s)
+    nrms = val.normalized_rms()
+    where = untaught_regions(cyl, train, valid, val) if train and nrms > TRUSTED_VALID else []
     return {"rmse_x": val.rmse("x"), "rmse_p1": val.rmse("p1"), "rmse_p2": val.rmse("p2"),
-            "normalized_rms": val.normalized_rms(), "horizon_s": horizon_s, "segments": len(val.segments),
-            "status": val.status}
+            "normalized_rms": nrms, "horizon_s": horizon_s, "segments": len(val.segments),
+            "status": val.status, "trusted_within": TRUSTED_VALID, "regions": where,
+            "caveat": misses_valid("the calibrated model", nrms, where) if nrms > TRUSTED_VALID else ""}
 
 
 def applies(effect: Effect, drive: str) -> bool:

@@ -108,11 +108,13 @@ def run(args) -> int:
     validation = None
     if valid is not None:
         validation = validate(cal.cylinder, (), valid, args.horizon)
-        val = validation_figures(cal.cylinder, valid, args.horizon, validation)
+        val = validation_figures(cal.cylinder, valid, args.horizon, validation, train=runs)
         out["validation"] = val
         print(f"validation on {args.validate}: rmse_x {val['rmse_x'] * 1e6:.2f} um, rmse_p1 {val['rmse_p1']:.0f} Pa, "
               f"rmse_p2 {val['rmse_p2']:.0f} Pa; all outputs {val['normalized_rms']:.2f} x the sensor noise "
               "(1 = a perfect model)")
+        if val["caveat"]:
+            print(f"prediction: {val['caveat']}")
     for line in cal.identifiability.lines():
         print(line)
     if args.json:

@@ -8,7 +8,7 @@ effect causes it, how far it shrinks once that effect is added.
 - candidates: a candidate effect, its starts, and how it is scored against a baseline
 - fits: the candidates' fits on TRAIN, their validation on VALID, the screen, further starts
 - verdict: the ranking, the best pair, the verdict's rules
-- where: the operating regimes and the share of the gap in each; the residual's whiteness
+- where: the share of the gap in each operating regime (identify.regimes); the residual's whiteness
 - subsystems: the subsystems' share of the gap, equation errors, regressor correlations
 - calibrated: calibration and diagnosis together (`diagnose --calibrate`)
 - text: the diagnosis in words (console, report, Rerun)
@@ -24,7 +24,8 @@ from .fits import best_of_starts, fit_candidate, further_starts
 from .options import DiagnoseOptions
 from .subsystems import equation_errors, regressor_correlations, subsystem_split
 from .verdict import decide
-from .where import MIN_REGION_FRACTION, operating_regions, regions, untaught_regions, whiteness
+from ..identify import MIN_REGION_FRACTION, operating_regions, untaught_regions
+from .where import regions, whiteness
 
 __all__ = ["ABSORBED", "Absorption", "MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",
            "best_of_starts", "candidate_starts", "decide", "diagnose", "diagnose_as_filed", "diagnose_calibrated",

@@ -31,7 +31,8 @@ from sim.cylinder import Cylinder
 from sim.effects import EFFECTS
 
 from ..files import Run
-from ..identify import IdentifyOptions, Validation, identify, validate, validation_segments, velocity_estimate
+from ..identify import (IdentifyOptions, Validation, identify, untaught_regions, validate, validation_segments,
+                        velocity_estimate)
 from ..parallel import run_jobs
 from ..progress import counter, stage_steps
 from .candidates import NESTED_START, Candidate, NominalFit, candidate_starts, has_nested_start, score_candidate
@@ -40,7 +41,7 @@ from .options import DiagnoseOptions
 from .subsystems import regressor_correlations, subsystem_split
 from .text import fit_caveat, prediction_caveat
 from .verdict import best_pair, decide, fold_absent_partner, ranked, with_fold_note
-from .where import regions, untaught_regions, whiteness
+from .where import regions, whiteness
 
 
 @dataclass
@@ -90,7 +91,7 @@ class Diagnosis:
             return None
         nrms = val.normalized_rms()
         within = self.options.trusted_valid
-        where = [] if nrms <= within else untaught_regions(self.cylinder, self.train, self.valid, val)
+        where = [] if nrms <= within else untaught_regions(self.cylinder, [self.train], self.valid, val)
         return {"model": self.verdict, "normalized_rms": nrms, "trusted_within": within, "regions": where,
                 "caveat": "" if nrms <= within else prediction_caveat(self, nrms, where)}
 

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 from sim.effects import EFFECTS
 
+from ..identify import TRUSTED_VALID
+
 
 @dataclass(frozen=True)
 class DiagnoseOptions:
@@ -66,5 +68,5 @@ class DiagnoseOptions:
     # the model the verdict shows (the nominal one for `none`) predicts VALID within this x the
     # noise, or its predictions carry a caveat (prediction_caveat): where its error lies, and
     # whether TRAIN showed it that regime
-    trusted_valid: float = 2.0
+    trusted_valid: float = TRUSTED_VALID
     workers: int = max(1, os.cpu_count() or 1)

@@ -19,11 +19,12 @@ import math
 
 import numpy as np
 
+from ..identify import MIN_REGION_FRACTION
 from ..report.figures import new_figure, png_bytes, wrap_lines
 from ..report.html import CSS, escape, img_tag, write_html_and_plots
 from ..report.text import finite, pct, sig, um
 from .text import effect_description, friction_text, headline, params_text, subsystem_value, z_text
-from .where import MIN_REGION_FRACTION, whiteness
+from .where import whiteness
 
 __all__ = ["write_report", "render_report"]
 

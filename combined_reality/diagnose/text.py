@@ -10,7 +10,7 @@ from sim.cylinder import PARAMETERS
 from sim.effects import EFFECTS
 
 from ..calibrate import CalibrateOptions
-from ..identify import at_bounds
+from ..identify import at_bounds, misses_valid
 from ..report.text import finite, format_value, pct, sig, um
 
 __all__ = ["WITHIN_NOISE", "param_info", "at_its_bound", "params_text", "friction_text", "effect_description",
@@ -155,33 +155,10 @@ def fit_caveat(c) -> str:
 
 
 def prediction_caveat(d, nrms: float, where: list[dict]) -> str:
-    """The sentence for a shown model that misses VALID beyond DiagnoseOptions.trusted_valid x the
-    noise (`nrms`): its predictions are no match there, and where its error gathers (`where`:
-    where.untaught_regions), split into the regimes TRAIN showed it too little of (the runs'
-    fault, a TRAIN that goes there helps) and those TRAIN showed as much as VALID (the model's
-    fault: something is still missing there)."""
+    """identify.misses_valid for the model the verdict shows (the one without an effect for `none`)."""
     model = "calibrated model" if getattr(d, "calibration", None) is not None else "model"
-    who = (f"the {model} without an effect" if d.best is None
-           else f"the {model} with {d.best.effect}")
-    text = (f"Do not take its predictions for the rig's: {who} still misses VALID by {sig(nrms)} × the sensor noise "
-            f"over all outputs (a model that matches stays within {sig(d.options.trusted_valid)} ×)")
-
-    def listed(rows: list[dict], with_train: bool) -> str:
-        return ", ".join(f"{r['where']} ({sig(r['concentration'], 2)} × its share of the samples"
-                         + (f"; VALID spends {r['valid_fraction']:.1%} of its samples there, TRAIN {r['train_fraction']:.1%}"
-                            if with_train else "") + ")" for r in rows[:2])
-
-    untaught = [r for r in where if not r["taught"]]
-    taught = [r for r in where if r["taught"]]
-    if untaught:
-        text += (f"; its position error gathers at {listed(untaught, True)}: TRAIN showed the model too little of "
-                 "that, so what decides it there is not calibrated (a TRAIN run that goes there more, a longer "
-                 "calibration run, would pin it)")
-    if taught:
-        text += (f"{'; also' if untaught else '; its position error gathers'} at {listed(taught, False)}, which TRAIN "
-                 "showed as much as VALID: the model still lacks something there (another form of the effect, or "
-                 "an effect outside the candidates)")
-    return text + "."
+    who = f"the {model} without an effect" if d.best is None else f"the {model} with {d.best.effect}"
+    return misses_valid(who, nrms, where, d.options.trusted_valid)
 
 
 def _pair_sentence(p, strong, esc) -> str:
