@@ -378,3 +378,8 @@ def test_a_calibrated_model_that_misses_valid_where_train_did_not_go_says_so(cyl
     # without TRAIN the caveat stands, without regions
     figures = validation_figures(cyl_a, valid, val=val)
     assert figures["regions"] == [] and figures["caveat"].endswith("(a model that matches stays within 2 ×).")
+    # an error spread over the run: no regime to name, and the sentence says that
+    spread = Validation(val.outputs, val.simulated, np.vstack([4e-5 * rng.standard_normal(n), resid[1:]]),
+                        val.segments, 16 * cost, noise, "converged")
+    figures = validation_figures(cyl_a, valid, val=spread, train=[low])
+    assert figures["regions"] == [] and "its position error is spread over the run" in figures["caveat"]

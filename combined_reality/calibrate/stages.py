@@ -177,10 +177,10 @@ def validation_figures(cyl: Cylinder, valid: Run, horizon_s: float = 1.0, val=No
     calibration's runs (`train`), where its error gathers (`regions`: untaught_regions)."""
     val = val if val is not None else validate(cyl, tuple(effects), valid, horizon_s)
     nrms = val.normalized_rms()
-    where = untaught_regions(cyl, train, valid, val) if train and nrms > TRUSTED_VALID else []
+    where = untaught_regions(cyl, train, valid, val) if train and nrms > TRUSTED_VALID else None
     return {"rmse_x": val.rmse("x"), "rmse_p1": val.rmse("p1"), "rmse_p2": val.rmse("p2"),
             "normalized_rms": nrms, "horizon_s": horizon_s, "segments": len(val.segments),
-            "status": val.status, "trusted_within": TRUSTED_VALID, "regions": where,
+            "status": val.status, "trusted_within": TRUSTED_VALID, "regions": where or [],
             "caveat": misses_valid("the calibrated model", nrms, where) if nrms > TRUSTED_VALID else ""}
 
 

@@ -95,12 +95,12 @@ def untaught_regions(cyl: Cylinder, train: Sequence[Run], valid: Run, val: Valid
     return sorted(out, key=lambda row: -row["concentration"])
 
 
-def misses_valid(who: str, nrms: float, where: Sequence[dict], within: float = TRUSTED_VALID) -> str:
+def misses_valid(who: str, nrms: float, where: Sequence[dict] | None, within: float = TRUSTED_VALID) -> str:
     """The sentence for a model (`who`: "the calibrated model", ...) that misses VALID by `nrms` x
     the noise, beyond `within`: its predictions are no match, and where its error gathers
-    (`where`: untaught_regions), the regimes TRAIN showed it too little of (the runs' fault: a
-    TRAIN that goes there pins it) apart from those TRAIN showed as much as VALID (the model
-    lacks something there)."""
+    (`where`: untaught_regions; None where not looked for), the regimes TRAIN showed it too
+    little of (the runs' fault: a TRAIN that goes there pins it) apart from those TRAIN showed as
+    much as VALID (the model lacks something there); or that no regime holds it."""
     def listed(rows: list[dict], with_train: bool) -> str:
         return ", ".join(f"{r['where']} ({r['concentration']:.2g} × its share of the samples"
                          + (f"; VALID spends {r['valid_fraction']:.1%} of its samples there, "
@@ -108,6 +108,11 @@ def misses_valid(who: str, nrms: float, where: Sequence[dict], within: float = T
 
     text = (f"Do not take its predictions for the rig's: {who} still misses VALID by {nrms:.3g} × the sensor noise "
             f"over all outputs (a model that matches stays within {within:g} ×)")
+    if where is None:
+        return text + "."
+    if not where:
+        return text + (f"; its position error is spread over the run (no regime holds {FAILS_CONCENTRATION:g} × its "
+                       "share of the samples or more): the model is off throughout, not where TRAIN did not go.")
     untaught = [r for r in where if not r["taught"]]
     taught = [r for r in where if r["taught"]]
     if untaught:
