@@ -379,6 +379,10 @@ def test_a_model_that_misses_valid_where_train_did_not_go_says_so(cyl_a):
     said = d.prediction()["caveat"]
     assert "which TRAIN showed as much as VALID: the model still lacks something there" in said
     assert "too little" not in said
+    # TRAIN of two runs (diagnose --calibrate cal.csv run.csv): their samples pooled
+    d.train_runs = (_high_flow_miss(cyl_a, train_goes_there=False).train, d.train)
+    (row,) = [r for r in d.prediction()["regions"] if r["where"] == "high flow (|u| > 0.5)"]
+    assert row["train_fraction"] == pytest.approx(row["valid_fraction"] / 2)
     # within trusted_valid: nothing to add
     d = _diagnosis(cyl_a)
     assert d.prediction()["caveat"] == "" and d.prediction()["regions"] == []

@@ -15,6 +15,7 @@ effect causes it, how far it shrinks once that effect is added.
 - report: the self-contained HTML report (`diagnose.report.write_report`; imports matplotlib)
 - rerun: the diagnosis on Rerun's time line (`diagnose.rerun.log_diagnosis`; imports rerun)
 """
+from ..identify import MIN_REGION_FRACTION, operating_regions, untaught_regions
 from .calibrated import ABSORBED, Absorption, diagnose_calibrated
 from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, explained_share, has_nested_start,
                          neutral_start)
@@ -24,7 +25,6 @@ from .fits import best_of_starts, fit_candidate, further_starts
 from .options import DiagnoseOptions
 from .subsystems import equation_errors, regressor_correlations, subsystem_split
 from .verdict import decide
-from ..identify import MIN_REGION_FRACTION, operating_regions, untaught_regions
 from .where import regions, whiteness
 
 __all__ = ["ABSORBED", "Absorption", "MIN_REGION_FRACTION", "NESTED_START", "Candidate", "DiagnoseOptions", "Diagnosis", "NominalFit",

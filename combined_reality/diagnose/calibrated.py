@@ -595,7 +595,8 @@ def diagnose_calibrated(cyl: Cylinder, runs: Sequence[Run], valid: Run, opts: Di
     found["wall_s"]["pair_and_subsystems"] = round(time.perf_counter() - t6, 3)
     found["wall_s"]["subsystems"] = round(time.perf_counter() - t7, 3)
     return Diagnosis(
-        cylinder=nominal.cylinder, train=runs[0], valid=valid, options=opts, baseline=_baseline_doc(cyl, nom, opts),
+        cylinder=nominal.cylinder, train=runs[0], train_runs=tuple(runs), valid=valid, options=opts,
+        baseline=_baseline_doc(cyl, nom, opts),
         verdict=verdict, verdict_note=verdict_note, calibration=calibration, ranking=ranking, pair=pair,
         regions=regions(nominal.cylinder, valid, base_val, shown.validation if shown is not None else None),
         subsystems=subsystems, whiteness=whiteness(base_val.residual[x_idx]),

@@ -65,6 +65,8 @@ class Diagnosis:
     wall_s: float = 0.0
     verdict_note: str = ""  # why the verdict is a pair or `unexplained`
     calibration: dict | None = None  # with DiagnoseOptions.calibrate: the file's mis-set quantities
+    # every TRAIN run (with calibrate: a calibration run and an ordinary one may be given); () is (train,)
+    train_runs: tuple[Run, ...] = ()
 
     @property
     def best(self) -> Candidate | None:
@@ -91,7 +93,8 @@ class Diagnosis:
             return None
         nrms = val.normalized_rms()
         within = self.options.trusted_valid
-        where = [] if nrms <= within else untaught_regions(self.cylinder, [self.train], self.valid, val)
+        train = self.train_runs or (self.train,)
+        where = [] if nrms <= within else untaught_regions(self.cylinder, train, self.valid, val)
         return {"model": self.verdict, "normalized_rms": nrms, "trusted_within": within, "regions": where,
                 "caveat": "" if nrms <= within else prediction_caveat(self, nrms, where)}
 
