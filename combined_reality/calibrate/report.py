@@ -149,9 +149,9 @@ def _identifiability_html(cal: Calibration) -> str:
 
 def write_calibration_report(cal: Calibration, start: Cylinder, runs: Sequence[Run], path, *,
                              valid: Run | None = None, validation: Validation | None = None,
-                             inputs: Sequence[str] = (), png_dir=None) -> None:
+                             inputs: Sequence[str] = (), png_dir=None, figures: dict | None = None) -> None:
     """The page of a calibration (module docstring), written atomically; with `png_dir`, every
-    plot as a PNG there too."""
+    plot as a PNG there too. `figures`: validation_figures of `validation`, where made already."""
     result = cal.result
     plots = fit_plots(result, runs)
     named = plots.named()
@@ -166,8 +166,10 @@ def write_calibration_report(cal: Calibration, start: Cylinder, runs: Sequence[R
     if validation is not None:
         box.append(f"On VALID, a run no fit saw: {validation.normalized_rms():.2f} × the sensor noise (position RMSE "
                    f"{um(validation.rmse('x'))}).")
-        if valid is not None and (caveat := validation_figures(cal.cylinder, valid, val=validation, train=runs)["caveat"]):
-            box.append(caveat)
+        if figures is None and valid is not None:
+            figures = validation_figures(cal.cylinder, valid, val=validation, train=runs)
+        if figures and figures["caveat"]:
+            box.append(figures["caveat"])
     lacking = grouped(cal.identifiability.undetermined)
     if cal.start_share is not None:
         box.append(f"The stages started from {cal.start_share[0]:.0f} s of the {cal.start_share[1]:.0f} s of data "

@@ -125,7 +125,7 @@ def run(args) -> int:
         from ..calibrate.report import write_calibration_report
 
         write_calibration_report(cal, start, runs, args.report, valid=valid, validation=validation,
-                                 inputs=args.runs)
+                                 inputs=args.runs, figures=out.get("validation"))
         if say:
             say(f"wrote {args.report}")
     if args.write_config:

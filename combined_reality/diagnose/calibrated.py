@@ -66,7 +66,7 @@ from ..calibrate import (CALIBRATED, DATA_STARTS, MECHANICAL, PNEUMATIC, Calibra
                          first_stages, force_balance_in_model, misfit_note, model_start, run_stage, separability,
                          stage_summaries, whole_model)
 from ..files import Run
-from ..identify import IdentificationError, IdentifyResult, Validation, validate, validation_segments
+from ..identify import IdentificationError, IdentifyResult, Validation, regions, validate, validation_segments
 from ..parallel import run_jobs, workers_here
 from .candidates import (NESTED_START, Candidate, NominalFit, candidate_starts, closes_gap, departure_z, gain_over,
                          has_nested_start, held_shapes, score_candidate, shapes_label)
@@ -75,7 +75,7 @@ from .fits import validate_candidate
 from .options import DiagnoseOptions
 from .subsystems import regressor_correlations, subsystem_split
 from .verdict import decide, fold_absent_partner, pair_need, ranked, with_fold_note
-from .where import regions, whiteness
+from .where import whiteness
 
 __all__ = ["ABSORBED", "Absorption", "Screen", "WholeFit", "absorbed_note",
            "calibrated_candidates", "choose", "confounded", "diagnose_calibrated", "handed_over", "nested",

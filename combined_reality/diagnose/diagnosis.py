@@ -31,7 +31,7 @@ from sim.cylinder import Cylinder
 from sim.effects import EFFECTS
 
 from ..files import Run
-from ..identify import (IdentifyOptions, Validation, identify, untaught_regions, validate, validation_segments,
+from ..identify import (IdentifyOptions, Validation, identify, regions, untaught_regions, validate, validation_segments,
                         velocity_estimate)
 from ..parallel import run_jobs
 from ..progress import counter, stage_steps
@@ -41,7 +41,7 @@ from .options import DiagnoseOptions
 from .subsystems import regressor_correlations, subsystem_split
 from .text import fit_caveat, prediction_caveat
 from .verdict import best_pair, decide, fold_absent_partner, ranked, with_fold_note
-from .where import regions, whiteness
+from .where import whiteness
 
 
 @dataclass

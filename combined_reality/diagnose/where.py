@@ -1,38 +1,8 @@
-"""Where the gap lies: the share of the validation position error in each operating regime of
-the run (identify.regimes), and whether the residual is white."""
+"""Whether the validation residual is white (where the gap lies by operating regime:
+identify.regimes.regions)."""
 from __future__ import annotations
 
 import numpy as np
-
-from sim.cylinder import Cylinder
-
-from ..files import Run
-from ..identify import MIN_REGION_FRACTION, Validation, operating_regions
-
-
-def regions(cyl: Cylinder, run: Run, base: Validation, best: Validation | None = None) -> list[dict]:
-    """Where the validation position error lies: share of the squared error per operating
-    regime, how over-represented it is (share / fraction of samples), and the position RMSE
-    there before and (with the verdict's effect) after; most concentrated first, regimes
-    with under MIN_REGION_FRACTION of the samples last."""
-    r = base.residual[base.outputs.index("x")]
-    ok = np.isfinite(r)
-    e2 = np.where(ok, r, 0.0) ** 2
-    total = float(e2.sum()) or 1.0
-    out = []
-    for where, m in operating_regions(cyl, run).items():
-        m = m & ok
-        frac = float(m.sum()) / max(int(ok.sum()), 1)
-        if frac == 0:
-            continue
-        share = float(e2[m].sum()) / total
-        row = {"where": where, "share_of_error": share, "fraction_of_samples": frac,
-               "concentration": share / frac, "rmse_x": float(np.sqrt(e2[m].mean()))}
-        if best is not None:
-            row["rmse_x_after"] = best.rmse("x", m)
-        out.append(row)
-    # a regime of a handful of samples can look concentrated by chance: those last
-    return sorted(out, key=lambda r: (r["fraction_of_samples"] < MIN_REGION_FRACTION, -r["concentration"]))
 
 
 def whiteness(resid: np.ndarray, lags: int = 20, decimate: int = 10) -> dict:

@@ -1,7 +1,7 @@
 """The operating regimes of a run (direction, speed bands, reversals, stroke zones, valve near
-centre, high flow, time spans), and those where a model's error on a run it was not fitted to
-gathers that its fitting runs held too little of (untaught_regions): shared by the diagnosis
-(where the gap lies) and calibrate (how far its VALID can be trusted)."""
+centre, high flow, time spans), the share of a validation's position error in each (regions),
+and those where it gathers that the fitting runs held too little of (untaught_regions): shared
+by the diagnosis (where the gap lies) and calibrate (how far its VALID can be trusted)."""
 from __future__ import annotations
 
 from typing import Sequence
@@ -15,7 +15,7 @@ from .smoothing import velocity_estimate
 from .validation import Validation
 
 __all__ = ["FAILS_CONCENTRATION", "MIN_REGION_FRACTION", "TRUSTED_VALID", "misses_valid", "operating_regions",
-           "untaught_regions"]
+           "regions", "untaught_regions"]
 
 
 def operating_regions(cyl: Cylinder, run: Run) -> dict[str, np.ndarray]:
@@ -54,6 +54,31 @@ def operating_regions(cyl: Cylinder, run: Run) -> dict[str, np.ndarray]:
 MIN_REGION_FRACTION = 0.01  # a regime with fewer samples is listed, never singled out
 
 
+def regions(cyl: Cylinder, run: Run, base: Validation, best: Validation | None = None) -> list[dict]:
+    """Where the validation position error lies: share of the squared error per operating
+    regime, how over-represented it is (share / fraction of samples), and the position RMSE
+    there before and (with the verdict's effect) after; most concentrated first, regimes
+    with under MIN_REGION_FRACTION of the samples last."""
+    r = base.residual[base.outputs.index("x")]
+    ok = np.isfinite(r)
+    e2 = np.where(ok, r, 0.0) ** 2
+    total = float(e2.sum()) or 1.0
+    out = []
+    for where, m in operating_regions(cyl, run).items():
+        m = m & ok
+        frac = float(m.sum()) / max(int(ok.sum()), 1)
+        if frac == 0:
+            continue
+        share = float(e2[m].sum()) / total
+        row = {"where": where, "share_of_error": share, "fraction_of_samples": frac,
+               "concentration": share / frac, "rmse_x": float(np.sqrt(e2[m].mean()))}
+        if best is not None:
+            row["rmse_x_after"] = best.rmse("x", m)
+        out.append(row)
+    # a regime of a handful of samples can look concentrated by chance: those last
+    return sorted(out, key=lambda r: (r["fraction_of_samples"] < MIN_REGION_FRACTION, -r["concentration"]))
+
+
 # a model whose normalized RMS on VALID stays within this (x the sensor noise) matches the rig
 # there; beyond it its predictions carry a caveat (misses_valid)
 TRUSTED_VALID = 2.0
@@ -70,29 +95,17 @@ def untaught_regions(cyl: Cylinder, train: Sequence[Run], valid: Run, val: Valid
     concentration, share_of_error, valid_fraction, train_fraction, taught}, most concentrated
     first. `taught` is False where TRAIN holds under half VALID's share of the regime: there the
     fit saw too little of what VALID asks of the model."""
-    r = val.residual[val.outputs.index("x")]
-    ok = np.isfinite(r)
-    e2 = np.where(ok, r, 0.0) ** 2
-    total = float(e2.sum())
-    if total <= 0:
-        return []
     seen = [operating_regions(cyl, run) for run in train]
     n_train = sum(run.n for run in train)
     out = []
-    for where, m in operating_regions(cyl, valid).items():
-        if where.startswith("time:"):
-            continue
-        m = m & ok
-        frac = float(m.sum()) / max(int(ok.sum()), 1)
-        if frac < MIN_REGION_FRACTION:
-            continue
-        share = float(e2[m].sum()) / total
-        if share / frac < FAILS_CONCENTRATION:
+    for row in regions(cyl, valid, val):
+        where, frac = row["where"], row["fraction_of_samples"]
+        if where.startswith("time:") or frac < MIN_REGION_FRACTION or row["concentration"] < FAILS_CONCENTRATION:
             continue
         trained = sum(int(s[where].sum()) for s in seen) / n_train if n_train else 0.0
-        out.append({"where": where, "concentration": share / frac, "share_of_error": share, "valid_fraction": frac,
-                    "train_fraction": trained, "taught": bool(trained >= 0.5 * frac)})
-    return sorted(out, key=lambda row: -row["concentration"])
+        out.append({"where": where, "concentration": row["concentration"], "share_of_error": row["share_of_error"],
+                    "valid_fraction": frac, "train_fraction": trained, "taught": bool(trained >= 0.5 * frac)})
+    return out  # in regions' order: most concentrated first
 
 
 def misses_valid(who: str, nrms: float, where: Sequence[dict] | None, within: float = TRUSTED_VALID) -> str:
