@@ -378,9 +378,9 @@ class ValveDelay(Effect):
     }
     STATES: ClassVar[tuple[str, ...]] = ("u_eff",)  # the lagged part w u_lag (u_lag at w = 1)
     NEUTRAL: ClassVar[dict[str, float]] = {"share": 0.0}
-    # weak: 0.1 ms (already clearly visible); truths are
-    # pure lags (share 1, no speed limit); share and t_slew let a candidate reach the nominal
-    # plant, a dead time and a rate-limited spool
+    # weak: 0.1 ms (already clearly visible); truths are pure lags (share 1, no speed limit);
+    # share and t_slew let a candidate reach the nominal plant, a dead time and a rate-limited
+    # spool
     STRENGTH: ClassVar[dict[str, tuple[float, float]]] = {"tau": (1e-4, 0.02), "share": (1.0, 1.0),
                                                            "t_slew": (0.0, 0.0)}
     SHAPE: ClassVar[frozenset[str]] = frozenset({"share", "t_slew"})
